@@ -1,0 +1,33 @@
+"""lierk: Lie-group integrators for rigid-body rotation, in JAX.
+
+The public API is re-exported here; each concept lives in its own module.
+Data flows one way: problem (``fields``) -> ``solve(solver)`` -> `Solution`.
+"""
+
+from . import adjoint as adjoint
+from . import body as body
+from . import inertia as inertia
+from . import so3 as so3
+from . import tableaux as tableaux
+from .adjoint import DirectAdjoint as DirectAdjoint
+from .adjoint import ForwardMode as ForwardMode
+from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
+from .controller import Controller as Controller
+from .fields import AbstractProblem as AbstractProblem
+from .fields import FreeRigidBody as FreeRigidBody
+from .solution import RESULTS as RESULTS
+from .solution import SaveAt as SaveAt
+from .solution import Solution as Solution
+from .solve import solve as solve
+from .solvers import CF4 as CF4
+from .solvers import DOP853 as DOP853
+from .solvers import DP54 as DP54
+from .solvers import RKF45 as RKF45
+from .solvers import RKMK as RKMK
+from .solvers import RKMK4 as RKMK4
+from .solvers import AbstractSolver as AbstractSolver
+from .solvers import ExplicitEuler as ExplicitEuler
+from .solvers import LieEuler as LieEuler
+from .solvers import NaiveLieRK4 as NaiveLieRK4
+
+__version__ = "0.1.0"

@@ -1,0 +1,43 @@
+"""Input validation shared by the public constructors and `solve`.
+
+A value known while tracing (a NumPy array or Python number) is checked in
+Python and raises `ValueError` at once, naming the value.  A traced value
+cannot be inspected, so the same condition becomes a run-time check with
+`eqx.error_if`, which raises when the compiled program runs.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import equinox as eqx
+import jax
+import numpy as np
+
+
+def is_traced(*xs) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
+
+
+def check(x, ok: Callable, message: str):
+    """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
+
+    ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
+    the array's own methods).  For traced ``x`` the check is deferred to run time.
+    """
+    if is_traced(x):
+        import jax.numpy as jnp
+
+        return eqx.error_if(x, ~jnp.all(ok(x)), message)
+    if not bool(np.all(ok(np.asarray(x)))):
+        raise ValueError(message.format(value=_show(x)) if "{value}" in message else message)
+    return x
+
+
+def _show(x) -> str:
+    return np.array2string(np.asarray(x), precision=6, separator=", ")
+
+
+def check_shape(x, shape: tuple, name: str):
+    if np.shape(x) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got shape {np.shape(x)}")

@@ -1,0 +1,146 @@
+"""Problems: vector fields on SO(3) x R^n.
+
+A problem describes
+
+    dR/dt = R hat(omega(t, R, y))        (body frame: omega is body angular velocity)
+    dy/dt = g(t, R, y)                   (y: a pytree of extra state, or None)
+
+Solvers do not call ``omega(t, R, y)`` at a matrix ``R`` directly.  They write
+stage points in local coordinates about the step's base point,
+``R = R_n exp(hat(u))``, and ask the problem for the field there with
+``problem.local(base, t, u, y)``, where ``base = problem.base(t, R_n, y_n)``
+describes the base point, ``problem.advance(base, u)`` describes
+``R_n exp(hat(u))`` and ``problem.at(base, t, y)`` evaluates the field there.
+The default base is the matrix ``R`` itself; a problem can do better.  The
+torque-free body needs only its body momentum, ``m = exp(-u) m_n``, which is a
+Rodrigues rotation of one 3-vector, so its stages need no 3x3 products.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import _checks, so3
+from . import inertia as _inertia
+from .body import kinetic_energy
+
+__all__ = ["AbstractProblem", "FreeRigidBody", "check_attitude", "check_vector"]
+
+
+def check_attitude(R0: ArrayLike | None, dtype) -> Array:
+    """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
+    if R0 is None:
+        return jnp.eye(3, dtype=dtype)
+    R0 = jnp.asarray(R0, dtype=dtype)
+    _checks.check_shape(R0, (3, 3), "R0")
+    tol = 1e-6
+    return _checks.check(
+        R0,
+        lambda R: (so3.orthogonality_error(R) < tol) & (jnp.linalg.det(R) > 0),
+        f"R0 must be a rotation matrix (||R^T R - I|| < {tol:g} and det R = +1), got {{value}}",
+    )
+
+
+def check_vector(x: ArrayLike, name: str, dtype) -> Array:
+    x = jnp.asarray(x, dtype=dtype)
+    _checks.check_shape(x, (3,), name)
+    return _checks.check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
+
+
+class AbstractProblem(eqx.Module):
+    """A vector field on SO(3) x R^n with its initial state.
+
+    Subclasses provide ``R0`` (``(3, 3)``), ``y0`` (pytree or None) and
+    `field`; they may override `base`/`local` for cheaper stages and
+    `invariants` for diagnostics.
+    """
+
+    R0: eqx.AbstractVar[Array]
+    y0: eqx.AbstractVar[Any]
+
+    def field(self, t: Array, R: Array, y: Any) -> tuple[Array, Any]:
+        """``(omega, dy/dt)`` at time ``t`` (s), attitude ``R`` ``(3, 3)``, state ``y``.
+        ``omega`` is the body angular velocity ``(3,)`` (rad/s)."""
+        raise NotImplementedError
+
+    def base(self, t: Array, R: Array, y: Any) -> Any:
+        """What `local` needs to know about a step's base point ``R_n``."""
+        return R
+
+    def advance(self, base: Any, u: Array) -> Any:
+        """The base of ``R_n exp(hat(u))`` from the base of ``R_n``; ``u`` is ``(3,)``."""
+        return base @ so3.exp(u)
+
+    def at(self, base: Any, t: Array, y: Any) -> tuple[Array, Any]:
+        """`field` at the point that ``base`` describes."""
+        return self.field(t, base, y)
+
+    def local(self, base: Any, t: Array, u: Array, y: Any) -> tuple[Array, Any]:
+        """`field` at ``R = R_n exp(hat(u))``, given ``base = self.base(t_n, R_n, y_n)``."""
+        return self.at(self.advance(base, u), t, y)
+
+    def invariants(self, R: Array, y: Any) -> dict[str, Array]:
+        """Quantities the exact flow conserves, for diagnostics.  ``R`` may carry
+        leading axes ``(..., 3, 3)``."""
+        return {}
+
+
+class FreeRigidBody(AbstractProblem):
+    """The torque-free rigid body (the report's problem).
+
+    Spatial angular momentum ``L = R0 I omega0`` is constant, so there is no
+    extra state (``y0 = None``) and ``omega = I^{-1} R^T L`` (the report's
+    ``omega_i = I^{-1} W_i^T L``).
+
+    Args:
+        inertia: ``(3, 3)`` symmetric positive-definite, or ``(3,)`` principal
+            moments (kg m^2), in the body frame.
+        omega0: ``(3,)`` initial body angular velocity (rad/s).
+        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
+
+    Example:
+        >>> body = FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
+        >>> sol = lierk.solve(body, lierk.RKMK4(), 10.0, dt=0.01)
+    """
+
+    inertia: Array
+    inertia_inv: Array
+    R0: Array
+    L: Array
+    y0: None = None
+
+    def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
+        inertia = _inertia.tensor(inertia)
+        dtype = jnp.result_type(inertia.dtype, jnp.asarray(omega0).dtype, float)
+        self.inertia = inertia.astype(dtype)
+        omega0 = check_vector(omega0, "omega0", dtype)
+        self.R0 = check_attitude(R0, dtype)
+        self.inertia_inv = jnp.linalg.inv(self.inertia)
+        self.L = self.R0 @ (self.inertia @ omega0)
+
+    @property
+    def omega0(self) -> Array:
+        return self.inertia_inv @ (self.R0.T @ self.L)
+
+    def field(self, t, R, y):
+        return self.inertia_inv @ (R.T @ self.L), None
+
+    def base(self, t, R, y):
+        return R.T @ self.L  # body momentum m_n
+
+    def advance(self, base, u):
+        # R^T L at R_n exp(u) is exp(-u) m_n: a vector rotation, no matrix product.
+        return so3.rotate(-u, base)
+
+    def at(self, base, t, y):
+        return self.inertia_inv @ base, None
+
+    def invariants(self, R, y):
+        m = jnp.einsum("...ji,j->...i", R, self.L)
+        omega = jnp.einsum("ij,...j->...i", self.inertia_inv, m)
+        return {"energy": kinetic_energy(self.inertia, omega), "|L|": jnp.linalg.norm(m, axis=-1)}

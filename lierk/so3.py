@@ -1,0 +1,297 @@
+"""The rotation group SO(3) and its Lie algebra so(3) ~ R^3.
+
+Conventions (those of the seed report):
+
+- ``hat(a) @ b == cross(a, b)``; ``vee`` is its inverse.
+- ``exp(w)`` is the rotation by the angle ``|w|`` (rad) about ``w/|w|``.
+- A rotation matrix ``R`` maps body coordinates to space coordinates.
+
+Every function broadcasts over leading batch axes: vectors are ``(..., 3)`` and
+matrices ``(..., 3, 3)``.  Each works in float32 and float64 and is safe for
+autodiff everywhere it is smooth, including ``w = 0`` ("double where": the
+unselected branch never sees a division by zero, so its cotangent is finite).
+
+References:
+    Munthe-Kaas, "High order Runge-Kutta methods on manifolds", Appl. Numer.
+    Math. 29 (1999).  Iserles, Munthe-Kaas, Norsett, Zanna, "Lie-group methods",
+    Acta Numerica (2000).
+"""
+
+from __future__ import annotations
+
+import jax.numpy as jnp
+from jax import Array
+from jax.typing import ArrayLike
+
+__all__ = [
+    "hat",
+    "vee",
+    "exp",
+    "log",
+    "dexp",
+    "dexpinv",
+    "rotate",
+    "exp_coefficients",
+    "cross",
+    "orthogonality_error",
+    "from_quaternion",
+    "to_quaternion",
+    "from_euler",
+    "to_euler",
+]
+
+
+def _float(x: ArrayLike) -> Array:
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    return x
+
+
+def cross(a: Array, b: Array) -> Array:
+    """``a x b`` for ``(..., 3)`` arrays, written out by component (cheaper than
+    ``jnp.cross``'s transposes inside tight stage loops)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
+
+
+def hat(w: ArrayLike) -> Array:
+    """Skew matrix of ``w``: ``(..., 3) -> (..., 3, 3)`` with ``hat(w) @ b = w x b``."""
+    w = _float(w)
+    if w.shape[-1:] != (3,):
+        raise ValueError(f"hat expects shape (..., 3), got {w.shape}")
+    z = jnp.zeros_like(w[..., 0])
+    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+    return jnp.stack(
+        [
+            jnp.stack([z, -w2, w1], axis=-1),
+            jnp.stack([w2, z, -w0], axis=-1),
+            jnp.stack([-w1, w0, z], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def vee(W: ArrayLike) -> Array:
+    """Inverse of :func:`hat`: ``(..., 3, 3) -> (..., 3)``.  Uses the
+    antisymmetric part, so a slightly non-skew input is projected."""
+    W = _float(W)
+    if W.shape[-2:] != (3, 3):
+        raise ValueError(f"vee expects shape (..., 3, 3), got {W.shape}")
+    return 0.5 * jnp.stack(
+        [W[..., 2, 1] - W[..., 1, 2], W[..., 0, 2] - W[..., 2, 0], W[..., 1, 0] - W[..., 0, 1]],
+        axis=-1,
+    )
+
+
+def _small(dtype) -> float:
+    # Threshold on theta^2 below which the Taylor series are used.  The series
+    # below are truncated after the theta^8 term, so their relative error is
+    # about (theta^2)^5 / 10!; these thresholds keep it below eps.  Above them the
+    # closed forms have no cancellation worse than eps/theta^2 on terms that are
+    # themselves O(theta^2), i.e. an absolute error of O(eps).
+    return 1e-2 if jnp.finfo(dtype).bits >= 64 else 1e-1
+
+
+def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
+    """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``.
+
+    - ``A = sin(theta)/theta``
+    - ``B = (1 - cos(theta))/theta^2``
+    - ``D = (1 - (theta/2) cot(theta/2))/theta^2``
+
+    so that ``exp(hat(u)) = I + A hat(u) + B hat(u)^2`` and
+    ``dexpinv_u(v) = v - u x v / 2 + D u x (u x v)``.  One ``sin``/``cos`` pair
+    of ``theta/2`` serves all three, which is what keeps RKMK stages cheap.
+    """
+    small = theta2 < _small(theta2.dtype)
+    t2 = jnp.where(small, jnp.ones_like(theta2), theta2)
+    theta = jnp.sqrt(t2)
+    half = 0.5 * theta
+    s, c = jnp.sin(half), jnp.cos(half)
+    # sin(theta) = 2 s c and 1 - cos(theta) = 2 s^2: no cancellation near 0.
+    A_closed = 2.0 * s * c / theta
+    B_closed = 2.0 * s * s / t2
+    # D is singular where sin(theta/2) = 0 (theta = 2 pi k, k >= 1); that is a
+    # property of dexpinv itself, not of this formula.
+    D_closed = (1.0 - half * c / s) / t2
+    x = theta2
+    A_series = 1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0)))
+    B_series = 0.5 - x / 24.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0 * (1.0 - x / 90.0)))
+    D_series = 1.0 / 12.0 + x * (1.0 / 720.0 + x * (1.0 / 30240.0 + x * (1.0 / 1209600.0 + x / 47900160.0)))
+    return (
+        jnp.where(small, A_series, A_closed),
+        jnp.where(small, B_series, B_closed),
+        jnp.where(small, D_series, D_closed),
+    )
+
+
+def _sq(u: Array) -> Array:
+    return u[..., 0] ** 2 + u[..., 1] ** 2 + u[..., 2] ** 2
+
+
+def exp(w: ArrayLike) -> Array:
+    """Exponential map ``so(3) -> SO(3)`` (Rodrigues): ``(..., 3) -> (..., 3, 3)``.
+
+    Exact for any angle, including several full turns in one call, and at
+    ``w = 0`` in value and in both forward- and reverse-mode derivatives (the
+    Jacobian there is the three generators ``hat(e_i)``).
+    """
+    w = _float(w)
+    if w.shape[-1:] != (3,):
+        raise ValueError(f"exp expects shape (..., 3), got {w.shape}")
+    A, B, _ = exp_coefficients(_sq(w))
+    K = hat(w)
+    eye = jnp.eye(3, dtype=w.dtype)
+    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+
+
+def rotate(u: ArrayLike, x: ArrayLike) -> Array:
+    """``exp(hat(u)) @ x`` without forming the matrix: ``(..., 3), (..., 3) -> (..., 3)``."""
+    u, x = _float(u), _float(x)
+    A, B, _ = exp_coefficients(_sq(u))
+    ux = cross(u, x)
+    return x + A[..., None] * ux + B[..., None] * cross(u, ux)
+
+
+def dexp(u: ArrayLike, v: ArrayLike) -> Array:
+    """Left-trivialised derivative of exp, ``dexp_u(v) = sum_k ad_u^k v/(k+1)!``.
+
+    ``d/dt exp(u(t)) = hat(dexp_u(u')) exp(u)``; in body form
+    ``d/dt exp(u(t)) = exp(u) hat(dexp_{-u}(u'))``.
+    """
+    u, v = _float(u), _float(v)
+    theta2 = _sq(u)
+    A, B, _ = exp_coefficients(theta2)
+    # C = (1 - A)/theta^2 has the same cancellation as D; use its series near 0.
+    small = theta2 < _small(theta2.dtype)
+    t2 = jnp.where(small, jnp.ones_like(theta2), theta2)
+    C = jnp.where(
+        small,
+        1.0 / 6.0 - theta2 / 120.0 * (1.0 - theta2 / 42.0 * (1.0 - theta2 / 72.0)),
+        (1.0 - A) / t2,
+    )
+    uv = cross(u, v)
+    return v + B[..., None] * uv + C[..., None] * cross(u, uv)
+
+
+def dexpinv(u: ArrayLike, v: ArrayLike) -> Array:
+    """Inverse of :func:`dexp`, in closed form (exact, not truncated).
+
+    ``dexpinv_u(v) = v - 1/2 u x v + D(theta) u x (u x v)`` with ``theta = |u|``
+    and ``D = (1 - (theta/2) cot(theta/2))/theta^2``.
+
+    Sign convention: this is the left (space-frame) form.  For the body-frame
+    equation ``dR/dt = R hat(omega)`` with ``R = R_n exp(hat(u))`` one has
+    ``u' = dexpinv(-u, omega) = omega + 1/2 u x omega + D u x (u x omega)``.
+    Singular at ``|u| = 2 pi k`` (k >= 1), as dexpinv is.
+    """
+    u, v = _float(u), _float(v)
+    _, _, D = exp_coefficients(_sq(u))
+    uv = cross(u, v)
+    return v - 0.5 * uv + D[..., None] * cross(u, uv)
+
+
+def to_quaternion(R: ArrayLike) -> Array:
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix.
+
+    Shepperd's method: the branch on the largest of ``(tr R, R_00, R_11, R_22)``
+    keeps the square root well away from zero, so it is accurate at every angle
+    including pi.  ``(..., 3, 3) -> (..., 4)``.
+    """
+    R = _float(R)
+    r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = r00 + r11 + r22
+    d21 = R[..., 2, 1] - R[..., 1, 2]
+    d02 = R[..., 0, 2] - R[..., 2, 0]
+    d10 = R[..., 1, 0] - R[..., 0, 1]
+    s21 = R[..., 2, 1] + R[..., 1, 2]
+    s02 = R[..., 0, 2] + R[..., 2, 0]
+    s10 = R[..., 1, 0] + R[..., 0, 1]
+
+    def safe_sqrt(x):
+        # Branches that are not selected may see a negative argument; keep their
+        # values and cotangents finite.
+        return jnp.sqrt(jnp.where(x > 0.25, x, jnp.ones_like(x)))
+
+    # Each candidate is 4 q_k^2 for its largest component k, times the others.
+    t0 = safe_sqrt(1.0 + tr)
+    q0 = jnp.stack([t0 * t0, d21, d02, d10], axis=-1) / (2.0 * t0[..., None])
+    t1 = safe_sqrt(1.0 + r00 - r11 - r22)
+    q1 = jnp.stack([d21, t1 * t1, s10, s02], axis=-1) / (2.0 * t1[..., None])
+    t2 = safe_sqrt(1.0 - r00 + r11 - r22)
+    q2 = jnp.stack([d02, s10, t2 * t2, s21], axis=-1) / (2.0 * t2[..., None])
+    t3 = safe_sqrt(1.0 - r00 - r11 + r22)
+    q3 = jnp.stack([d10, s02, s21, t3 * t3], axis=-1) / (2.0 * t3[..., None])
+    k = jnp.argmax(jnp.stack([tr, r00, r11, r22], axis=-1), axis=-1)[..., None]
+    q = jnp.where(k == 0, q0, jnp.where(k == 1, q1, jnp.where(k == 2, q2, q3)))
+    return jnp.where(q[..., :1] < 0, -q, q)
+
+
+def from_quaternion(q: ArrayLike) -> Array:
+    """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first):
+    ``(..., 4) -> (..., 3, 3)``."""
+    q = _float(q)
+    if q.shape[-1:] != (4,):
+        raise ValueError(f"from_quaternion expects shape (..., 4), got {q.shape}")
+    q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
+    w, v = q[..., 0], q[..., 1:]
+    K = hat(v)
+    eye = jnp.eye(3, dtype=q.dtype)
+    return eye + 2.0 * w[..., None, None] * K + 2.0 * (K @ K)
+
+
+def log(R: ArrayLike) -> Array:
+    """Logarithm ``SO(3) -> so(3)``, the rotation vector with ``|w| <= pi``.
+
+    Goes through the quaternion (never ``arccos`` of the trace), so it is stable
+    near 0 and near pi, and ``log(exp(w)) == w`` for ``|w| < pi``.
+    ``(..., 3, 3) -> (..., 3)``.
+    """
+    R = _float(R)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"log expects shape (..., 3, 3), got {R.shape}")
+    q = to_quaternion(R)
+    w, v = q[..., 0], q[..., 1:]
+    n2 = _sq(v)
+    small = n2 < _small(n2.dtype) * 1e-2
+    n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))
+    closed = 2.0 * jnp.arctan2(n, w) / n
+    # 2 atan(n/w)/n = (2/w)(1 - x/3 + x^2/5 - x^3/7 + ...), x = (n/w)^2, w ~ 1.
+    x = n2 / (w * w)
+    series = 2.0 / w * (1.0 - x / 3.0 + x * x / 5.0 - x * x * x / 7.0)
+    return jnp.where(small, series, closed)[..., None] * v
+
+
+def orthogonality_error(R: ArrayLike) -> Array:
+    """Frobenius norm ``||R^T R - I||``: ``(..., 3, 3) -> (...)``."""
+    R = _float(R)
+    E = jnp.swapaxes(R, -1, -2) @ R - jnp.eye(3, dtype=R.dtype)
+    return jnp.sqrt(jnp.sum(E * E, axis=(-2, -1)))
+
+
+def _axis_rotation(angle: Array, axis: int) -> Array:
+    e = jnp.zeros(angle.shape + (3,), angle.dtype).at[..., axis].set(1.0)
+    return exp(angle[..., None] * e)
+
+
+def from_euler(phi: ArrayLike, theta: ArrayLike, psi: ArrayLike) -> Array:
+    """Rotation ``R = Rz(phi) @ Ry(theta) @ Rx(psi)`` (the report's convention;
+    angles in rad).  Scalars or broadcastable arrays ``(...) -> (..., 3, 3)``."""
+    phi, theta, psi = jnp.broadcast_arrays(_float(phi), _float(theta), _float(psi))
+    return _axis_rotation(phi, 2) @ _axis_rotation(theta, 1) @ _axis_rotation(psi, 0)
+
+
+def to_euler(R: ArrayLike) -> Array:
+    """Angles ``(phi, theta, psi)`` (rad) with ``R = Rz(phi) Ry(theta) Rx(psi)``:
+    ``(..., 3, 3) -> (..., 3)``.  ``theta`` lies in ``[-pi/2, pi/2]``; at the
+    gimbal lock ``|theta| = pi/2`` only ``phi - psi`` (or ``phi + psi``) is
+    determined, and ``psi`` is set to 0."""
+    R = _float(R)
+    s = jnp.clip(-R[..., 2, 0], -1.0, 1.0)
+    theta = jnp.arcsin(s)
+    lock = jnp.abs(s) > 1.0 - 10 * jnp.finfo(R.dtype).eps
+    phi = jnp.where(lock, jnp.arctan2(-R[..., 0, 1], R[..., 1, 1]), jnp.arctan2(R[..., 1, 0], R[..., 0, 0]))
+    psi = jnp.where(lock, jnp.zeros_like(theta), jnp.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    return jnp.stack([phi, theta, psi], axis=-1)

@@ -1,0 +1,117 @@
+"""What `solve` returns, what it saves, and how it reports failure."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+__all__ = ["RESULTS", "SaveAt", "Solution"]
+
+
+class RESULTS:
+    """Result codes carried by `Solution.result` (an int array, one per batch member)."""
+
+    successful = 0
+    max_steps_reached = 1
+    dt_min_reached = 2
+    nonfinite = 3
+
+    messages = {
+        0: "successful",
+        1: "max_steps was reached before t1; raise max_steps or loosen the tolerances",
+        2: "the step size fell below dtmin (or below machine precision relative to t): "
+        "the tolerance is unreachable here; loosen rtol/atol or lower dtmin",
+        3: "the solution became non-finite (NaN or inf)",
+    }
+
+    @classmethod
+    def message(cls, code) -> str:
+        return cls.messages[int(code)]
+
+
+class SaveAt(eqx.Module):
+    """Which states `solve` returns.  Several may be combined; they are stored in
+    time order.
+
+    Attributes:
+        t0: the initial state.
+        t1: the final state.
+        steps: ``True`` for every step, or an int ``k`` for every k-th step
+            (fixed-step solves).  Adaptive solves store every accepted step in
+            buffers of length ``max_steps``, padded with ``inf`` times and NaN
+            states; `Solution.n_saved` counts the valid entries.
+        ts: ``(n,)`` increasing times in ``[t0, t1]``.  Adaptive solves
+            interpolate them on the group (cubic Hermite in the algebra about
+            each step's base point); fixed-step solves require them to be on
+            the step grid.
+    """
+
+    t0: bool = eqx.field(default=False, static=True)
+    t1: bool = eqx.field(default=False, static=True)
+    steps: bool | int = eqx.field(default=False, static=True)
+    ts: Array | None = None
+
+    def __check_init__(self):
+        if isinstance(self.steps, bool):
+            pass
+        elif not (isinstance(self.steps, (int, np.integer)) and self.steps >= 1):
+            raise ValueError(f"SaveAt(steps=...) must be True, False or a positive int, got {self.steps!r}")
+        if not (self.t0 or self.t1 or self.steps or self.ts is not None):
+            raise ValueError("SaveAt saves nothing: set t0, t1, steps or ts")
+        if self.ts is not None and np.ndim(self.ts) != 1:
+            raise ValueError(f"SaveAt(ts=...) must be one-dimensional, got shape {np.shape(self.ts)}")
+
+    @property
+    def every(self) -> int:
+        """Save every this-many steps (0 for none)."""
+        return int(self.steps) if self.steps is not True else 1
+
+
+class Solution(eqx.Module):
+    """A solved trajectory.  Leading batch axes appear in front under `vmap`.
+
+    Attributes:
+        ts: ``(..., n_save)`` times (s).
+        R: ``(..., n_save, 3, 3)`` attitudes, body -> space.
+        y: extra state at the saved times (leaves ``(..., n_save, *shape)``), or None.
+        n_saved: ``(...)`` number of valid saved entries (the rest is padding).
+        stats: dict of int arrays: ``num_steps`` (attempted), ``num_accepted_steps``,
+            ``num_rejected_steps``, ``num_fevals``.
+        result: ``(...)`` int code from `RESULTS`; 0 is success.
+    """
+
+    ts: Array
+    R: Array
+    y: Any
+    n_saved: Array
+    stats: dict
+    result: Array
+
+    @property
+    def ok(self) -> Array:
+        return self.result == RESULTS.successful
+
+    def invariants(self, problem) -> dict[str, Array]:
+        """The problem's conserved quantities at each saved point."""
+        return problem.invariants(self.R, self.y)
+
+    @property
+    def orthogonality_error(self) -> Array:
+        """``||R^T R - I||`` at each saved point: ``(..., n_save)``."""
+        from .so3 import orthogonality_error
+
+        return orthogonality_error(self.R)
+
+
+def raise_if_failed(sol: Solution, throw: bool) -> Solution:
+    """With ``throw``, turn a non-success result into a run-time error naming it."""
+    if not throw:
+        return sol
+    for code, message in RESULTS.messages.items():
+        if code != RESULTS.successful:
+            sol = eqx.error_if(sol, jnp.any(sol.result == code), f"lierk.solve failed: {message}")
+    return sol

@@ -1,0 +1,14 @@
+"""Solvers: one file per family; `base` holds what they share."""
+
+from .base import AbstractSolver as AbstractSolver
+from .base import Step as Step
+from .cf import CF4 as CF4
+from .euler import ExplicitEuler as ExplicitEuler
+from .euler import LieEuler as LieEuler
+from .rkmk import DOP853 as DOP853
+from .rkmk import DP54 as DP54
+from .rkmk import RKF45 as RKF45
+from .rkmk import RKMK as RKMK
+from .rkmk import RKMK4 as RKMK4
+from .rkmk import AbstractRKMK as AbstractRKMK
+from .rkmk import NaiveLieRK4 as NaiveLieRK4

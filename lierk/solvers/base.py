@@ -1,0 +1,70 @@
+"""What every solver provides, and the record of one step."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar, NamedTuple
+
+import equinox as eqx
+import jax
+from jax import Array
+
+
+class Step(NamedTuple):
+    """The outcome of one step from ``(t, R, y)`` with step size ``h``.
+
+    Attributes:
+        R: ``(3, 3)`` attitude at ``t + h``.
+        y: extra state at ``t + h`` (pytree or None).
+        u: ``(3,)`` algebra increment, ``R_new = R exp(hat(u))`` (None for
+            `ExplicitEuler`, which leaves the group).
+        error: ``(e_u, e_y)`` embedded error estimate in the algebra and in y,
+            or None for a method without one.
+        fsal: field value at the new point, reusable as the next step's first
+            stage (``(omega, dy/dt)``), or None.
+    """
+
+    R: Array
+    y: Any
+    u: Array | None
+    error: tuple | None
+    fsal: Any
+
+
+class AbstractSolver(eqx.Module):
+    """An immutable solver with a pure `step`.
+
+    Class attributes:
+        order: global order of accuracy on a generic (non-commuting) problem.
+        stages: field evaluations per step.
+        adaptive: whether `step` returns an embedded error estimate.
+    """
+
+    order: ClassVar[int]
+    stages: ClassVar[int] = 1
+    adaptive: ClassVar[bool] = False
+    error_order: ClassVar[int | None] = None
+
+    def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
+        raise NotImplementedError
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+
+def combine(x, h, coeffs, ks):
+    """``x + h * sum_i coeffs[i] * ks[i]`` leaf by leaf over pytrees, skipping
+    exact zeros at trace time (tableaux are constants)."""
+    terms = [(c, k) for c, k in zip(coeffs, ks) if c != 0.0]
+
+    def leaf(x0, *kk):
+        acc = None
+        for (c, _), k in zip(terms, kk):
+            acc = c * k if acc is None else acc + c * k
+        if acc is None:
+            return x0
+        return h * acc if x0 is None else x0 + h * acc
+
+    if x is None:
+        return jax.tree_util.tree_map(lambda *kk: leaf(None, *kk), *[k for _, k in terms]) if terms else None
+    return jax.tree_util.tree_map(leaf, x, *[k for _, k in terms])

@@ -1,0 +1,183 @@
+"""Butcher tableaux as validated constants.
+
+Each tableau is checked once, when it is defined: ``c_i = sum_j a_ij``,
+``sum_i b_i = 1``, the error weights sum to 0, the classical order conditions
+up to order ``min(order, 4)`` hold, and an FSAL tableau's last row of ``a``
+equals ``b``.  With the exact dexpinv of `lierk.so3`, every explicit tableau
+here drives an RKMK method of the tableau's own order (Munthe-Kaas 1999).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from fractions import Fraction as F
+
+import numpy as np
+
+__all__ = ["ButcherTableau", "EULER", "RK4", "FEHLBERG45", "DOPRI54", "DOP853"]
+
+
+@dataclasses.dataclass(frozen=True)
+class ButcherTableau:
+    """An explicit Runge-Kutta tableau, hashable so it can be a static field.
+
+    Attributes:
+        name: for messages and plots.
+        c: ``(s,)`` nodes.
+        a: strictly lower-triangular rows; row ``i`` has ``i`` entries.
+        b: ``(s,)`` weights of the propagated solution.
+        order: order of the propagated solution.
+        b_error: ``(s,)`` weights of the embedded error estimate
+            ``e = h sum_i b_error_i k_i`` (``b - b_hat``), or None.
+        error_order: the lower order ``q`` of the pair; step control uses the
+            exponent ``-1/(q+1)``.
+        b_error3: DOP853 only: the 3rd-order estimate that its error norm
+            combines with the 5th-order one (Hairer, Norsett, Wanner I, II.10).
+        fsal: the last stage is evaluated at the new point, so its field value
+            is the next step's first stage.
+    """
+
+    name: str
+    c: tuple
+    a: tuple
+    b: tuple
+    order: int
+    b_error: tuple | None = None
+    error_order: int | None = None
+    b_error3: tuple | None = None
+    fsal: bool = False
+
+    def __post_init__(self):
+        s = len(self.c)
+        tol = 1e-12
+        if len(self.a) != s or len(self.b) != s:
+            raise ValueError(f"{self.name}: c, a and b must have {s} rows")
+        for i, row in enumerate(self.a):
+            if len(row) != i:
+                raise ValueError(f"{self.name}: row {i} of a must have {i} entries, has {len(row)}")
+            if abs(sum(row) - self.c[i]) > tol:
+                raise ValueError(f"{self.name}: c[{i}] = {self.c[i]} but row {i} of a sums to {sum(row)}")
+        if abs(sum(self.b) - 1) > tol:
+            raise ValueError(f"{self.name}: b sums to {sum(self.b)}, not 1")
+        for name, e in (("b_error", self.b_error), ("b_error3", self.b_error3)):
+            if e is not None and (len(e) != s or abs(sum(e)) > tol):
+                raise ValueError(f"{self.name}: {name} must have {s} entries summing to 0")
+        if (self.b_error is None) != (self.error_order is None):
+            raise ValueError(f"{self.name}: give b_error and error_order together")
+        if self.fsal and (self.c[-1] != 1 or any(abs(x - y) > tol for x, y in zip(self.a[-1], self.b))):
+            raise ValueError(f"{self.name}: an FSAL tableau's last row of a must equal b")
+        A, b, c = self.a_matrix, np.asarray(self.b), np.asarray(self.c)
+        conditions = [
+            (1, b @ c, 1 / 2),
+            (2, b @ c**2, 1 / 3),
+            (2, b @ (A @ c), 1 / 6),
+            (3, b @ c**3, 1 / 4),
+            (3, b @ (c * (A @ c)), 1 / 8),
+            (3, b @ (A @ c**2), 1 / 12),
+            (3, b @ (A @ (A @ c)), 1 / 24),
+        ]
+        for k, value, want in conditions:
+            if self.order > k and abs(value - want) > 1e-10:
+                raise ValueError(f"{self.name}: an order-{k + 1} condition fails ({value} != {want})")
+
+    @property
+    def stages(self) -> int:
+        return len(self.c)
+
+    @property
+    def a_matrix(self) -> np.ndarray:
+        A = np.zeros((self.stages, self.stages))
+        for i, row in enumerate(self.a):
+            A[i, :i] = row
+        return A
+
+
+def _f(*xs) -> tuple:
+    return tuple(float(F(x)) for x in xs)
+
+
+EULER = ButcherTableau("Euler", c=(0.0,), a=((),), b=(1.0,), order=1)
+
+RK4 = ButcherTableau(
+    "RK4",
+    c=_f(0, "1/2", "1/2", 1),
+    a=((), _f("1/2"), _f(0, "1/2"), _f(0, 0, 1)),
+    b=_f("1/6", "1/3", "1/3", "1/6"),
+    order=4,
+)
+
+# The report's Fehlberg 4(5) tableau (oppg4_fehlberg.py); advance with order 5.
+_FEHLBERG_B4 = _f("25/216", 0, "1408/2565", "2197/4104", "-1/5", 0)
+_FEHLBERG_B5 = _f("16/135", 0, "6656/12825", "28561/56430", "-9/50", "2/55")
+FEHLBERG45 = ButcherTableau(
+    "Fehlberg 4(5)",
+    c=_f(0, "1/4", "3/8", "12/13", 1, "1/2"),
+    a=(
+        (),
+        _f("1/4"),
+        _f("3/32", "9/32"),
+        _f("1932/2197", "-7200/2197", "7296/2197"),
+        _f("439/216", -8, "3680/513", "-845/4104"),
+        _f("-8/27", 2, "-3544/2565", "1859/4104", "-11/40"),
+    ),
+    b=_FEHLBERG_B5,
+    order=5,
+    b_error=tuple(x - y for x, y in zip(_FEHLBERG_B5, _FEHLBERG_B4)),
+    error_order=4,
+)
+
+_DP_B5 = _f("35/384", 0, "500/1113", "125/192", "-2187/6784", "11/84", 0)
+_DP_B4 = _f("5179/57600", 0, "7571/16695", "393/640", "-92097/339200", "187/2100", "1/40")
+DOPRI54 = ButcherTableau(
+    "Dormand-Prince 5(4)",
+    c=_f(0, "1/5", "3/10", "4/5", "8/9", 1, 1),
+    a=(
+        (),
+        _f("1/5"),
+        _f("3/40", "9/40"),
+        _f("44/45", "-56/15", "32/9"),
+        _f("19372/6561", "-25360/2187", "64448/6561", "-212/729"),
+        _f("9017/3168", "-355/33", "46732/5247", "49/176", "-5103/18656"),
+        _DP_B5[:6],
+    ),
+    b=_DP_B5,
+    order=5,
+    b_error=tuple(x - y for x, y in zip(_DP_B5, _DP_B4)),
+    error_order=4,
+    fsal=True,
+)
+
+# Dormand-Prince 8(5,3) (DOP853) coefficients as published by Hairer and
+# Wanner and distributed with SciPy (scipy/integrate/_ivp/dop853_coefficients.py,
+# BSD licence).  The 13th stage is the FSAL evaluation at the new point, which
+# the error estimates use.
+_DOP853_C = (0.0, 0.05260015195876773, 0.0789002279381516, 0.1183503419072274, 0.2816496580927726, 0.3333333333333333, 0.25, 0.3076923076923077, 0.6512820512820513, 0.6, 0.8571428571428571, 1.0, 1.0)
+_DOP853_A = (
+    (),
+    (0.05260015195876773,),
+    (0.0197250569845379, 0.0591751709536137),
+    (0.02958758547680685, 0.0, 0.08876275643042054),
+    (0.2413651341592667, 0.0, -0.8845494793282861, 0.924834003261792),
+    (0.037037037037037035, 0.0, 0.0, 0.17082860872947386, 0.12546768756682242),
+    (0.037109375, 0.0, 0.0, 0.17025221101954405, 0.06021653898045596, -0.017578125),
+    (0.03709200011850479, 0.0, 0.0, 0.17038392571223998, 0.10726203044637328, -0.015319437748624402, 0.008273789163814023),
+    (0.6241109587160757, 0.0, 0.0, -3.3608926294469414, -0.868219346841726, 27.59209969944671, 20.154067550477894, -43.48988418106996),
+    (0.47766253643826434, 0.0, 0.0, -2.4881146199716677, -0.590290826836843, 21.230051448181193, 15.279233632882423, -33.28821096898486, -0.020331201708508627),
+    (-0.9371424300859873, 0.0, 0.0, 5.186372428844064, 1.0914373489967295, -8.149787010746927, -18.52006565999696, 22.739487099350505, 2.4936055526796523, -3.0467644718982196),
+    (2.273310147516538, 0.0, 0.0, -10.53449546673725, -2.0008720582248625, -17.9589318631188, 27.94888452941996, -2.8589982771350235, -8.87285693353063, 12.360567175794303, 0.6433927460157636),
+    (0.054293734116568765, 0.0, 0.0, 0.0, 0.0, 4.450312892752409, 1.8915178993145003, -5.801203960010585, 0.3111643669578199, -0.1521609496625161, 0.20136540080403034, 0.04471061572777259),
+)
+_DOP853_B = (0.054293734116568765, 0.0, 0.0, 0.0, 0.0, 4.450312892752409, 1.8915178993145003, -5.801203960010585, 0.3111643669578199, -0.1521609496625161, 0.20136540080403034, 0.04471061572777259, 0.0)
+_DOP853_E5 = (0.01312004499419488, 0.0, 0.0, 0.0, 0.0, -1.2251564463762044, -0.4957589496572502, 1.6643771824549864, -0.35032884874997366, 0.3341791187130175, 0.08192320648511571, -0.022355307863886294, 0.0)
+_DOP853_E3 = (-0.18980075407240762, 0.0, 0.0, 0.0, 0.0, 4.450312892752409, 1.8915178993145003, -5.801203960010585, -0.4226823213237919, -0.1521609496625161, 0.20136540080403034, 0.02265179219836082, 0.0)
+DOP853 = ButcherTableau(
+    "DOP853",
+    c=_DOP853_C,
+    a=_DOP853_A,
+    b=_DOP853_B,
+    order=8,
+    b_error=_DOP853_E5,
+    error_order=7,
+    b_error3=_DOP853_E3,
+    fsal=True,
+)

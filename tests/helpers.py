@@ -1,0 +1,46 @@
+"""Shared test fixtures: every solver, reference solutions, and problems."""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.integrate import solve_ivp
+
+import lierk
+
+FIXED_SOLVERS = [
+    lierk.ExplicitEuler(),
+    lierk.LieEuler(),
+    lierk.NaiveLieRK4(),
+    lierk.RKMK4(),
+    lierk.CF4(),
+    lierk.RKMK(lierk.tableaux.RK4),
+]
+LIE_SOLVERS = [s for s in FIXED_SOLVERS if not isinstance(s, lierk.ExplicitEuler)]
+ADAPTIVE_SOLVERS = [lierk.RKF45(), lierk.DP54(), lierk.DOP853()]
+ALL_SOLVERS = FIXED_SOLVERS + ADAPTIVE_SOLVERS
+
+TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])
+# A non-commuting test problem: the T-handle off its axes.
+OMEGA_GENERIC = np.array([1.0, 0.05, 0.3])
+
+
+def reference_R(inertia, omega0, t1, R0=None, rtol=1e-13):
+    """R(t1) of the torque-free body from SciPy's DOP853 on the 9-component ODE."""
+    inertia = np.asarray(inertia, dtype=float)
+    R0 = np.eye(3) if R0 is None else np.asarray(R0, dtype=float)
+    L = R0 @ inertia @ np.asarray(omega0, dtype=float)
+    Iinv = np.linalg.inv(inertia)
+
+    def f(t, x):
+        R = x.reshape(3, 3)
+        w = Iinv @ R.T @ L
+        W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
+        return (R @ W).ravel()
+
+    sol = solve_ivp(f, (0.0, t1), R0.ravel(), method="DOP853", rtol=rtol, atol=rtol)
+    return sol.y[:, -1].reshape(3, 3)
+
+
+def order_fit(hs, errs) -> float:
+    """Slope of log(error) against log(h)."""
+    return float(np.polyfit(np.log(hs), np.log(errs), 1)[0])
