@@ -5,19 +5,29 @@ Data flows one way: problem (``fields``) -> ``solve(solver)`` -> `Solution`.
 """
 
 from . import adjoint as adjoint
+from . import batch as batch
 from . import body as body
+from . import effects as effects
+from . import exact as exact
 from . import inertia as inertia
+from . import scene as scene
 from . import so3 as so3
 from . import tableaux as tableaux
 from .adjoint import DirectAdjoint as DirectAdjoint
 from .adjoint import ForwardMode as ForwardMode
 from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .controller import Controller as Controller
+from .effects import BodyTorque as BodyTorque
+from .effects import Damping as Damping
+from .effects import Gravity as Gravity
+from .effects import RigidBodyWithEffects as RigidBodyWithEffects
+from .effects import SpaceTorque as SpaceTorque
 from .fields import AbstractProblem as AbstractProblem
 from .fields import FreeRigidBody as FreeRigidBody
 from .solution import RESULTS as RESULTS
 from .solution import SaveAt as SaveAt
 from .solution import Solution as Solution
+from .batch import sweep as sweep
 from .solve import solve as solve
 from .solvers import CF4 as CF4
 from .solvers import DOP853 as DOP853

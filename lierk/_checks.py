@@ -12,7 +12,24 @@ from typing import Callable
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
+
+
+def asarray(x, dtype=None):
+    """``x`` as a NumPy array when its value is known now, so that `check` can
+    raise while tracing; as a JAX array when it is traced.  (Inside `jax.jit`,
+    even ``jnp.asarray(0.1)`` is a tracer, so NumPy is the only way to keep a
+    constant inspectable.)  Integers become the default float type."""
+    if is_traced(x):
+        x = jnp.asarray(x)
+        if dtype is None and not jnp.issubdtype(x.dtype, jnp.floating):
+            dtype = jnp.result_type(float)
+        return x if dtype is None else x.astype(dtype)
+    x = np.asarray(x)
+    if dtype is None and not np.issubdtype(x.dtype, np.floating):
+        dtype = jnp.result_type(float)
+    return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 
 def is_traced(*xs) -> bool:
@@ -28,7 +45,8 @@ def check(x, ok: Callable, message: str):
     if is_traced(x):
         import jax.numpy as jnp
 
-        return eqx.error_if(x, ~jnp.all(ok(x)), message)
+        # The value is only known at run time; say which check failed.
+        return eqx.error_if(x, ~jnp.all(ok(x)), message.replace("{value}", "a traced value that failed the check"))
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=_show(x)) if "{value}" in message else message)
     return x

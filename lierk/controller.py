@@ -63,11 +63,11 @@ class Controller(eqx.Module):
         dtmax: ArrayLike = float("inf"),
     ):
         def positive(name, x, allow_zero=False):
-            x = jnp.asarray(x, dtype=jnp.result_type(x, float))
-            if jnp.ndim(x) != 0:
+            x = _checks.asarray(x)
+            if x.ndim != 0:
                 raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}")
             ok = (lambda v: v >= 0) if allow_zero else (lambda v: v > 0)
-            return _checks.check(x, ok, f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {{value}}")
+            return jnp.asarray(_checks.check(x, ok, f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {{value}}"))
 
         self.rtol = positive("rtol", rtol, allow_zero=True)
         self.atol = positive("atol", atol, allow_zero=True)

@@ -22,6 +22,7 @@ from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -36,20 +37,24 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
     if R0 is None:
         return jnp.eye(3, dtype=dtype)
-    R0 = jnp.asarray(R0, dtype=dtype)
+    R0 = _checks.asarray(R0, dtype)
     _checks.check_shape(R0, (3, 3), "R0")
     tol = 1e-6
-    return _checks.check(
+    xp = np if isinstance(R0, np.ndarray) else jnp
+    R0 = _checks.check(R0, lambda R: (R == R).all() & (abs(R) < float("inf")).all(), "R0 has NaN or inf entries: {value}")
+    R0 = _checks.check(
         R0,
-        lambda R: (so3.orthogonality_error(R) < tol) & (jnp.linalg.det(R) > 0),
+        lambda R: (xp.linalg.norm(R.T @ R - xp.eye(3)) < tol) & (xp.linalg.det(R) > 0),
         f"R0 must be a rotation matrix (||R^T R - I|| < {tol:g} and det R = +1), got {{value}}",
     )
+    return jnp.asarray(R0)
 
 
 def check_vector(x: ArrayLike, name: str, dtype) -> Array:
-    x = jnp.asarray(x, dtype=dtype)
+    x = _checks.asarray(x, dtype)
     _checks.check_shape(x, (3,), name)
-    return _checks.check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
+    x = _checks.check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
+    return jnp.asarray(x)
 
 
 class AbstractProblem(eqx.Module):
@@ -116,7 +121,7 @@ class FreeRigidBody(AbstractProblem):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         inertia = _inertia.tensor(inertia)
-        dtype = jnp.result_type(inertia.dtype, jnp.asarray(omega0).dtype, float)
+        dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0).dtype, float)
         self.inertia = inertia.astype(dtype)
         omega0 = check_vector(omega0, "omega0", dtype)
         self.R0 = check_attitude(R0, dtype)

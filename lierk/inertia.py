@@ -43,11 +43,10 @@ def tensor(inertia: ArrayLike) -> Array:
         ValueError: wrong shape, NaN/inf, not symmetric, or not positive
             definite (checked at run time with `eqx.error_if` when traced).
     """
-    inertia = jnp.asarray(inertia)
-    if not jnp.issubdtype(inertia.dtype, jnp.floating):
-        inertia = inertia.astype(jnp.result_type(float))
+    inertia = _checks.asarray(inertia)
+    xp = np if isinstance(inertia, np.ndarray) else jnp
     if inertia.shape == (3,):
-        inertia = jnp.diag(inertia)
+        inertia = xp.diag(inertia)
     if inertia.shape != (3, 3):
         raise ValueError(f"inertia must have shape (3, 3) or (3,), got shape {inertia.shape}")
     inertia = _checks.check(
@@ -72,7 +71,7 @@ def tensor(inertia: ArrayLike) -> Array:
         ),
         "inertia must be positive definite, got {value}",
     )
-    return inertia
+    return jnp.asarray(inertia)
 
 
 def _positive(name: str, value) -> float:

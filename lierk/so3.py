@@ -141,10 +141,30 @@ def exp(w: ArrayLike) -> Array:
     w = _float(w)
     if w.shape[-1:] != (3,):
         raise ValueError(f"exp expects shape (..., 3), got {w.shape}")
-    A, B, _ = exp_coefficients(_sq(w))
-    K = hat(w)
-    eye = jnp.eye(3, dtype=w.dtype)
-    return eye + A[..., None, None] * K + B[..., None, None] * (K @ K)
+    theta2 = _sq(w)
+    A, B, _ = exp_coefficients(theta2)
+    # hat(w)^2 = w w^T - theta^2 I, so exp = (1 - B theta^2) I + A hat(w) + B w w^T,
+    # written entry by entry: XLA on CPU runs a batched 3x3 matmul as a separate
+    # dot kernel that no elementwise work fuses into (about 15% of an RKMK4 step).
+    w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+    c = 1.0 - B * theta2
+    Aw0, Aw1, Aw2 = A * w0, A * w1, A * w2
+    Bw0, Bw1 = B * w0, B * w1
+    b01, b02, b12 = Bw0 * w1, Bw0 * w2, Bw1 * w2
+    return jnp.stack(
+        [
+            jnp.stack([c + Bw0 * w0, b01 - Aw2, b02 + Aw1], axis=-1),
+            jnp.stack([b01 + Aw2, c + Bw1 * w1, b12 - Aw0], axis=-1),
+            jnp.stack([b02 - Aw1, b12 + Aw0, c + B * w2 * w2], axis=-1),
+        ],
+        axis=-2,
+    )
+
+
+def _matmul(X: Array, Y: Array) -> Array:
+    """``X @ Y`` for ``(..., 3, 3)`` stacks as elementwise products that fuse
+    with their neighbours (see `exp`): for the last product of a solver step."""
+    return X[..., :, 0:1] * Y[..., 0:1, :] + X[..., :, 1:2] * Y[..., 1:2, :] + X[..., :, 2:3] * Y[..., 2:3, :]
 
 
 def rotate(u: ArrayLike, x: ArrayLike) -> Array:

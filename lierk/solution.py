@@ -44,10 +44,10 @@ class SaveAt(eqx.Module):
             (fixed-step solves).  Adaptive solves store every accepted step in
             buffers of length ``max_steps``, padded with ``inf`` times and NaN
             states; `Solution.n_saved` counts the valid entries.
-        ts: ``(n,)`` increasing times in ``[t0, t1]``.  Adaptive solves
-            interpolate them on the group (cubic Hermite in the algebra about
-            each step's base point); fixed-step solves require them to be on
-            the step grid.
+        ts: ``(n,)`` non-decreasing times in ``[t0, t1]`` (adaptive solves).
+            Steps are shortened to end exactly on each of them, so the saved
+            states carry the solver's own accuracy, with no interpolation
+            error; dense ``ts`` therefore cost steps.
     """
 
     t0: bool = eqx.field(default=False, static=True)

@@ -126,6 +126,8 @@ def solve(
         raise ValueError(f"adaptive solves save every accepted step (SaveAt(steps=True)), not every {saveat.steps}-th")
     if saveat.steps and saveat.ts is not None:
         raise ValueError("SaveAt(steps=True) and SaveAt(ts=...) cannot be combined in one adaptive solve")
+    # Tolerances given as Python floats become float64 under x64; compute in the problem's dtype.
+    controller = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype), controller)
     adjoint = RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     if not isinstance(adjoint, AbstractAdjoint):
         raise ValueError(f"adjoint must be a lierk.adjoint object, got {adjoint!r}")
@@ -140,7 +142,7 @@ def solve(
 def _scalar(x, name, dtype) -> Array:
     if np.ndim(x) != 0:
         raise ValueError(f"{name} must be a scalar, got shape {np.shape(x)}")
-    x = jnp.asarray(x, dtype=dtype)
+    x = _checks.asarray(x, dtype)
     return _checks.check(x, lambda v: (v == v) & (abs(v) < float("inf")), f"{name} must be finite, got {{value}}")
 
 
@@ -169,7 +171,9 @@ def _finite(tree) -> Array:
 
 def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps) -> Solution:
     n = _num_steps(t0, t1, dt, max_steps)
-    snap = 1e-9 * dt
+    # Times within rounding of t1 count as t1.  1e-9 dt alone is below float32
+    # resolution: there n * dt can miss t1 by a few ulps of t1.
+    snap = jnp.maximum(1e-9 * dt, 64 * jnp.finfo(dt.dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
 
     def time(k):
         tk = t0 + k.astype(dt.dtype) * dt
@@ -308,9 +312,13 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         return ~c.done
 
     def body(c: _Carry) -> _Carry:
-        remaining = t1 - c.t
-        last = c.h >= remaining
-        h = jax.lax.stop_gradient(jnp.where(last, remaining, c.h))
+        # Steps end exactly on each requested save time, so saved states carry
+        # the solver's own accuracy (no interpolation error), then on t1.
+        stop = t1 if ts_req is None else jnp.min(jnp.where(ts_req > c.t, ts_req, t1))
+        remaining = stop - c.t
+        clipped = c.h >= remaining
+        last = clipped & (stop >= t1)
+        h = jax.lax.stop_gradient(jnp.where(clipped, remaining, c.h))
         st = solver.step(problem, c.t, h, c.R, c.y, c.f)
         err = controller.norm(st.error[0], st.error[1], c.y, st.y)
         if len(st.error) == 3:
@@ -320,13 +328,13 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
             err = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
         err = jax.lax.stop_gradient(err)
-        t_new = jnp.where(last, t1, c.t + h)
+        t_new = jnp.where(clipped, stop, c.t + h)
         f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
         finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)
         accept = finite & (err <= 1.0)
         h_next = jnp.minimum(h * controller.factor(err, tab_q, c.rejected_last), controller.dtmax)
-        # Keep the proposed step when only the end of the interval shortened it.
-        h_next = jnp.where(accept & last, jnp.maximum(h_next, c.h), h_next)
+        # Keep the proposed step when only a save time or t1 shortened it.
+        h_next = jnp.where(accept & clipped, jnp.maximum(h_next, c.h), h_next)
         h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
         stuck = ~accept & (h_next < h_floor)
 
@@ -345,7 +353,13 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             )
             save_index = save_index + accept.astype(jnp.int32)
         elif ts_req is not None:
-            saved = _interpolate_into(saved, accept, c, h, t_new, st, f_new, ts_req)
+            ts_b, R_b, y_b = saved
+            write = accept & (ts_req == t_new)
+            saved = (
+                ts_b,
+                jnp.where(write[:, None, None], st.R, R_b),
+                jax.tree_util.tree_map(lambda b, v: jnp.where(write.reshape((-1,) + (1,) * v.ndim), v, b), y_b, st.y),
+            )
 
         return _Carry(
             t=jnp.where(accept, t_new, c.t),
@@ -386,44 +400,12 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
     # The first stage is reused from the previous step; the field at the new
     # point is either the FSAL stage or one extra evaluation.
     fevals_per_attempt = solver.stages - (1 if solver.tableau.fsal else 0)
+    # One evaluation at t0, plus one inside the automatic first-step estimate.
+    fevals_setup = 1 if dt0 is not None else 2
     stats = {
         "num_steps": final.num_steps,
         "num_accepted_steps": final.num_accepted,
         "num_rejected_steps": final.num_rejected,
-        "num_fevals": 1 + final.num_steps * fevals_per_attempt,
+        "num_fevals": fevals_setup + final.num_steps * fevals_per_attempt,
     }
     return Solution(jnp.concatenate(ts), R, y, jnp.asarray(n_saved), stats, result)
-
-
-def _interpolate_into(saved, accept, c: _Carry, h, t_new, st, f_new, ts_req):
-    """Write every requested time in ``(t, t_new]`` of an accepted step.
-
-    Cubic Hermite interpolation of the algebra increment ``u(s)`` about the
-    step's base point ``R_n``: ``u(0) = 0``, ``u'(0) = omega_n``,
-    ``u(h) = u_1``, ``u'(h) = dexpinv(-u_1, omega_{n+1})``; then
-    ``R(t_n + s) = R_n exp(hat(u(s)))``.  Extra state uses the same Hermite
-    basis with its derivatives.  Order 3 in h, exact for uniform rotation.
-    """
-    _, R_b, y_b = saved
-    omega0, ydot0 = c.f
-    omega1, ydot1 = f_new
-    u1 = st.u
-    du1 = so3.dexpinv(-u1, omega1)
-    safe_h = jnp.where(h > 0, h, 1.0)
-    s = jnp.clip((ts_req - c.t) / safe_h, 0.0, 1.0)[:, None]
-    h10 = s * (1 - s) ** 2
-    h01 = s * s * (3 - 2 * s)
-    h11 = s * s * (s - 1)
-    u = h10 * h * omega0 + h01 * u1 + h11 * h * du1
-    R = c.R @ so3.exp(u)
-    write = accept & (ts_req > c.t) & (ts_req <= t_new)
-    R_b = jnp.where(write[:, None, None], R, R_b)
-
-    def y_leaf(b, y0, y1, d0, d1):
-        shape = (-1,) + (1,) * y0.ndim
-        hh = lambda a: a.reshape(shape)  # noqa: E731
-        val = (1 - hh(h01)) * y0 + hh(h01) * y1 + hh(h10) * h * d0 + hh(h11) * h * d1
-        return jnp.where(write.reshape(shape), val, b)
-
-    y_b = jax.tree_util.tree_map(y_leaf, y_b, c.y, st.y, ydot0, ydot1)
-    return (saved[0], R_b, y_b)

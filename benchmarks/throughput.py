@@ -1,0 +1,208 @@
+"""Body-steps per second of the batched fixed-step solve.
+
+For every fixed-step solver, batch sizes 1 ... 10000 and float64/float32, a
+jitted ``vmap`` over omega0 of ``lierk.solve(FreeRigidBody(tee_handle, omega0),
+solver, n*dt, dt=dt, max_steps=n)`` is compiled (timed separately), warmed up,
+and run ``--repeats`` times with ``block_until_ready``; the median run time
+gives ``batch * n / t`` body-steps per second.
+
+The CPU is split into ``--devices`` XLA host devices (default: one per core),
+which the script must set through ``XLA_FLAGS`` before jax is imported; the
+library itself never does this.  A batch that divides evenly among the devices
+is sharded over them (`NamedSharding` over the batch axis, as
+`lierk.batch.sweep` does); batch 1000 is also timed on a single device for
+comparison.  Fewer steps are used for large batches to bound the run time.
+
+Run: ``python benchmarks/throughput.py [--quick] [--devices N]``; writes
+benchmarks/results/throughput.json and throughput.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+_parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+_parser.add_argument("--quick", action="store_true", help="tiny run: batches 1 and 1000, few steps, two solvers")
+_parser.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)")
+_parser.add_argument("--repeats", type=int, default=5)
+_parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
+ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
+
+# Must happen before jax is imported: the device count is fixed at start-up.
+if ARGS.devices > 1:
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={ARGS.devices}"
+    ).strip()
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+import lierk  # noqa: E402
+
+DT = 0.01
+SOLVERS = [
+    lierk.ExplicitEuler(),
+    lierk.LieEuler(),
+    lierk.NaiveLieRK4(),
+    lierk.RKMK4(),
+    lierk.CF4(),
+    lierk.RKMK(lierk.tableaux.RK4),
+    lierk.DP54(),
+    lierk.DOP853(),
+]
+
+
+def label(solver) -> str:
+    if isinstance(solver, lierk.RKMK):
+        return "RKMK(RK4)"
+    return solver.name + (" (fixed dt)" if solver.adaptive else "")
+
+
+def num_steps(solver, batch: int, quick: bool) -> int:
+    # About 1e6 stage evaluations per timed run (2e5 with --quick), 20 to 1000 steps.
+    budget = (2e5 if quick else 1e6) / solver.stages
+    return int(min(1000, max(20, budget // batch)))
+
+
+def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> dict:
+    inertia = jnp.asarray(lierk.inertia.tee_handle(), dtype)
+    rng = np.random.default_rng(0)
+    omegas = jnp.asarray(rng.normal(size=(batch, 3)) * [1.0, 0.05, 0.3], dtype)
+    if len(devices) > 1:
+        omegas = jax.device_put(omegas, NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch")))
+    else:
+        omegas = jax.device_put(omegas, devices[0])
+
+    @jax.jit
+    @jax.vmap
+    def final_R(omega0):
+        body = lierk.FreeRigidBody(inertia, omega0)
+        return lierk.solve(body, solver, n * DT, dt=DT, max_steps=n).R[-1]
+
+    t = time.perf_counter()
+    compiled = final_R.lower(omegas).compile()
+    compile_s = time.perf_counter() - t
+    t = time.perf_counter()
+    out = compiled(omegas).block_until_ready()  # warm-up
+    first_s = time.perf_counter() - t
+    assert out.dtype == dtype and bool(jnp.all(jnp.isfinite(out)))
+    runs = []
+    for _ in range(repeats):
+        t = time.perf_counter()
+        compiled(omegas).block_until_ready()
+        runs.append(time.perf_counter() - t)
+    run_s = float(np.median(runs))
+    return {
+        "solver": label(solver),
+        "dtype": jnp.dtype(dtype).name,
+        "batch": batch,
+        "devices": len(devices),
+        "steps": n,
+        "compile_s": compile_s,
+        "first_run_s": first_s,
+        "run_s_median": run_s,
+        "run_s_min": float(min(runs)),
+        "body_steps_per_s": batch * n / run_s,
+    }
+
+
+def machine_info() -> dict:
+    return {
+        "cpu_count": os.cpu_count(),
+        "platform": platform.platform(),
+        "processor": platform.processor() or platform.machine(),
+        "python": sys.version.split()[0],
+        "jax": jax.__version__,
+        "jaxlib": getattr(__import__("jaxlib"), "__version__", "?"),
+        "backend": jax.default_backend(),
+        "device_count": jax.device_count(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+
+
+def main():
+    quick = ARGS.quick
+    batches = [1, 1000] if quick else [1, 10, 100, 1000, 10000]
+    solvers = [lierk.LieEuler(), lierk.RKMK4()] if quick else SOLVERS
+    all_devices = jax.devices()
+    info = machine_info()
+    print(json.dumps(info))
+    t_start = time.perf_counter()
+    rows = []
+    for dtype in (jnp.float64, jnp.float32):
+        for solver in solvers:
+            for batch in batches:
+                configs = []
+                if len(all_devices) > 1 and batch % len(all_devices) == 0 and batch >= 100:
+                    configs.append(all_devices)
+                if not configs or batch == 1000:
+                    configs.append(all_devices[:1])
+                for devs in configs:
+                    r = measure(solver, batch, dtype, num_steps(solver, batch, quick), devs, ARGS.repeats)
+                    rows.append(r)
+                    print(
+                        f"{r['solver']:18s} {r['dtype']:8s} batch {batch:6d} dev {r['devices']}  "
+                        f"{r['body_steps_per_s']:.3e} body-steps/s  (compile {r['compile_s']:.2f} s, "
+                        f"run {r['run_s_median'] * 1e3:.1f} ms, {r['steps']} steps)",
+                        flush=True,
+                    )
+    info["total_s"] = time.perf_counter() - t_start
+    info["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+
+    out = Path(ARGS.out) if ARGS.out else Path(__file__).resolve().parent / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "throughput.json").write_text(
+        json.dumps({"machine": info, "dt": DT, "quick": quick, "results": rows}, indent=2) + "\n"
+    )
+    (out / "throughput.md").write_text(markdown(rows, info, batches))
+    print(f"wrote throughput.json and throughput.md in {out.name}/ ({info['total_s']:.0f} s)")
+
+
+def markdown(rows, info, batches) -> str:
+    lines = [
+        "# Throughput: body-steps per second",
+        "",
+        f"jax {info['jax']}, {info['cpu_count']} CPUs, {info['device_count']} XLA host device(s), "
+        f"{info['platform']}.  Load average at start {info['load_average_at_start']}.",
+        "",
+        "Median of repeated runs after compile and warm-up.  Batches that divide evenly among the",
+        "devices are sharded over all of them; `batch 1000 (1 dev)` is the same run on one device.",
+        "",
+    ]
+    for dtype in ("float64", "float32"):
+        sub = [r for r in rows if r["dtype"] == dtype]
+        if not sub:
+            continue
+        cols = [(b, None) for b in batches]
+        if any(r["batch"] == 1000 and r["devices"] == 1 for r in sub) and info["device_count"] > 1:
+            cols.append((1000, 1))
+        head = " | ".join(f"batch {b}" + (" (1 dev)" if d == 1 else "") for b, d in cols)
+        lines += [f"## {dtype}", "", f"| solver | {head} | compile (s) |", "|---|" + "---:|" * (len(cols) + 1)]
+        for name in dict.fromkeys(r["solver"] for r in sub):
+            cells = []
+            for b, d in cols:
+                cand = [r for r in sub if r["solver"] == name and r["batch"] == b and (d is None or r["devices"] == d)]
+                # Without a device filter, report the most-devices configuration.
+                cand.sort(key=lambda r: -r["devices"])
+                cells.append(f"{cand[0]['body_steps_per_s']:.2e}" if cand else "-")
+            comp = [r["compile_s"] for r in sub if r["solver"] == name]
+            lines.append(f"| {name} | " + " | ".join(cells) + f" | {np.median(comp):.2f} |")
+        lines.append("")
+    return "\n".join(lines)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,717 @@
+"""The ``lierk`` command line.
+
+    lierk simulate SCENE.toml --out DIR      trajectory (.npz), figures and a GIF
+    lierk sweep SCENE.toml --out DIR ...     a grid of initial angular velocities
+
+Both run in double precision unless ``--float32`` is given: the command line
+is an application and picks its precision itself (the library never touches
+JAX's global configuration).  ``--devices N`` splits the CPU into N XLA
+devices (``--xla_force_host_platform_device_count``) for sharded sweeps; it
+must be set before JAX starts its backend, which is why only the command line
+may do it.
+
+Mistakes in arguments or scene files end with one line on stderr and exit
+status 2; a failed integration exits with status 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import math
+import os
+import re
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["main"]
+
+N_CHUNKS = 20
+
+
+class CLIError(Exception):
+    """A user mistake: reported as one line, exit status 2."""
+
+
+class RunError(Exception):
+    """A failed integration: reported as one line, exit status 1."""
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):
+        # argparse's default prints the whole usage first; one line is enough,
+        # --help has the rest.
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+
+class Progress:
+    """A progress bar on stderr: redrawn in place on a terminal, otherwise a
+    line at every quarter so logs stay short."""
+
+    def __init__(self, label: str, total: float, unit: str = "", quiet: bool = False, stream=None):
+        self.label, self.total, self.unit, self.quiet = label, float(total), unit, quiet
+        self.stream = sys.stderr if stream is None else stream
+        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+        self.start = time.perf_counter()
+        self.next_quarter = 0.25
+
+    def update(self, done: float) -> None:
+        if self.quiet:
+            return
+        frac = min(max(done / self.total, 0.0), 1.0) if self.total > 0 else 1.0
+        if not self.tty and frac < self.next_quarter - 1e-12:
+            return
+        while self.next_quarter <= frac + 1e-12:
+            self.next_quarter += 0.25
+        width = 30
+        bar = "#" * int(round(frac * width)) + "." * (width - int(round(frac * width)))
+        text = (
+            f"{self.label} [{bar}] {100 * frac:5.1f}%  {done:g}/{self.total:g}{self.unit}"
+            f"  {time.perf_counter() - self.start:.1f} s"
+        )
+        self.stream.write(("\r" + text) if self.tty else text + "\n")
+        if self.tty and frac >= 1.0:
+            self.stream.write("\n")
+        self.stream.flush()
+
+
+# --------------------------------------------------------------------------
+# Arguments
+
+
+def _positive_float(name):
+    def parse(s):
+        try:
+            x = float(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {s!r}") from None
+        if not (x > 0 and math.isfinite(x)):
+            raise argparse.ArgumentTypeError(f"{name} must be a positive finite number, got {s!r}")
+        return x
+
+    return parse
+
+
+def _positive_int(name):
+    def parse(s):
+        try:
+            x = int(s)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {s!r}") from None
+        if x < 1:
+            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {s!r}")
+        return x
+
+    return parse
+
+
+def parse_range(s: str) -> tuple[float, float, int]:
+    """``"A:B:N"`` -> N values from A to B (both included); ``"V"`` -> the single value V."""
+    parts = s.split(":")
+    try:
+        if len(parts) == 1:
+            v = float(parts[0])
+            lo, hi, n = v, v, 1
+        elif len(parts) == 3:
+            lo, hi, n = float(parts[0]), float(parts[1]), int(parts[2])
+        else:
+            raise ValueError
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected START:STOP:N (e.g. -0.2:0.2:21) or one value, got {s!r}") from None
+    if not (math.isfinite(lo) and math.isfinite(hi)):
+        raise argparse.ArgumentTypeError(f"range ends must be finite, got {s!r}")
+    if n < 1:
+        raise argparse.ArgumentTypeError(f"the number of values N must be >= 1, got {s!r}")
+    if n > 1 and not lo < hi:
+        raise argparse.ArgumentTypeError(f"START must be < STOP when N > 1, got {s!r}")
+    return lo, hi, n
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    g = common.add_argument_group("precision and devices")
+    g.add_argument("--float32", action="store_true", help="single precision (default: double)")
+    g.add_argument(
+        "--devices",
+        type=_positive_int("--devices"),
+        metavar="N",
+        help="split the CPU into N XLA devices (sets XLA_FLAGS=--xla_force_host_platform_device_count=N); "
+        "sweeps are sharded across devices",
+    )
+    g.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
+
+    parser = _Parser(
+        prog="lierk",
+        description="Rigid-body rotation with Lie-group Runge-Kutta integrators. "
+        "Scenes are TOML files (see examples/ and lierk.scene for the format).",
+        epilog="Run 'lierk COMMAND --help' for the options of one command.",
+    )
+    parser.add_argument("--version", action="version", version=f"lierk {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+
+    sim = sub.add_parser(
+        "simulate",
+        parents=[common],
+        help="integrate a scene; write the trajectory, figures and an animation",
+        description="Integrate SCENE.toml with the solver and step given in its [run] table, in chunks with a "
+        "progress bar, then write to DIR: <name>.npz (ts, R, y, omega, L, invariants), "
+        "<name>_components.png (3x3 grid of R(t)), <name>_euler.png (Euler angles), "
+        "<name>_invariants.png (relative drift of the conserved quantities) and "
+        "<name>.gif (the body turning, with its axes and the angular momentum).",
+        epilog="example: lierk simulate examples/tee_handle_a.toml --out out/a",
+    )
+    sim.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
+    sim.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    sim.add_argument("--t1", type=_positive_float("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
+    sim.add_argument(
+        "--chunks",
+        type=_positive_int("--chunks"),
+        default=N_CHUNKS,
+        metavar="K",
+        help=f"integrate in K pieces, reporting progress between them (default {N_CHUNKS})",
+    )
+    sim.add_argument(
+        "--frames", type=_positive_int("--frames"), default=120, metavar="N", help="GIF frames (default 120)"
+    )
+    sim.add_argument("--fps", type=_positive_int("--fps"), default=20, help="GIF frames per second (default 20)")
+    sim.add_argument("--no-gif", action="store_true", help="skip the animation (the slowest output)")
+    sim.add_argument("--degrees", action="store_true", help="Euler angles in degrees (default rad)")
+
+    sw = sub.add_parser(
+        "sweep",
+        parents=[common],
+        help="sweep a grid of initial angular velocities; write heatmaps",
+        description="Solve SCENE.toml for a grid of initial body angular velocities omega0 (rad/s), vmapped "
+        "and sharded across devices, and draw for each: the flip interval of the intermediate axis (exact "
+        "solution, torque-free bodies), the final attitude angle |log R(T)| (rad) and the sensitivity "
+        "||dR(T)/d omega0|| (s, forward-mode derivative through the solver). Near the intermediate axis "
+        "the flip interval diverges and the sensitivity is largest. Writes <name>_sweep.png and "
+        "<name>_sweep.npz to DIR.",
+        epilog="Each component is a range START:STOP:N, a single value, or (if not given) the scene's omega0 "
+        "component. Without any --omega-* option, --grid N varies the two smallest components of the "
+        "scene's omega0 over [w - SPAN, w + SPAN]. "
+        "example: lierk sweep examples/tee_handle_a.toml --omega-y -0.2:0.2:41 --omega-z -0.2:0.2:41 --out out",
+    )
+    sw.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
+    sw.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    for c in "xyz":
+        sw.add_argument(
+            f"--omega-{c}",
+            type=parse_range,
+            metavar="START:STOP:N",
+            help=f"values of omega0_{c} in rad/s",
+        )
+    sw.add_argument(
+        "--grid",
+        type=_positive_int("--grid"),
+        default=21,
+        metavar="N",
+        help="points per varied component when no --omega-* is given (default 21)",
+    )
+    sw.add_argument(
+        "--span",
+        type=_positive_float("--span"),
+        metavar="S",
+        help="half-width in rad/s of the --grid ranges (default: 0.25 |omega0|)",
+    )
+    sw.add_argument("--t1", type=_positive_float("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
+    sw.add_argument(
+        "--chunk-size",
+        type=_positive_int("--chunk-size"),
+        default=256,
+        metavar="K",
+        help="grid points per vmapped batch (default 256); progress is reported between batches",
+    )
+    return parser
+
+
+def _version() -> str:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("lierk")
+    except PackageNotFoundError:
+        return "unknown"
+
+
+# --------------------------------------------------------------------------
+# Set-up shared by the commands
+
+
+def _configure(args) -> None:
+    """Devices must be settled before JAX computes anything."""
+    if args.devices is not None:
+        from jax._src import xla_bridge
+
+        if xla_bridge.backends_are_initialized():
+            raise CLIError("--devices must be set before JAX starts; run lierk in a fresh process")
+        flags = re.sub(r"--xla_force_host_platform_device_count=\S+", "", os.environ.get("XLA_FLAGS", ""))
+        os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={args.devices}".strip()
+
+
+def _load(args):
+    from . import scene as _scene
+
+    if not args.scene.is_file():
+        raise CLIError(f"scene file not found: {args.scene}")
+    try:
+        scene = _scene.load(args.scene)
+    except ValueError as e:
+        raise CLIError(_one_line(e)) from None
+    if args.t1 is not None:
+        scene = dataclasses.replace(scene, t1=float(args.t1))
+    return scene
+
+
+def _one_line(e: BaseException) -> str:
+    text = str(e).strip()
+    first = text.splitlines()[0] if text else type(e).__name__
+    return first
+
+
+def _run_settings(scene) -> str:
+    kw = scene.solve_kwargs
+    if "dt" in kw:
+        return f"dt = {kw['dt']:g} s"
+    return f"rtol = {kw['rtol']:g}, atol = {kw['atol']:g}"
+
+
+def _with_omega0(problem, omega0):
+    """``problem`` with a new initial body angular velocity ``(3,)`` (rad/s)."""
+    import equinox as eqx
+
+    from .fields import FreeRigidBody
+
+    if isinstance(problem, FreeRigidBody):
+        # The free body stores the spatial momentum L = R0 I omega0.
+        return eqx.tree_at(lambda p: p.L, problem, problem.R0 @ (problem.inertia @ omega0))
+    # Problems with effects carry the body momentum m = I omega0 as y.
+    return eqx.tree_at(lambda p: p.y0, problem, problem.inertia @ omega0)
+
+
+def _restart(problem, R, y):
+    """``problem`` started from attitude ``R`` and state ``y`` instead."""
+    import equinox as eqx
+
+    problem = eqx.tree_at(lambda p: p.R0, problem, R)
+    if problem.y0 is not None:
+        problem = eqx.tree_at(lambda p: p.y0, problem, y)
+    return problem
+
+
+# --------------------------------------------------------------------------
+# simulate
+
+
+def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None):
+    """Solve ``scene`` in ``n_chunks`` pieces, each a `lierk.solve` from the end
+    state of the one before, reporting progress in between.  Saves the same
+    points as ``scene.solve()``.  Returns ``(Solution, wall seconds)``;
+    raises `RunError` if a piece fails."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from .solution import RESULTS, SaveAt, Solution
+    from .solve import _num_steps, solve
+
+    problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
+    dtype = problem.R0.dtype
+    kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
+    start = time.perf_counter()
+
+    if not scene.adaptive:
+        dt = float(kw["dt"])
+        every = scene.saveat_every
+        n_total = _num_steps(0.0, t1, dt, None)
+        # Chunks hold a whole number of save intervals, so the saved grid is
+        # the one a single solve would save.
+        per = every * max(1, math.ceil(n_total / (n_chunks * every)))
+        bounds = [min(k * per, n_total) for k in range(math.ceil(n_total / per) + 1)]
+        times = [min(b * dt, t1) for b in bounds]
+        times[-1] = t1
+
+        @eqx.filter_jit
+        def piece(problem, ta, tb):
+            # Padding steps past tb are exact no-ops, so every piece has the
+            # same static length and compiles once.
+            return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
+
+        pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
+    else:
+        ts_all = np.linspace(0.0, t1, scene.n_save)
+        rest = ts_all[1:]
+        size = math.ceil(len(rest) / n_chunks)
+        max_steps = scene.solve_kwargs.get("max_steps")
+
+        @eqx.filter_jit
+        def piece(problem, ta, tb, ts):
+            return solve(
+                problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw
+            )
+
+        pieces, ta = [], 0.0
+        for k in range(0, len(rest), size):
+            group = rest[k : k + size]
+            group = np.concatenate([group, np.full(size - len(group), group[-1])])
+            pieces.append((ta, float(group[-1]), group))
+            ta = float(group[-1])
+
+    ts_out, R_out, y_out = [np.zeros(1)], [np.asarray(problem.R0)[None]], [problem.y0]
+    y_out[0] = jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)
+    stats = None
+    for ta, tb, group in pieces:
+        args = (problem, jnp.asarray(ta, dtype), jnp.asarray(tb, dtype))
+        if group is not None:
+            args += (jnp.asarray(group, dtype),)
+        sol = piece(*args)
+        code = int(sol.result)
+        if code != RESULTS.successful:
+            raise RunError(f"integration failed between t = {ta:g} s and {tb:g} s: {RESULTS.message(code)}")
+        ts = np.asarray(sol.ts)
+        # Padding repeats the end state; keep each time once.
+        keep = np.concatenate([[True], ts[1:] > ts[:-1]]) & (ts > ts_out[-1][-1])
+        ts_out.append(ts[keep])
+        R_out.append(np.asarray(sol.R)[keep])
+        y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
+        stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
+        problem = _restart(problem, sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
+        if progress is not None:
+            progress.update(tb)
+    wall = time.perf_counter() - start
+
+    ts = np.concatenate(ts_out)
+    y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
+    sol = Solution(
+        ts=jnp.asarray(ts, dtype),
+        R=jnp.asarray(np.concatenate(R_out), dtype),
+        y=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y),
+        n_saved=jnp.asarray(len(ts)),
+        stats={k: int(v) for k, v in stats.items()},
+        result=jnp.asarray(RESULTS.successful),
+    )
+    return sol, wall
+
+
+def _key(name: str) -> str:
+    name = re.sub(r"\|(\w+)\|", r"abs_\1", name)
+    return re.sub(r"\W+", "_", name).strip("_")
+
+
+def simulate(args) -> int:
+    scene = _load(args)
+    import jax
+    import numpy as np
+
+    from . import plot
+    from .body import angular_momentum
+
+    problem, solver = scene.problem, scene.solver
+    progress = Progress(f"{scene.name}: t", scene.t1, " s", quiet=args.quiet)
+    sol, wall = integrate(scene, args.chunks, progress)
+
+    ts, R, y = plot.trajectory(sol)
+    omega = np.asarray(jax.vmap(lambda t, R, y: problem.field(t, R, y)[0])(sol.ts, sol.R, sol.y))
+    L = np.asarray(angular_momentum(problem.inertia, omega, R))
+    inv = {k: np.asarray(v) for k, v in problem.invariants(sol.R, sol.y).items()}
+    drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
+    orth = float(np.max(np.asarray(sol.orthogonality_error)))
+
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    stem = _key(scene.name) or "scene"
+    data = {
+        "ts": ts,
+        "R": R,
+        "omega": omega,
+        "L": L,
+        "inertia": np.asarray(problem.inertia),
+        "omega0": np.asarray(problem.omega0),
+        "R0": np.asarray(problem.R0),
+        "t1": np.asarray(scene.t1),
+        "solver": np.asarray(solver.name),
+        "scene": np.asarray(scene.name),
+        **{f"invariant_{_key(k)}": v for k, v in inv.items()},
+    }
+    if y is not None:
+        data["y"] = y
+    npz = out / f"{stem}.npz"
+    np.savez(npz, **data)
+
+    settings = f"{solver.name}, {_run_settings(scene)}"
+    title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
+    figures = {
+        "components": plot.components(sol, title),
+        "euler": plot.euler_angles(sol, title, degrees=args.degrees),
+        "invariants": plot.invariants(sol, problem, title),
+    }
+    paths = [npz]
+    for what, fig in figures.items():
+        path = out / f"{stem}_{what}.png"
+        fig.savefig(path, dpi=100)
+        paths.append(path)
+    if not args.no_gif:
+        gif = plot.animate(
+            sol,
+            scene.body_parts,
+            out / f"{stem}.gif",
+            L=L,
+            frames=args.frames,
+            fps=args.fps,
+            title=f"{scene.name} — {settings}",
+            inertia=problem.inertia,
+            origin=scene.fixed_point,
+        )
+        paths.append(gif)
+
+    st = sol.stats
+    print(f"scene {scene.name}" + (f": {scene.description}" if scene.description else ""))
+    print(
+        f"{settings}, t1 = {scene.t1:g} s: {st['num_accepted_steps']} steps"
+        + (f" ({st['num_rejected_steps']} rejected)" if st.get("num_rejected_steps") else "")
+        + f", {st['num_fevals']} field evaluations, {wall:.2f} s wall (incl. compilation)"
+    )
+    conserved = problem.conserved() if hasattr(problem, "conserved") else tuple(inv)
+    for k, v in drift.items():
+        note = "" if k in conserved else "  (not conserved by this scene)"
+        print(f"  max relative change of {k}: {v:.2e}{note}")
+    print(f"  max ||R^T R - I||: {orth:.2e}")
+    flip = _flip_interval(problem)
+    if flip is not None and math.isfinite(flip):
+        print(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
+    print("wrote:")
+    for p in paths:
+        print(f"  {p}")
+    return 0
+
+
+def _flip_interval(problem):
+    from .fields import FreeRigidBody
+
+    if not isinstance(problem, FreeRigidBody):
+        return None
+    try:
+        from .exact import flip_interval
+    except ImportError:
+        return None
+    return float(flip_interval(problem.inertia, problem.omega0))
+
+
+# --------------------------------------------------------------------------
+# sweep
+
+
+def _axes(args, omega0):
+    """The grid: per component a 1-D array of values (rad/s)."""
+    import numpy as np
+
+    given = [getattr(args, f"omega_{c}") for c in "xyz"]
+    if any(g is not None for g in given):
+        axes = []
+        for k, g in enumerate(given):
+            axes.append(np.array([omega0[k]]) if g is None else np.linspace(g[0], g[1], g[2]))
+        return axes
+    # A round default span, so grids centred on round omega0 components hit round values.
+    span = args.span if args.span is not None else float(f"{0.25 * float(np.linalg.norm(omega0)):.2g}")
+    if not span > 0:
+        raise CLIError("the scene's omega0 is zero: give --span or --omega-x/-y/-z ranges")
+    varied = sorted(np.argsort(np.abs(omega0), kind="stable")[:2])
+    return [
+        np.linspace(omega0[k] - span, omega0[k] + span, args.grid) if k in varied else np.array([omega0[k]])
+        for k in range(3)
+    ]
+
+
+def sweep(args) -> int:
+    scene = _load(args)
+    import jax
+    import jax.numpy as jnp
+    import numpy as np
+
+    from . import so3
+    from .adjoint import ForwardMode
+    from .batch import sweep as batch_sweep
+    from .fields import FreeRigidBody
+    from .solution import SaveAt
+    from .solve import _num_steps, solve
+
+    problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
+    dtype = problem.R0.dtype
+    omega0 = np.asarray(problem.omega0, dtype=float)
+    axes = _axes(args, omega0)
+    varied = [k for k in range(3) if len(axes[k]) > 1]
+    if not varied:
+        raise CLIError("nothing to sweep: give at least one --omega-x/-y/-z range START:STOP:N with N > 1")
+    if len(varied) > 2:
+        raise CLIError("at most two components can vary (a heatmap); give the third as a single value")
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    shape = tuple(len(axes[k]) for k in varied)
+
+    kw = dict(scene.solve_kwargs)
+    if not scene.adaptive:
+        # Under vmap/jit the step count cannot be read from t1 and dt.
+        kw["max_steps"] = _num_steps(0.0, t1, float(kw["dt"]), None)
+    else:
+        # Reverse mode cannot go through the adaptive while loop; forward can.
+        kw["adjoint"] = ForwardMode()
+    exact = None
+    if isinstance(problem, FreeRigidBody):
+        try:
+            from .exact import flip_interval as exact
+        except ImportError:
+            exact = None
+
+    def point(w):
+        def final(w):
+            sol = solve(_with_omega0(problem, w), solver, t1, saveat=SaveAt(t1=True), throw=False, **kw)
+            return sol.R[-1], (sol.R[-1], sol.result)
+
+        J, (R, result) = jax.jacfwd(final, has_aux=True)(w)
+        out = {
+            "angle": jnp.linalg.norm(so3.log(R), axis=-1),
+            "sensitivity": jnp.sqrt(jnp.sum(J * J)),
+            "result": result,
+        }
+        if exact is not None:
+            out["flip_interval"] = exact(problem.inertia, w)
+        return out
+
+    start = time.perf_counter()
+    res = batch_sweep(point, jnp.asarray(grid, dtype), chunk_size=args.chunk_size, progress=not args.quiet)
+    res = jax.device_get(res)
+    wall = time.perf_counter() - start
+    res = {k: np.asarray(v).reshape(shape) for k, v in res.items()}
+    failed = res.pop("result") != 0
+    for k in res:
+        res[k] = np.where(failed, np.nan, res[k]) if k != "flip_interval" else res[k]
+
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    stem = _key(scene.name) or "scene"
+    names = [f"omega0_{'xyz'[k]}" for k in varied]
+    npz = out / f"{stem}_sweep.npz"
+    np.savez(npz, **{n: axes[k] for n, k in zip(names, varied)}, omega0=grid.reshape(*shape, 3), t1=t1, **res)
+    title = f"{scene.name}: sweep of $\\omega_0$, T = {t1:g} s\n{solver.name}, {_run_settings(scene)}"
+    fig = _sweep_figure(res, [axes[k] for k in varied], varied, omega0, title)
+    png = out / f"{stem}_sweep.png"
+    fig.savefig(png, dpi=100)
+
+    print(f"scene {scene.name}: {len(grid)} initial angular velocities ({' x '.join(map(str, shape))}), "
+          f"{solver.name}, {_run_settings(scene)}, T = {t1:g} s, {wall:.2f} s wall (incl. compilation)")
+    if failed.any():
+        print(f"  {int(failed.sum())} points failed to integrate (NaN in the outputs)")
+    s = res["sensitivity"]
+    print(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s")
+    if "flip_interval" in res:
+        f = res["flip_interval"][np.isfinite(res["flip_interval"])]
+        if f.size:
+            print(f"  flip interval: {f.min():.3g} .. {f.max():.3g} s")
+    print("wrote:")
+    for p in (npz, png):
+        print(f"  {p}")
+    return 0
+
+
+def _sweep_figure(res, axes, varied, omega0, title):
+    import numpy as np
+    from matplotlib.colors import LogNorm
+    from matplotlib.figure import Figure
+
+    panels = []
+    if "flip_interval" in res:
+        panels.append(("flip_interval", "flip interval (exact) [s]", True))
+    panels.append(("angle", "final attitude angle |log R(T)| [rad]", False))
+    panels.append(("sensitivity", "sensitivity ||dR(T)/d$\\omega_0$||$_F$ [s]", True))
+    labels = [f"$\\omega_{{0,{'xyz'[k]}}}$ [rad/s]" for k in varied]
+
+    if len(varied) == 1:
+        fig = Figure(figsize=(7.0, 2.4 * len(panels) + 0.8), layout="constrained")
+        fig.suptitle(title)
+        axs = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+        for ax, (key, label, log) in zip(axs, panels):
+            v = np.where(np.isfinite(res[key]), res[key], np.nan)
+            ax.plot(axes[0], v, ".-", lw=1.0, ms=3)
+            if log:
+                ax.set_yscale("log")
+            ax.set_ylabel(label, fontsize=9)
+            ax.grid(True, alpha=0.3)
+        axs[-1].set_xlabel(labels[0])
+        return fig
+
+    fig = Figure(figsize=(4.6 * len(panels), 4.6), layout="constrained")
+    fig.suptitle(title)
+    axs = fig.subplots(1, len(panels), squeeze=False)[0]
+    x, y = axes
+    for ax, (key, label, log) in zip(axs, panels):
+        v = np.asarray(res[key], dtype=float)
+        finite = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
+        norm = LogNorm(finite.min(), finite.max()) if log and finite.size and finite.min() < finite.max() else None
+        masked = np.ma.masked_invalid(np.where(v > 0, v, np.nan) if log else v)
+        cmap = "viridis" if key != "sensitivity" else "magma"
+        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap)
+        im.cmap = im.cmap.with_extremes(bad="0.75")
+        ax.plot([omega0[varied[0]]], [omega0[varied[1]]], "w+", ms=10, mew=2, label="scene's $\\omega_0$")
+        ax.set_xlabel(labels[0])
+        ax.set_ylabel(labels[1])
+        ax.set_aspect("equal" if np.ptp(x) and 0.33 < np.ptp(y) / np.ptp(x) < 3 else "auto")
+        fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+        if key == "flip_interval" and not np.isfinite(v).all():
+            ax.text(0.02, 0.98, "grey: no flip (permanent rotation or separatrix)", transform=ax.transAxes,
+                    fontsize=7, va="top", color="k", bbox=dict(fc="w", alpha=0.7, lw=0))
+    axs[0].legend(loc="lower right", fontsize=7)
+    return fig
+
+
+# --------------------------------------------------------------------------
+
+
+def _join_negative_ranges(argv: list[str]) -> list[str]:
+    """``--omega-y -0.2:0.2:5`` -> ``--omega-y=-0.2:0.2:5``: argparse would
+    otherwise take a range starting with a minus sign for an option."""
+    out, i = [], 0
+    while i < len(argv):
+        a = argv[i]
+        if a in ("--omega-x", "--omega-y", "--omega-z") and i + 1 < len(argv) and argv[i + 1].startswith("-"):
+            out.append(f"{a}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(a)
+            i += 1
+    return out
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = parser.parse_args(_join_negative_ranges(argv))
+    if args.command is None:
+        print("lierk: error: a command is required: simulate or sweep (see lierk --help)", file=sys.stderr)
+        return 2
+    prog = f"lierk {args.command}"
+    try:
+        _configure(args)
+        import jax
+
+        # The command line is an application: it picks its precision, scoped to
+        # this call, and leaves the global config alone.
+        with jax.enable_x64(not args.float32):
+            return {"simulate": simulate, "sweep": sweep}[args.command](args)
+    except CLIError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 2
+    except RunError as e:
+        print(f"{prog}: error: {e}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{prog}: interrupted", file=sys.stderr)
+        return 130
+    except (ValueError, OSError, RuntimeError) as e:
+        # eqx.error_if messages carry a long explanation after the first line.
+        print(f"{prog}: error: {_one_line(e)}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,325 @@
+"""Opt-in effects on a rigid body: gravity about a pivot, constant torques, damping.
+
+The torque-free body (`lierk.FreeRigidBody`) needs no extra state because its
+spatial angular momentum is constant.  Under a torque it is not, so
+`RigidBodyWithEffects` carries the body momentum ``m`` (kg m^2/s, body frame)
+as its state ``y`` and integrates Euler's equations with torque,
+
+    dR/dt = R hat(omega),    omega = I^{-1} m,
+    dm/dt = m x omega + sum_k tau_k(t, R, m, omega),
+
+where each ``tau_k`` is the body-frame torque (N m) of one effect.  ``R`` maps
+body -> space and space ``z`` points up.  The effects are a tuple of immutable
+modules and the sum is a Python loop over it, so an effect that a problem
+does not hold is never traced: a problem with only `Damping` compiles to the
+free body plus one multiply-add (see the jaxpr test in ``tests/test_effects.py``).
+
+Every effect's torque and its addition to ``dm/dt`` are traced inside
+``jax.named_scope("lierk_effect_<Name>")``, so they can be found in a jaxpr
+printed with ``name_stack=True`` and in profiles.
+
+Each effect also provides
+
+- ``potential(R)``: its potential energy (J), 0 for a non-conservative effect;
+  the problem's ``"energy"`` invariant is kinetic energy plus these;
+- ``invariants(R, m)``: extra quantities that the free body with this effect
+  alone conserves (its docstring says which and when);
+- ``conservative``: whether the effect conserves total energy.
+"""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import _checks, so3
+from . import inertia as _inertia
+from .body import kinetic_energy
+from .fields import AbstractProblem, check_attitude, check_vector
+
+__all__ = [
+    "AbstractEffect",
+    "Gravity",
+    "BodyTorque",
+    "SpaceTorque",
+    "Damping",
+    "RigidBodyWithEffects",
+]
+
+
+class AbstractEffect(eqx.Module):
+    """One contribution to the body-frame torque.
+
+    Subclasses implement `torque`, and `potential`/`invariants` where they apply.
+    """
+
+    conservative: ClassVar[bool] = False
+
+    def torque(self, t: Array, R: Array, m: Array, omega: Array) -> Array:
+        """Body-frame torque ``(3,)`` (N m) at time ``t`` (s), attitude ``R``
+        ``(3, 3)`` (body -> space), body momentum ``m`` ``(3,)`` (kg m^2/s)
+        and body angular velocity ``omega = I^{-1} m`` ``(3,)`` (rad/s)."""
+        raise NotImplementedError
+
+    def potential(self, R: Array) -> Array:
+        """Potential energy (J) at attitude ``R`` ``(..., 3, 3)``; 0 unless conservative."""
+        return jnp.zeros(R.shape[:-2], R.dtype)
+
+    def invariants(self, R: Array, m: Array) -> dict[str, Array]:
+        """Quantities conserved by the free body with this effect alone, besides
+        the energy of a conservative effect.  ``R`` ``(..., 3, 3)``, ``m`` ``(..., 3)``."""
+        return {}
+
+    def _cast(self, dtype) -> "AbstractEffect":
+        """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
+        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self)
+
+
+def _scalar(x, name: str, positive: bool = False) -> Array:
+    if np.ndim(x) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(x)}")
+    x = jnp.asarray(x)
+    if not jnp.issubdtype(x.dtype, jnp.floating):
+        x = x.astype(jnp.result_type(float))
+    cond = (lambda v: (v > 0) & (v < float("inf"))) if positive else (lambda v: (v >= 0) & (v < float("inf")))
+    return _checks.check(x, cond, f"{name} must be {'positive' if positive else 'non-negative'} and finite, got {{value}}")
+
+
+def _vector(x, name: str) -> Array:
+    x = jnp.asarray(x)
+    return check_vector(x, name, x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float))
+
+
+class Gravity(AbstractEffect):
+    """Uniform gravity on a heavy top turning about a fixed pivot.
+
+    The centre of mass sits at ``chi = pivot_to_com`` (body frame, m) from the
+    pivot; gravity pulls with ``-M g e3`` in space (``e3`` = space z, up).  The
+    body-frame torque about the pivot is
+
+        tau = M g (Gamma x chi),    Gamma = R^T e3 (the vertical in the body frame).
+
+    The problem's inertia must be the one about the pivot (the parallel-axis
+    theorem: ``lierk.inertia.parallel_axis(I_cm, M, chi)``), and its momentum
+    ``m`` is taken about the pivot.
+
+    Conserves:
+        - energy ``omega . I omega / 2 + M g e3 . R chi`` (`potential` is the second term);
+        - ``"L_vertical"``: the vertical component of spatial momentum ``e3 . R m``
+          (the torque is horizontal);
+        - ``"m_chi"``: the body momentum along ``chi``, ``m . chi/|chi|``, when the
+          inertia is symmetric about ``chi`` (the Lagrange top; for ``chi`` on
+          the body z axis this is ``m3``).  Otherwise it is only a diagnostic.
+
+    Args:
+        pivot_to_com: ``(3,)`` body-frame vector from the pivot to the centre of mass (m).
+        mass: total mass ``M`` (kg), ``> 0``.
+        g: gravitational acceleration (m/s^2), default 9.81, ``>= 0``.
+    """
+
+    pivot_to_com: Array
+    mass: Array
+    g: Array
+    conservative: ClassVar[bool] = True
+
+    def __init__(self, pivot_to_com: ArrayLike, mass: ArrayLike, g: ArrayLike = 9.81):
+        self.pivot_to_com = _vector(pivot_to_com, "pivot_to_com")
+        self.mass = _scalar(mass, "mass", positive=True)
+        self.g = _scalar(g, "g")
+
+    def torque(self, t, R, m, omega):
+        gamma = R[2, :]  # R^T e3
+        return (self.mass * self.g) * so3.cross(gamma, self.pivot_to_com)
+
+    def potential(self, R):
+        return (self.mass * self.g) * jnp.einsum("...j,j->...", R[..., 2, :], self.pivot_to_com)
+
+    def invariants(self, R, m):
+        chi = self.pivot_to_com
+        axis = chi / jnp.maximum(jnp.linalg.norm(chi), jnp.finfo(chi.dtype).tiny)
+        return {
+            "L_vertical": jnp.einsum("...j,...j->...", R[..., 2, :], m),
+            "m_chi": jnp.einsum("...j,j->...", m, axis),
+        }
+
+
+class BodyTorque(AbstractEffect):
+    """A torque ``tau`` (N m) constant in the body frame (a thruster fixed to the body).
+
+    Conserves nothing in general (it does work ``tau . omega``).
+    """
+
+    tau: Array
+
+    def __init__(self, tau: ArrayLike):
+        self.tau = _vector(tau, "tau")
+
+    def torque(self, t, R, m, omega):
+        return self.tau
+
+
+class SpaceTorque(AbstractEffect):
+    """A torque ``tau`` (N m) constant in the space frame; in the body frame it is
+    ``R^T tau``.  Spatial momentum grows linearly, ``L(t) = L(0) + tau t``, exactly.
+
+    Conserves the components of spatial momentum orthogonal to ``tau``
+    (``"L_perp"``, their norm ``|L - (L . tau_hat) tau_hat|``); energy is not conserved.
+    """
+
+    tau: Array
+
+    def __init__(self, tau: ArrayLike):
+        self.tau = _vector(tau, "tau")
+
+    def torque(self, t, R, m, omega):
+        return R.T @ self.tau
+
+    def invariants(self, R, m):
+        L = jnp.einsum("...ij,...j->...i", R, m)
+        n = jnp.linalg.norm(self.tau)
+        tau_hat = self.tau / jnp.where(n > 0, n, 1.0)
+        L_perp = L - jnp.einsum("...j,j->...", L, tau_hat)[..., None] * tau_hat
+        return {"L_perp": jnp.linalg.norm(L_perp, axis=-1)}
+
+
+class Damping(AbstractEffect):
+    """Linear viscous damping ``tau = -c omega`` with ``c >= 0`` (N m s).
+
+    Dissipative: the kinetic energy decays at ``dE/dt = -c |omega|^2`` (with
+    other effects absent), and ``L`` keeps its direction in space only for a
+    spherical body, where ``omega(t) = omega0 exp(-c t / I)``.  Conserves nothing.
+    """
+
+    c: Array
+
+    def __init__(self, c: ArrayLike):
+        self.c = _scalar(c, "c")
+
+    def torque(self, t, R, m, omega):
+        return -self.c * omega
+
+
+class RigidBodyWithEffects(AbstractProblem):
+    """A rigid body under a tuple of effects; state ``y`` is the body momentum ``m``.
+
+    ``dm/dt = m x omega + sum(effect.torque(t, R, m, omega))`` with
+    ``omega = I^{-1} m``.  The sum is unrolled in Python over ``effects``, so
+    only the effects present are traced.  With ``effects=()`` it solves the
+    same problem as `FreeRigidBody` (which is cheaper: no state).
+
+    Args:
+        inertia: ``(3, 3)`` or ``(3,)`` principal moments (kg m^2), body frame,
+            about the point the body turns about (the pivot for `Gravity`,
+            otherwise the centre of mass).
+        omega0: ``(3,)`` initial body angular velocity (rad/s).
+        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
+        effects: tuple of `AbstractEffect`.
+
+    Example:
+        >>> top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.0, 0.3, 50.0],
+        ...                            effects=(Gravity([0, 0, 1.0], 1.0, 20.0),))
+        >>> sol = lierk.solve(top, lierk.RKMK4(), 1.0, dt=1e-3)
+    """
+
+    inertia: Array
+    inertia_inv: Array
+    R0: Array
+    y0: Array
+    effects: tuple
+
+    def __init__(
+        self,
+        inertia: ArrayLike,
+        omega0: ArrayLike,
+        R0: ArrayLike | None = None,
+        effects: tuple | list = (),
+    ):
+        effects = tuple(effects)
+        for i, e in enumerate(effects):
+            if not isinstance(e, AbstractEffect):
+                raise ValueError(
+                    f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
+                )
+        inertia = _inertia.tensor(inertia)
+        dtype = jnp.result_type(inertia.dtype, jnp.asarray(omega0).dtype, float)
+        self.inertia = inertia.astype(dtype)
+        omega0 = check_vector(omega0, "omega0", dtype)
+        self.R0 = check_attitude(R0, dtype)
+        self.inertia_inv = jnp.linalg.inv(self.inertia)
+        self.y0 = self.inertia @ omega0
+        self.effects = tuple(e._cast(dtype) for e in effects)
+
+    @property
+    def omega0(self) -> Array:
+        return self.inertia_inv @ self.y0
+
+    def field(self, t, R, y):
+        omega = self.inertia_inv @ y
+        dm = so3.cross(y, omega)
+        for e in self.effects:
+            # The scope names the effect's equations (including the sum, so a
+            # constant torque shows up too) in jaxprs and profiles.
+            with jax.named_scope(f"lierk_effect_{type(e).__name__}"):
+                dm = dm + e.torque(t, R, y, omega)
+        return omega, dm
+
+    def invariants(self, R, y):
+        """``"energy"`` (kinetic plus every effect's potential, J), ``"|L|"``
+        (kg m^2/s) and each effect's own `AbstractEffect.invariants`.  Which of
+        them the exact flow conserves is `conserved`."""
+        omega = jnp.einsum("ij,...j->...i", self.inertia_inv, y)
+        energy = kinetic_energy(self.inertia, omega)
+        out = {}
+        for e in self.effects:
+            energy = energy + e.potential(R)
+            out.update(e.invariants(R, y))
+        return {"energy": energy, "|L|": jnp.linalg.norm(y, axis=-1), **out}
+
+    def conserved(self) -> tuple[str, ...]:
+        """Keys of `invariants` that the exact flow conserves for this set of effects.
+
+        ``"energy"`` when every effect is conservative; ``"|L|"`` with no effects;
+        an effect's own invariants when it is the only effect (``"m_chi"`` of
+        `Gravity` only when the inertia is symmetric about ``chi``, checked on
+        concrete values).
+        """
+        keys = []
+        if all(e.conservative for e in self.effects):
+            keys.append("energy")
+        if not self.effects:
+            keys.append("|L|")
+        if len(self.effects) == 1:
+            (e,) = self.effects
+            own = list(e.invariants(self.R0, self.y0))
+            if isinstance(e, Gravity) and not _symmetric_about(self.inertia, e.pivot_to_com):
+                own.remove("m_chi")
+            keys.extend(own)
+        return tuple(keys)
+
+
+def _symmetric_about(inertia, chi, tol: float = 1e-9) -> bool:
+    """Whether ``chi`` is an eigenvector of ``inertia`` and the other two
+    principal moments are equal (relative tolerance ``tol``)."""
+    if _checks.is_traced(inertia, chi):
+        return False
+    I, c = np.asarray(inertia, float), np.asarray(chi, float)
+    n = np.linalg.norm(c)
+    if n == 0:
+        return False
+    c = c / n
+    Ic = I @ c
+    lam = c @ Ic
+    scale = np.abs(I).max()
+    if np.linalg.norm(Ic - lam * c) > tol * scale:
+        return False
+    P = np.eye(3) - np.outer(c, c)
+    # On the plane orthogonal to chi, I must be a multiple of the identity.
+    Ip = P @ I @ P
+    mu = 0.5 * np.trace(Ip)
+    return bool(np.linalg.norm(Ip - mu * P) <= tol * scale)

@@ -1,0 +1,390 @@
+"""Figures and animations of a solved trajectory.
+
+Every function builds a `matplotlib.figure.Figure` directly (no pyplot), so
+nothing is ever shown, no global figure list grows, and the caller's backend
+is left alone; in a notebook ``display(fig)`` shows it.  Figures use
+constrained layout so labels are never clipped.
+
+Data flow: `Solution` (and, where needed, the problem or the body's parts)
+-> figure.  Only the valid saved entries are drawn (``Solution.n_saved``), so
+adaptive solutions with padded buffers plot correctly.
+"""
+
+from __future__ import annotations
+
+import warnings
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+from matplotlib.colors import to_rgb
+from matplotlib.figure import Figure
+
+from . import so3
+from .inertia import Part, composite
+
+__all__ = ["trajectory", "components", "euler_angles", "invariants", "animate", "GIF_DPI", "GIF_SIZE"]
+
+# Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
+GIF_SIZE = (5.0, 5.0)
+GIF_DPI = 80
+
+
+def trajectory(sol) -> tuple[np.ndarray, np.ndarray, Any]:
+    """The valid saved entries of an unbatched `Solution` as NumPy arrays:
+    ``ts (n,)`` (s), ``R (n, 3, 3)`` body -> space, and ``y`` (leaves ``(n, ...)``)."""
+    ts = np.asarray(sol.ts)
+    if ts.ndim != 1:
+        raise ValueError(f"plotting needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
+    n = int(np.asarray(sol.n_saved))
+    import jax
+
+    y = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], sol.y)
+    return ts[:n], np.asarray(sol.R)[:n], y
+
+
+def _figure(figsize, title: str | None) -> Figure:
+    fig = Figure(figsize=figsize, layout="constrained")
+    if title:
+        fig.suptitle(title)
+    return fig
+
+
+def components(sol, title: str | None = None, *, figsize=(9.0, 7.0)) -> Figure:
+    """3x3 grid of the entries ``R_ij(t)`` of the attitude (the report's figures
+    14-16): row ``i`` is the space-frame axis, column ``j`` the body axis, so
+    column ``j`` is body axis ``j`` seen in space.  All panels share ``[-1, 1]``."""
+    ts, R, _ = trajectory(sol)
+    fig = _figure(figsize, title)
+    axs = fig.subplots(3, 3, sharex=True, sharey=True)
+    colours = ["tab:red", "tab:blue", "tab:green"]
+    for i in range(3):
+        for j in range(3):
+            ax = axs[i, j]
+            ax.plot(ts, R[:, i, j], color=colours[j], lw=0.9)
+            ax.set_title(f"$R_{{{i + 1}{j + 1}}}$", fontsize=10)
+            ax.axhline(0.0, color="0.8", lw=0.5, zorder=0)
+            ax.grid(True, alpha=0.3)
+    axs[0, 0].set_ylim(-1.08, 1.08)
+    axs[0, 0].set_yticks([-1.0, -0.5, 0.0, 0.5, 1.0])
+    if len(ts):
+        axs[0, 0].set_xlim(ts[0], ts[-1])
+    for ax in axs[-1, :]:
+        ax.set_xlabel("t [s]")
+    for ax in axs[:, 0]:
+        ax.set_ylabel("component [-]")
+    return fig
+
+
+def euler_angles(sol, title: str | None = None, *, degrees: bool = False, figsize=(8.0, 6.5)) -> Figure:
+    """Euler angles of ``R = Rz(phi) Ry(theta) Rx(psi)`` (`lierk.so3.to_euler`)
+    against time, one panel each.  ``phi`` and ``psi`` are unwrapped so a steady
+    spin shows as a ramp rather than a saw-tooth; ``theta`` lies in
+    ``[-pi/2, pi/2]``."""
+    ts, R, _ = trajectory(sol)
+    angles = np.asarray(so3.to_euler(R)).reshape(-1, 3)
+    angles = np.unwrap(angles, axis=0)
+    unit = "deg" if degrees else "rad"
+    if degrees:
+        angles = np.degrees(angles)
+    fig = _figure(figsize, title)
+    axs = fig.subplots(3, 1, sharex=True)
+    names = [r"$\phi$ (about space $z$)", r"$\theta$ (about $y$)", r"$\psi$ (about body $x$)"]
+    for k, ax in enumerate(axs):
+        ax.plot(ts, angles[:, k], color=f"C{k}", lw=1.0)
+        ax.set_ylabel(f"{names[k]} [{unit}]")
+        ax.grid(True, alpha=0.3)
+    if len(ts):
+        axs[0].set_xlim(ts[0], ts[-1])
+    axs[-1].set_xlabel("t [s]")
+    return fig
+
+
+def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5)) -> Figure:
+    """The quantities of ``problem.invariants(R, y)`` (energy and ``|L|`` for
+    the free body) against time.
+
+    Those the exact flow conserves (all of them, unless the problem has a
+    ``conserved()`` method saying otherwise) are drawn as the relative drift
+    ``(Q(t) - Q(0)) / |Q(0)|`` on a symmetric-log axis whose linear band is the
+    dtype's machine epsilon: round-off sits inside the band, drift shows on log
+    scale with its sign.  The others (e.g. energy under damping) get a second
+    panel with the ratio ``Q(t) / Q(0)`` on a linear axis."""
+    ts, R, y = trajectory(sol)
+    import jax.numpy as jnp
+
+    quantities = {k: np.asarray(v).reshape(len(ts), -1) for k, v in problem.invariants(jnp.asarray(R), y).items()}
+    conserved = problem.conserved() if hasattr(problem, "conserved") else tuple(quantities)
+    kept = {k: v for k, v in quantities.items() if k in conserved}
+    other = {k: v for k, v in quantities.items() if k not in conserved}
+    eps = float(np.finfo(R.dtype).eps)
+    fig = _figure(figsize if not (kept and other) else (figsize[0], figsize[1] * 1.5), title)
+    if not quantities:
+        ax = fig.subplots()
+        ax.text(0.5, 0.5, "this problem declares no invariants", ha="center", va="center", transform=ax.transAxes)
+        ax.set_axis_off()
+        return fig
+    axs = list(np.atleast_1d(fig.subplots(int(bool(kept)) + int(bool(other)), 1, sharex=True)))
+    colour = {k: f"C{i}" for i, k in enumerate(quantities)}
+
+    def lines(group):
+        for name, q in group.items():
+            for c in range(q.shape[1]):
+                label = name if q.shape[1] == 1 else f"{name}[{c}]"
+                yield label, colour[name], q[:, c]
+
+    if kept:
+        ax = axs[0]
+        top = eps
+        for label, col, q in lines(kept):
+            rel = (q - q[0]) / (abs(q[0]) if q[0] != 0 else 1.0)
+            ax.plot(ts, rel, lw=1.0, color=col, label=f"{label}: max |drift| {np.nanmax(np.abs(rel)):.2e}")
+            top = max(top, float(np.nanmax(np.abs(rel))))
+        ax.set_yscale("symlog", linthresh=eps, linscale=0.5)
+        ax.axhspan(-eps, eps, color="0.9", zorder=0, label=f"|drift| < eps = {eps:.1e}")
+        kmin, kmax = int(np.floor(np.log10(eps))) + 2, int(np.ceil(np.log10(top * 1.5)))
+        ax.set_ylim(-(10.0**kmax), 10.0**kmax)
+        # At most four decades labelled per side and none inside the linear
+        # band, where symlog would print them on top of each other.
+        step = max(1, -(-(kmax - kmin + 1) // 4))
+        decades = 10.0 ** np.arange(kmax, kmin - 1, -step)
+        ax.set_yticks(np.concatenate([-decades, [0.0], decades[::-1]]))
+        ax.set_ylabel("conserved: relative drift\n(Q(t) - Q(0)) / |Q(0)| [-]")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    if other:
+        ax = axs[-1]
+        for label, col, q in lines(other):
+            ratio = q / q[0] if q[0] != 0 else q
+            span = f"{np.nanmin(ratio):.3g} .. {np.nanmax(ratio):.3g}"
+            ax.plot(ts, ratio, lw=1.0, color=col, ls="--", label=f"{label}: {span}")
+        ax.set_ylabel("not conserved here:\nQ(t) / Q(0) [-]")
+        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8)
+    for ax in axs:
+        ax.grid(True, alpha=0.3)
+        if len(ts):
+            ax.set_xlim(ts[0], ts[-1])
+    axs[-1].set_xlabel("t [s]")
+    return fig
+
+
+# ----------------------------------------------------------------------------
+# Animation
+
+
+def _cylinder_mesh(radius: float, length: float, axis: str, n: int = 16):
+    """Quads ``(F, 4, 3)`` and stripe index per face of a closed cylinder."""
+    k = "xyz".index(axis)
+    a, b = [i for i in range(3) if i != k]
+    th = np.linspace(0.0, 2 * np.pi, n + 1)
+    ring = np.zeros((n + 1, 3))
+    ring[:, a], ring[:, b] = radius * np.cos(th), radius * np.sin(th)
+    lo, hi = ring.copy(), ring.copy()
+    lo[:, k], hi[:, k] = -length / 2, length / 2
+    faces = [np.stack([lo[i], lo[i + 1], hi[i + 1], hi[i]]) for i in range(n)]
+    stripe = [i % 2 for i in range(n)]
+    # End caps as wedges (quads with a repeated centre), striped like the side
+    # so a spin about the symmetry axis is visible.
+    for cap in (lo, hi):
+        centre = np.zeros(3)
+        centre[k] = cap[0, k]
+        faces += [np.stack([centre, cap[i], cap[i + 1], centre]) for i in range(n)]
+        stripe += [i % 2 for i in range(n)]
+    return np.array(faces), np.array(stripe)
+
+
+def _box_mesh(lx: float, ly: float, lz: float):
+    h = np.array([lx, ly, lz]) / 2
+    faces = []
+    for k in range(3):
+        a, b = [i for i in range(3) if i != k]
+        for s in (-1.0, 1.0):
+            quad = np.zeros((4, 3))
+            quad[:, k] = s * h[k]
+            quad[:, a] = np.array([-1, 1, 1, -1]) * h[a]
+            quad[:, b] = np.array([-1, -1, 1, 1]) * h[b]
+            faces.append(quad)
+    return np.array(faces), np.array([0, 0, 1, 1, 0, 0])
+
+
+def _sphere_mesh(radius: float, n: int = 16):
+    th = np.linspace(0.0, np.pi, n // 2 + 1)
+    ph = np.linspace(0.0, 2 * np.pi, n + 1)
+
+    def p(t, f):
+        return radius * np.array([np.sin(t) * np.cos(f), np.sin(t) * np.sin(f), np.cos(t)])
+
+    faces, stripe = [], []
+    for i in range(len(th) - 1):
+        for j in range(n):
+            faces.append(np.stack([p(th[i], ph[j]), p(th[i], ph[j + 1]), p(th[i + 1], ph[j + 1]), p(th[i + 1], ph[j])]))
+            stripe.append((i + j) % 2)
+    return np.array(faces), np.array(stripe)
+
+
+def _part_mesh(part: Part):
+    shape = part.shape
+    kind = shape[0] if shape else None
+    if kind == "cylinder":
+        faces, stripe = _cylinder_mesh(float(shape[1]), float(shape[2]), str(shape[3]))
+    elif kind == "box":
+        faces, stripe = _box_mesh(*(float(s) for s in shape[1:4]))
+    elif kind == "sphere":
+        faces, stripe = _sphere_mesh(float(shape[1]))
+    else:
+        warnings.warn(f"cannot draw a part of shape {shape!r}; it is left out of the animation", stacklevel=3)
+        return None
+    Q = np.eye(3) if part.rotation is None else np.asarray(part.rotation, dtype=float)
+    return faces @ Q.T + np.asarray(part.offset, dtype=float), stripe
+
+
+def equivalent_box(inertia) -> list[Part]:
+    """A uniform box with the principal moments of ``inertia`` (up to mass,
+    which only scales it), for drawing a body given only by its inertia."""
+    inertia = np.asarray(inertia, dtype=float)
+    inertia = np.diag(inertia) if inertia.ndim == 1 else inertia
+    moments, axes = np.linalg.eigh(inertia)
+    if np.linalg.det(axes) < 0:
+        axes[:, -1] *= -1
+    # Box: I_x = m (ly^2 + lz^2)/12 etc., so lx^2 = 6 (I_y + I_z - I_x) / m.
+    total = moments.sum()
+    sq = 6.0 * np.maximum(total - 2.0 * moments, 1e-3 * total)
+    lengths = np.sqrt(sq / sq.max())
+    return [Part(1.0, np.diag(moments), np.zeros(3), axes, ("box", *lengths))]
+
+
+def animate(
+    sol,
+    parts: Sequence[Part] | None,
+    path,
+    L=None,
+    *,
+    frames: int = 120,
+    fps: int = 20,
+    title: str | None = None,
+    inertia=None,
+    origin=None,
+    trail: bool = True,
+) -> Path:
+    """Write a GIF of the body turning in the space frame.
+
+    The body is drawn from ``parts`` (`lierk.inertia.Part` with ``shape``
+    ``("cylinder", radius, length, axis)``, ``("box", lx, ly, lz)`` or
+    ``("sphere", radius)``), with the body point ``origin`` (``(3,)``, body
+    frame, m; default the parts' centre of mass, e.g. a top's pivot) pinned at
+    the space origin: a body point ``x`` is drawn at ``R (x - origin)``.  With
+    ``parts=None`` a box with the principal moments of ``inertia`` is drawn, or
+    only the axes.  Body axes ``x_b, y_b, z_b`` are the columns of ``R``; the
+    faint trail follows the tip of the body axis that starts closest to ``L``.  ``L`` is the spatial angular
+    momentum, ``(3,)`` or ``(n_saved, 3)``, drawn as a black arrow scaled to
+    the body size (its direction is what matters).
+
+    Args:
+        sol: an unbatched `Solution` saving many steps.
+        path: output file (``.gif``).
+        frames: number of frames, spread evenly over the saved entries.
+        fps: frames per second of the GIF.
+
+    Returns:
+        ``path`` as a `Path`.  The GIF is ``GIF_SIZE * GIF_DPI`` pixels.
+    """
+    from matplotlib.animation import FuncAnimation, PillowWriter
+    from matplotlib.ticker import MaxNLocator
+    from mpl_toolkits.mplot3d.art3d import Poly3DCollection
+
+    ts, R, _ = trajectory(sol)
+    if len(ts) == 0:
+        raise ValueError("the solution has no saved states to animate")
+    idx = np.unique(np.linspace(0, len(ts) - 1, max(int(frames), 1)).round().astype(int))
+
+    if parts is None and inertia is not None:
+        parts = equivalent_box(inertia)
+    meshes, colours = [], []
+    if parts:
+        if origin is None:
+            origin = composite(list(parts)).center_of_mass
+        origin = np.asarray(origin, dtype=float)
+        palette = [("#4c72b0", "#8fb0e0"), ("#dd8452", "#f2c19e"), ("#55a868", "#a3d6b0"), ("#8172b3", "#c1b7e3")]
+        for k, part in enumerate(parts):
+            mesh = _part_mesh(part)
+            if mesh is None:
+                continue
+            faces, stripe = mesh
+            meshes.append(faces - origin)
+            pair = palette[k % len(palette)]
+            colours.append(np.array([to_rgb(pair[s]) for s in stripe]))
+    faces = np.concatenate(meshes) if meshes else np.zeros((0, 4, 3))
+    base_colour = np.concatenate(colours) if colours else np.zeros((0, 3))
+    size = float(np.abs(faces).max()) if len(faces) else 1.0
+    arm = 1.8 * size
+
+    if L is not None:
+        L = np.asarray(L, dtype=float)
+        L = np.broadcast_to(L, (len(ts), 3)) if L.ndim == 1 else L[: len(ts)]
+        Lmax = np.linalg.norm(L, axis=-1).max()
+        L_dir = L / Lmax if Lmax > 0 else L
+
+    # A fixed layout: constrained layout would lay out (draw) every frame twice.
+    fig = Figure(figsize=GIF_SIZE, dpi=GIF_DPI)
+    ax = fig.add_axes((0.03, 0.02, 0.9, 0.9), projection="3d")
+    lim = 1.6 * size
+    ax.set_xlim(-lim, lim)
+    ax.set_ylim(-lim, lim)
+    ax.set_zlim(-lim, lim)
+    ax.set_box_aspect((1, 1, 1))
+    ax.set_xlabel("x [m]", labelpad=-6)
+    ax.set_ylabel("y [m]", labelpad=-6)
+    ax.set_zlabel("z [m]", labelpad=-6)
+    ax.tick_params(labelsize=6, pad=-2)
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):
+        axis.set_major_locator(MaxNLocator(3))
+    ax.view_init(elev=22, azim=-55)
+    if title:
+        fig.suptitle(title, fontsize=9)
+
+    body = Poly3DCollection(faces, edgecolor="none")
+    ax.add_collection3d(body)
+    axis_colours = ["tab:red", "tab:green", "tab:blue"]
+    axis_lines = [ax.plot([], [], [], color=c, lw=2.0, label=f"${n}_b$")[0] for c, n in zip(axis_colours, "xyz")]
+    # Trail the body axis that starts closest to L: the spin axis, whose tip
+    # shows flips, precession and nutation rather than the spin itself.
+    trail_axis = int(np.argmax(np.abs(R[0].T @ L[0]))) if L is not None else 0
+    trail_line = ax.plot([], [], [], color=axis_colours[trail_axis], lw=0.6, alpha=0.35)[0] if trail else None
+    L_line = ax.plot([], [], [], color="k", lw=2.5, label="L (direction)")[0] if L is not None else None
+    L_head = ax.plot([], [], [], "ko", ms=4)[0] if L is not None else None
+    time_text = ax.text2D(0.02, 0.02, "", transform=ax.transAxes, fontsize=8)
+    ax.legend(loc="upper right", fontsize=7)
+    light = np.array([0.4, -0.5, 0.75])
+    light /= np.linalg.norm(light)
+
+    def draw(frame):
+        i = idx[frame]
+        Ri = R[i]
+        if len(faces):
+            world = faces @ Ri.T
+            body.set_verts(world)
+            n = np.cross(world[:, 1] - world[:, 0], world[:, 2] - world[:, 0])
+            # Wedge faces of caps repeat the centre; use the other diagonal there.
+            n2 = np.cross(world[:, 2] - world[:, 0], world[:, 3] - world[:, 1])
+            n = np.where(np.linalg.norm(n, axis=1, keepdims=True) > 0, n, n2)
+            n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+            shade = 0.45 + 0.55 * np.abs(n @ light)
+            body.set_facecolor(np.clip(base_colour * shade[:, None], 0, 1))
+        for k, line in enumerate(axis_lines):
+            tip = arm * Ri[:, k]
+            line.set_data_3d([0, tip[0]], [0, tip[1]], [0, tip[2]])
+        if trail_line is not None:
+            tips = arm * R[: i + 1, :, trail_axis]
+            trail_line.set_data_3d(tips[:, 0], tips[:, 1], tips[:, 2])
+        if L_line is not None:
+            tip = arm * L_dir[i]
+            L_line.set_data_3d([0, tip[0]], [0, tip[1]], [0, tip[2]])
+            L_head.set_data_3d([tip[0]], [tip[1]], [tip[2]])
+        time_text.set_text(f"t = {ts[i]:.2f} s")
+        return []
+
+    anim = FuncAnimation(fig, draw, frames=len(idx), blit=False)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=fps), dpi=GIF_DPI)
+    return path
+

@@ -1,0 +1,487 @@
+"""Scenes: a rigid body, its initial state, opt-in effects and a run, from TOML.
+
+A scene simulates only the effects it lists.  With no ``[[effects]]`` its
+problem is a plain `lierk.FreeRigidBody` (no extra state, spatial momentum
+constant); otherwise it is a `lierk.effects.RigidBodyWithEffects` holding
+just those effects.
+
+Schema (every table rejects keys it does not know)::
+
+    name = "heavy top"          # optional; default: the file name without .toml
+    description = "..."         # optional, free text
+
+    [body]                      # the body frame is the frame the dimensions are given in
+    kind = "tee_handle"         # the report's T-handle; optional overrides (m, kg/m^3):
+                                #   handle_length, handle_radius, shaft_length,
+                                #   shaft_radius, density
+    # kind = "box"        mass, lx, ly, lz               (edges along body x, y, z)
+    # kind = "cylinder"   mass, radius, length, axis = "z" ("x" | "y" | "z")
+    # kind = "sphere"     mass, radius
+    # kind = "tensor"     inertia = [Ixx, Iyy, Izz] or 3x3, about the centre of mass
+    #                     (kg m^2); mass optional (needed by gravity unless given there)
+    # kind = "composite"  one [[body.parts]] table per solid:
+    #   [[body.parts]]
+    #   kind = "cylinder"           # "cylinder" | "box" | "sphere", with their dimensions
+    #   mass = 0.5
+    #   radius = 0.04
+    #   length = 0.01
+    #   offset = [0, 0, 0.06]       # the part's centre, in the body frame (m); default 0
+    #   euler = [0, 0, 0]           # optional orientation, part -> body frame: at most
+    #                               # one of matrix = [[...]], quaternion = [w, x, y, z],
+    #                               # euler = [phi, theta, psi] (rad)
+
+    [initial]
+    omega = [1.0, 0.05, 0.0]    # body angular velocity (rad/s)
+    attitude = "identity"       # or one of: matrix = [[...], [...], [...]] (body -> space),
+                                # quaternion = [w, x, y, z], euler = [phi, theta, psi] (rad,
+                                # R = Rz(phi) Ry(theta) Rx(psi)); default identity
+
+    [[effects]]                 # zero or more; each kind at most once
+    kind = "gravity"            # space z is up; give exactly one of
+    pivot_to_com = [0, 0, 0.06] #   the vector pivot -> centre of mass (body frame, m)
+    # pivot = [0, 0, 0]         #   or the pivot's position in the body frame (m)
+    # mass = 0.52               # default: the body's mass (kg)
+    # g = 9.81                  # m/s^2
+    # kind = "body_torque"   torque = [x, y, z]   (N m, fixed in the body)
+    # kind = "space_torque"  torque = [x, y, z]   (N m, fixed in space)
+    # kind = "damping"       c = 0.1              (N m s; torque -c omega)
+
+    [run]
+    solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
+                                # RKMK4, CF4 (fixed step), RKF45, DP54, DOP853 (adaptive)
+    t1 = 100.0                  # end time (s); runs start at t = 0
+    dt = 0.01                   # fixed step (s); or rtol = 1e-8 (and atol) for adaptive
+    save_every = 10             # fixed step: keep every k-th step (default 1)
+    # n_save = 1001             # adaptive: equally spaced output times (default 1001)
+    # max_steps = 100000        # adaptive: bound on steps (accepted + rejected)
+
+With gravity the body turns about the pivot, so the problem's inertia is the
+centre-of-mass inertia moved there (`lierk.inertia.parallel_axis`) and its
+state is the momentum about the pivot; otherwise the body turns about its
+centre of mass.  `Scene.fixed_point` is that point in the body frame, which is
+where a drawing of `Scene.body_parts` is pinned.
+
+Every mistake raises `ValueError` before anything runs, naming the key (as a
+path such as ``effects[1].kind``), the value and what is allowed.
+
+Example:
+    >>> scene = lierk.scene.load("examples/heavy_top.toml")
+    >>> sol = scene.solve()
+    >>> scene.problem.invariants(sol.R, sol.y)["energy"]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import tomllib
+from typing import Any
+
+import jax.numpy as jnp
+import numpy as np
+
+from . import inertia as _inertia
+from . import so3
+from . import solvers as _solvers
+from .effects import AbstractEffect, BodyTorque, Damping, Gravity, RigidBodyWithEffects, SpaceTorque
+from .fields import AbstractProblem, FreeRigidBody, check_attitude
+from .solution import SaveAt, Solution
+from .solve import solve as _solve
+
+__all__ = ["Scene", "load", "from_dict", "SOLVERS"]
+
+SOLVERS: dict[str, type] = {
+    c.__name__: c
+    for c in (
+        _solvers.ExplicitEuler,
+        _solvers.LieEuler,
+        _solvers.NaiveLieRK4,
+        _solvers.RKMK4,
+        _solvers.CF4,
+        _solvers.RKF45,
+        _solvers.DP54,
+        _solvers.DOP853,
+    )
+}
+"""Solver names a scene may use, to their classes."""
+
+_DEFAULT_N_SAVE = 1001
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class Scene:
+    """A loaded scene; see the module docstring for the file format.
+
+    Attributes:
+        name: the scene's name.
+        problem: `lierk.FreeRigidBody` without effects, else
+            `lierk.effects.RigidBodyWithEffects`.
+        solver: a lierk solver instance.
+        t1: end time (s); runs start at 0.
+        solve_kwargs: keyword arguments for `lierk.solve` besides ``saveat``:
+            ``{"dt": ...}`` or ``{"rtol": ..., "atol": ...[, "max_steps": ...]}``.
+        saveat_every: fixed step: save every k-th step (None when adaptive).
+        n_save: adaptive: number of equally spaced output times in ``[0, t1]``
+            (None when fixed step).
+        body_parts: the solids for drawing (`lierk.inertia.Part`, offsets in the
+            body frame, ``shape`` one of ``("cylinder", radius, length, axis)``,
+            ``("box", lx, ly, lz)``, ``("sphere", radius)``), or None for ``kind = "tensor"``.
+        effects: the effects, in file order (empty without effects).
+        mass: total mass (kg), or None if unknown (``kind = "tensor"`` without mass).
+        center_of_mass: ``(3,)`` centre of mass in the body frame (m).
+        fixed_point: ``(3,)`` the point of the body frame that stays put in
+            space: the pivot with gravity, else the centre of mass (m).
+            A body point ``x`` is drawn at ``R (x - fixed_point)``.
+        description: free text from the file.
+    """
+
+    name: str
+    problem: AbstractProblem
+    solver: Any
+    t1: float
+    solve_kwargs: dict
+    saveat_every: int | None
+    n_save: int | None
+    body_parts: list | None
+    effects: tuple
+    mass: float | None
+    center_of_mass: np.ndarray
+    fixed_point: np.ndarray
+    description: str = ""
+
+    @property
+    def adaptive(self) -> bool:
+        return "dt" not in self.solve_kwargs
+
+    def saveat(self) -> SaveAt:
+        """Fixed step: the initial state and every ``saveat_every``-th step (the
+        last state too when the step count is a multiple).  Adaptive: ``n_save``
+        equally spaced times from 0 to ``t1``."""
+        if self.adaptive:
+            return SaveAt(ts=jnp.linspace(0.0, self.t1, self.n_save, dtype=self.problem.R0.dtype))
+        return SaveAt(t0=True, steps=self.saveat_every, t1=True)
+
+    def solve(self, **overrides) -> Solution:
+        """``lierk.solve(problem, solver, t1, saveat=self.saveat(), **solve_kwargs)``;
+        keyword ``overrides`` replace entries (e.g. ``throw=False``)."""
+        kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **overrides}
+        return _solve(self.problem, self.solver, self.t1, **kwargs)
+
+
+def load(path: str | os.PathLike) -> Scene:
+    """Read a scene from a TOML file.  Raises `ValueError` if it is not valid
+    TOML or not a valid scene (the message names the file)."""
+    path = os.fspath(path)
+    with open(path, "rb") as f:
+        try:
+            d = tomllib.load(f)
+        except tomllib.TOMLDecodeError as e:
+            raise ValueError(f"{path}: not valid TOML: {e}") from None
+    stem = os.path.splitext(os.path.basename(path))[0]
+    try:
+        return from_dict(d, name=stem)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def from_dict(d: dict, name: str = "scene") -> Scene:
+    """Build a scene from a parsed TOML document (a dict); ``d["name"]``, if
+    present, overrides ``name``."""
+    _table(d, "scene", {"name", "description", "body", "initial", "effects", "run"}, required={"body", "initial", "run"})
+    name = _string(d.get("name", name), "name")
+    description = _string(d.get("description", ""), "description")
+    body = _body(d["body"])
+    omega0, R0 = _initial(d["initial"])
+    effects_list = d.get("effects", [])
+    if not isinstance(effects_list, list):
+        raise ValueError(f"effects must be an array of tables ([[effects]]), got {effects_list!r}")
+    effects, pivot_to_com = _effects(effects_list, body)
+    solver, t1, solve_kwargs, every, n_save = _run(d["run"])
+
+    if not effects:
+        problem = FreeRigidBody(body.inertia, omega0, R0)
+        fixed_point = body.com
+    elif pivot_to_com is not None:
+        mass = body.mass if body.mass is not None else float(next(e for e in effects if isinstance(e, Gravity)).mass)
+        inertia = _inertia.parallel_axis(body.inertia, mass, pivot_to_com)
+        problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
+        fixed_point = body.com - pivot_to_com
+    else:
+        problem = RigidBodyWithEffects(body.inertia, omega0, R0, effects)
+        fixed_point = body.com
+    return Scene(
+        name=name,
+        problem=problem,
+        solver=solver,
+        t1=t1,
+        solve_kwargs=solve_kwargs,
+        saveat_every=every,
+        n_save=n_save,
+        body_parts=body.parts,
+        effects=effects,
+        mass=body.mass,
+        center_of_mass=body.com,
+        fixed_point=np.asarray(fixed_point, dtype=float),
+        description=description,
+    )
+
+
+# --- validation helpers ------------------------------------------------------
+
+
+def _table(d, path: str, allowed: set, required: set = frozenset()) -> dict:
+    if not isinstance(d, dict):
+        raise ValueError(f"{path} must be a table, got {d!r}")
+    for k in d:
+        if k not in allowed:
+            raise ValueError(f"{path}: unknown key {k!r} (= {d[k]!r}); allowed keys: {', '.join(sorted(allowed))}")
+    for k in sorted(required):
+        if k not in d:
+            raise ValueError(f"{path}: missing required key {k!r}")
+    return d
+
+
+def _key(path: str, k: str) -> str:
+    return k if path == "scene" else f"{path}.{k}"
+
+
+def _string(x, path: str) -> str:
+    if not isinstance(x, str):
+        raise ValueError(f"{path} must be a string, got {x!r}")
+    return x
+
+
+def _number(x, path: str, *, positive: bool = False, nonnegative: bool = False) -> float:
+    if isinstance(x, bool) or not isinstance(x, (int, float)) or not math.isfinite(x):
+        raise ValueError(f"{path} must be a finite number, got {x!r}")
+    if positive and not x > 0:
+        raise ValueError(f"{path} must be > 0, got {x!r}")
+    if nonnegative and not x >= 0:
+        raise ValueError(f"{path} must be >= 0, got {x!r}")
+    return float(x)
+
+
+def _int(x, path: str) -> int:
+    if isinstance(x, bool) or not isinstance(x, int) or x < 1:
+        raise ValueError(f"{path} must be a positive integer, got {x!r}")
+    return x
+
+
+def _vec(x, path: str, n: int = 3) -> np.ndarray:
+    if not isinstance(x, list) or len(x) != n:
+        raise ValueError(f"{path} must be a list of {n} numbers, got {x!r}")
+    return np.array([_number(v, f"{path}[{i}]") for i, v in enumerate(x)])
+
+
+def _mat3(x, path: str) -> np.ndarray:
+    if not isinstance(x, list) or len(x) != 3:
+        raise ValueError(f"{path} must be a 3x3 matrix (a list of 3 rows of 3 numbers), got {x!r}")
+    return np.stack([_vec(row, f"{path}[{i}]") for i, row in enumerate(x)])
+
+
+def _choice(x, path: str, choices) -> str:
+    if x is None:
+        raise ValueError(f"{path} is missing; choose one of: {', '.join(map(repr, choices))}")
+    if x not in choices:
+        raise ValueError(f"{path} = {x!r} is not allowed; choose one of: {', '.join(map(repr, choices))}")
+    return x
+
+
+def _orientation(t: dict, path: str, allow_identity: bool) -> np.ndarray | None:
+    """One of ``attitude = "identity"``, ``matrix``, ``quaternion``, ``euler``, or
+    None if none is given.  Returns a rotation matrix checked to be in SO(3)."""
+    keys = [k for k in ("attitude", "matrix", "quaternion", "euler") if k in t]
+    if len(keys) > 1:
+        raise ValueError(f"{path}: give at most one of {', '.join(keys)}")
+    if not keys:
+        return None
+    (k,) = keys
+    p = _key(path, k)
+    if k == "attitude":
+        _choice(t[k], p, ("identity",) if allow_identity else ())
+        return np.eye(3)
+    if k == "matrix":
+        R = _mat3(t[k], p)
+    elif k == "quaternion":
+        q = _vec(t[k], p, 4)
+        if not np.linalg.norm(q) > 1e-12:
+            raise ValueError(f"{p} must be a nonzero quaternion [w, x, y, z], got {t[k]!r}")
+        R = np.asarray(so3.from_quaternion(q / np.linalg.norm(q)))
+    else:
+        R = np.asarray(so3.from_euler(*_vec(t[k], p)))
+    try:
+        return np.asarray(check_attitude(np.asarray(R, dtype=float), jnp.result_type(float)), dtype=float)
+    except ValueError as e:
+        raise ValueError(f"{p}: {e}") from None
+
+
+# --- body ----------------------------------------------------------------------
+
+
+@dataclasses.dataclass
+class _Body:
+    mass: float | None
+    com: np.ndarray
+    inertia: np.ndarray  # about the centre of mass, body frame
+    parts: list | None
+
+
+_SHAPE_KEYS = {
+    "box": ("mass", "lx", "ly", "lz"),
+    "cylinder": ("mass", "radius", "length"),
+    "sphere": ("mass", "radius"),
+}
+_TEE_KEYS = ("handle_length", "handle_radius", "shaft_length", "shaft_radius", "density")
+_BODY_KINDS = ("tee_handle", "box", "cylinder", "sphere", "composite", "tensor")
+
+
+def _solid(t: dict, path: str, extra: set) -> tuple[float, np.ndarray, tuple]:
+    """``(mass, inertia about its centre in its own frame, shape)`` of one solid."""
+    kind = _choice(t.get("kind"), _key(path, "kind"), tuple(_SHAPE_KEYS))
+    optional = {"axis"} if kind == "cylinder" else set()
+    _table(t, path, {"kind", *_SHAPE_KEYS[kind], *optional, *extra}, required=set(_SHAPE_KEYS[kind]))
+    v = {k: _number(t[k], _key(path, k), positive=True) for k in _SHAPE_KEYS[kind]}
+    if kind == "box":
+        return v["mass"], np.asarray(_inertia.box(**v)), ("box", v["lx"], v["ly"], v["lz"])
+    if kind == "sphere":
+        return v["mass"], np.asarray(_inertia.sphere(**v)), ("sphere", v["radius"])
+    axis = _choice(t.get("axis", "z"), _key(path, "axis"), ("x", "y", "z"))
+    return (
+        v["mass"],
+        np.asarray(_inertia.solid_cylinder(v["mass"], v["radius"], v["length"], axis)),
+        ("cylinder", v["radius"], v["length"], axis),
+    )
+
+
+def _body(t) -> _Body:
+    path = "body"
+    if not isinstance(t, dict):
+        raise ValueError(f"body must be a table, got {t!r}")
+    kind = _choice(t.get("kind"), "body.kind", _BODY_KINDS)
+    if kind == "tee_handle":
+        _table(t, path, {"kind", *_TEE_KEYS})
+        dims = {k: _number(t[k], f"body.{k}", positive=True) for k in _TEE_KEYS if k in t}
+        parts = _inertia.tee_handle_parts(**dims)
+    elif kind == "tensor":
+        _table(t, path, {"kind", "inertia", "mass"}, required={"inertia"})
+        x = t["inertia"]
+        I = _mat3(x, "body.inertia") if isinstance(x, list) and x and isinstance(x[0], list) else np.diag(_vec(x, "body.inertia"))
+        try:
+            I = np.asarray(_inertia.tensor(I), dtype=float)
+        except ValueError as e:
+            raise ValueError(f"body.inertia: {e}") from None
+        mass = _number(t["mass"], "body.mass", positive=True) if "mass" in t else None
+        return _Body(mass, np.zeros(3), I, None)
+    elif kind == "composite":
+        _table(t, path, {"kind", "parts"}, required={"parts"})
+        if not isinstance(t["parts"], list) or not t["parts"]:
+            raise ValueError(f"body.parts must be a non-empty array of tables ([[body.parts]]), got {t['parts']!r}")
+        parts = []
+        for i, pt in enumerate(t["parts"]):
+            p = f"body.parts[{i}]"
+            if not isinstance(pt, dict):
+                raise ValueError(f"{p} must be a table, got {pt!r}")
+            mass, I, shape = _solid(pt, p, {"offset", "matrix", "quaternion", "euler"})
+            offset = _vec(pt["offset"], f"{p}.offset") if "offset" in pt else np.zeros(3)
+            Q = _orientation(pt, p, allow_identity=False)
+            parts.append(_inertia.Part(mass, I, offset, Q, shape))
+    else:
+        mass, I, shape = _solid(t, path, set())
+        parts = [_inertia.Part(mass, I, np.zeros(3), None, shape)]
+    c = _inertia.composite(parts)
+    return _Body(float(c.mass), np.asarray(c.center_of_mass, dtype=float), np.asarray(c.inertia, dtype=float), parts)
+
+
+# --- initial state -------------------------------------------------------------
+
+
+def _initial(t) -> tuple[np.ndarray, np.ndarray]:
+    _table(t, "initial", {"omega", "attitude", "matrix", "quaternion", "euler"}, required={"omega"})
+    omega = _vec(t["omega"], "initial.omega")
+    R0 = _orientation(t, "initial", allow_identity=True)
+    return omega, np.eye(3) if R0 is None else R0
+
+
+# --- effects -------------------------------------------------------------------
+
+_EFFECT_KEYS = {
+    "gravity": ({"pivot_to_com", "pivot", "mass", "g"}, set()),
+    "body_torque": ({"torque"}, {"torque"}),
+    "space_torque": ({"torque"}, {"torque"}),
+    "damping": ({"c"}, {"c"}),
+}
+
+
+def _effects(items: list, body: _Body) -> tuple[tuple[AbstractEffect, ...], np.ndarray | None]:
+    effects, seen, pivot_to_com = [], set(), None
+    for i, t in enumerate(items):
+        p = f"effects[{i}]"
+        if not isinstance(t, dict):
+            raise ValueError(f"{p} must be a table, got {t!r}")
+        kind = _choice(t.get("kind"), f"{p}.kind", tuple(_EFFECT_KEYS))
+        if kind in seen:
+            raise ValueError(f"{p}.kind = {kind!r} appears twice; each effect kind may be given once")
+        seen.add(kind)
+        allowed, required = _EFFECT_KEYS[kind]
+        _table(t, p, {"kind", *allowed}, required=required)
+        if kind == "gravity":
+            given = [k for k in ("pivot_to_com", "pivot") if k in t]
+            if len(given) != 1:
+                raise ValueError(f"{p}: gravity needs exactly one of 'pivot_to_com' or 'pivot', got {given or 'neither'}")
+            if "pivot" in t:
+                pivot_to_com = body.com - _vec(t["pivot"], f"{p}.pivot")
+            else:
+                pivot_to_com = _vec(t["pivot_to_com"], f"{p}.pivot_to_com")
+            if "mass" in t:
+                mass = _number(t["mass"], f"{p}.mass", positive=True)
+            elif body.mass is not None:
+                mass = body.mass
+            else:
+                raise ValueError(f"{p}.mass is required: body kind 'tensor' was given without a mass")
+            g = _number(t.get("g", 9.81), f"{p}.g", nonnegative=True)
+            effects.append(Gravity(pivot_to_com, mass, g))
+        elif kind == "body_torque":
+            effects.append(BodyTorque(_vec(t["torque"], f"{p}.torque")))
+        elif kind == "space_torque":
+            effects.append(SpaceTorque(_vec(t["torque"], f"{p}.torque")))
+        else:
+            effects.append(Damping(_number(t["c"], f"{p}.c", nonnegative=True)))
+    return tuple(effects), pivot_to_com
+
+
+# --- run -----------------------------------------------------------------------
+
+
+def _run(t):
+    _table(t, "run", {"solver", "t1", "dt", "rtol", "atol", "save_every", "n_save", "max_steps"}, required={"solver", "t1"})
+    names = {n.lower(): n for n in SOLVERS}
+    s = t["solver"]
+    if not isinstance(s, str) or s.lower() not in names:
+        raise ValueError(f"run.solver = {s!r} is not allowed; choose one of: {', '.join(SOLVERS)}")
+    solver = SOLVERS[names[s.lower()]]()
+    t1 = _number(t["t1"], "run.t1", positive=True)
+    if ("dt" in t) == ("rtol" in t):
+        raise ValueError("run: give exactly one of 'dt' (fixed step) or 'rtol' (adaptive, with optional 'atol')")
+    if "dt" in t:
+        for k in ("atol", "n_save", "max_steps"):
+            if k in t:
+                raise ValueError(f"run.{k} applies to adaptive runs (rtol=), not to a fixed step dt = {t['dt']!r}")
+        dt = _number(t["dt"], "run.dt", positive=True)
+        every = _int(t.get("save_every", 1), "run.save_every")
+        return solver, t1, {"dt": dt}, every, None
+    if not solver.adaptive:
+        adaptive = [n for n, c in SOLVERS.items() if c.adaptive]
+        raise ValueError(
+            f"run.solver = {s!r} has no error estimate, so it needs run.dt; adaptive solvers (for rtol): {', '.join(adaptive)}"
+        )
+    if "save_every" in t:
+        raise ValueError("run.save_every applies to fixed-step runs (dt=); adaptive runs use run.n_save")
+    rtol = _number(t["rtol"], "run.rtol", positive=True)
+    kw = {"rtol": rtol, "atol": _number(t.get("atol", rtol), "run.atol", positive=True)}
+    if "max_steps" in t:
+        kw["max_steps"] = _int(t["max_steps"], "run.max_steps")
+    n_save = _int(t.get("n_save", _DEFAULT_N_SAVE), "run.n_save")
+    if n_save < 2:
+        raise ValueError(f"run.n_save must be >= 2 (it includes t = 0 and t1), got {n_save}")
+    return solver, t1, kw, None, n_save

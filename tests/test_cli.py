@@ -1,0 +1,300 @@
+"""The command line: outputs agree with direct library calls, figures decode
+with their documented sizes, and every mistake ends in one line on stderr
+with a non-zero exit status."""
+
+import io
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import lierk
+import lierk.exact
+import lierk.scene
+from lierk import cli, plot
+
+TEE_SCENE = """
+name = "tee test"
+description = "T-handle near the intermediate axis"
+[body]
+kind = "tee_handle"
+[initial]
+omega = [1.0, 0.05, 0.3]
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 100.0
+save_every = 2
+"""
+
+DAMPED_SCENE = """
+name = "damped"
+[body]
+kind = "tee_handle"
+[initial]
+omega = [1.0, 0.05, 0.3]
+[[effects]]
+kind = "damping"
+c = 2e-5
+[run]
+solver = "CF4"
+dt = 0.01
+t1 = 0.7
+save_every = 3
+"""
+
+ADAPTIVE_SCENE = """
+name = "adaptive"
+[body]
+kind = "tensor"
+inertia = [1.0, 2.0, 3.0]
+[initial]
+omega = [0.3, 1.0, 0.2]
+[run]
+solver = "DP54"
+rtol = 1e-10
+t1 = 2.0
+n_save = 41
+"""
+
+LIERK = str(Path(sys.executable).parent / "lierk")
+
+
+def write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def run_inprocess(argv, capsys):
+    """``lierk ARGV`` in this process: (exit status, stdout, stderr)."""
+    try:
+        code = cli.main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's own exits (--help, bad syntax)
+        code = e.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def run_subprocess(argv):
+    p = subprocess.run([LIERK, *map(str, argv)], capture_output=True, text=True, timeout=600)
+    return p.returncode, p.stdout, p.stderr
+
+
+# ---------------------------------------------------------------------------
+# Arguments and errors
+
+
+@pytest.mark.parametrize(
+    "text, expected",
+    [("-0.2:0.2:5", (-0.2, 0.2, 5)), ("0.5", (0.5, 0.5, 1)), ("1:2:1", (1.0, 2.0, 1))],
+)
+def test_parse_range(text, expected):
+    assert cli.parse_range(text) == expected
+
+
+@pytest.mark.parametrize("text", ["1:0:5", "0:1:0", "0:1", "a:b:3", "0:inf:3", "0:1:2.5"])
+def test_parse_range_rejects(text):
+    with pytest.raises(Exception, match="START|N|finite|expected"):
+        cli.parse_range(text)
+
+
+def test_progress_reports_quarters_off_a_terminal():
+    stream = io.StringIO()
+    p = cli.Progress("run", 100.0, " s", stream=stream)
+    for t in range(5, 101, 5):
+        p.update(t)
+    lines = stream.getvalue().splitlines()
+    assert [line.split("]")[1].split("%")[0].strip() for line in lines] == ["25.0", "50.0", "75.0", "100.0"]
+    quiet = io.StringIO()
+    q = cli.Progress("run", 1.0, quiet=True, stream=quiet)
+    q.update(1.0)
+    assert quiet.getvalue() == ""
+
+
+@pytest.mark.parametrize(
+    "argv, status, message",
+    [
+        ([], 2, "a command is required"),
+        (["simulate", "{missing}", "--out", "{out}"], 2, "scene file not found"),
+        (["simulate", "{bad_key}", "--out", "{out}"], 2, "unknown key 'colour'"),
+        (["simulate", "{bad_toml}", "--out", "{out}"], 2, "not valid TOML"),
+        (["simulate", "{scene}"], 2, "required: --out"),
+        (["simulate", "{scene}", "--out", "{out}", "--t1", "-1"], 2, "--t1 must be a positive"),
+        (["simulate", "{scene}", "--out", "{out}", "--frames", "0"], 2, "--frames must be a positive integer"),
+        (["simulate", "{too_few_steps}", "--out", "{out}", "--quiet"], 1, "max_steps was reached"),
+        (["sweep", "{scene}", "--out", "{out}", "--omega-x", "1:0:5"], 2, "START must be < STOP"),
+        (["sweep", "{scene}", "--out", "{out}", "--omega-y", "0:1:x"], 2, "START:STOP:N"),
+        (["sweep", "{scene}", "--out", "{out}", "--omega-x", "1"], 2, "nothing to sweep"),
+        (["sweep", "{scene}", "--out", "{out}", "--omega-x", "0:1:2", "--omega-y", "0:1:2", "--omega-z", "0:1:2"],
+         2, "at most two"),
+        (["frobnicate"], 2, "invalid choice"),
+    ],
+)
+def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
+    files = {
+        "missing": tmp_path / "missing.toml",
+        "bad_key": write(tmp_path, TEE_SCENE.replace("[body]", "colour = 'red'\n[body]"), "bad_key.toml"),
+        "bad_toml": write(tmp_path, "[body\n", "bad.toml"),
+        "scene": write(tmp_path, TEE_SCENE),
+        "too_few_steps": write(tmp_path, ADAPTIVE_SCENE.replace("n_save = 41", "max_steps = 2"), "few.toml"),
+        "out": tmp_path / "out",
+    }
+    argv = [a.format(**files) for a in argv]
+    code, out, err = run_inprocess(argv, capsys)
+    assert code == status
+    assert len(err.strip().splitlines()) == 1, err
+    assert message in err
+    assert "Traceback" not in err
+
+
+def test_console_script_errors_without_traceback(tmp_path):
+    bad = write(tmp_path, TEE_SCENE.replace("omega = [1.0, 0.05, 0.3]", "omega = [1.0, 0.05]"))
+    code, out, err = run_subprocess(["simulate", bad, "--out", tmp_path / "out"])
+    assert code == 2
+    assert err.count("\n") == 1 and "initial.omega" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize(
+    "argv, words",
+    [
+        ([], ["simulate", "sweep"]),
+        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif"]),
+        (["sweep"], ["--omega-x", "START:STOP:N", "--grid", "--span", "flip interval", "--chunk-size"]),
+    ],
+)
+def test_help(capsys, argv, words):
+    code, out, err = run_inprocess([*argv, "--help"], capsys)
+    assert code == 0
+    for w in words:
+        assert w in out
+
+
+# ---------------------------------------------------------------------------
+# simulate
+
+
+def _npz(path):
+    with np.load(path) as f:
+        return {k: f[k] for k in f.files}
+
+
+def test_simulate_matches_a_direct_solve(tmp_path):
+    scene_path = write(tmp_path, TEE_SCENE)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_subprocess(
+        ["simulate", scene_path, "--out", out, "--t1", "0.5", "--chunks", "3", "--frames", "4"]
+    )
+    assert code == 0, stderr
+    assert "100.0%" in stderr and "Traceback" not in stderr  # the progress bar, not quiet
+
+    scene = lierk.scene.load(scene_path)
+    import dataclasses
+
+    direct = dataclasses.replace(scene, t1=0.5).solve()
+    data = _npz(out / "tee_test.npz")
+    np.testing.assert_allclose(data["ts"], direct.ts, rtol=0, atol=1e-12)
+    # Chunks restart from the previous end state on the same step grid: the
+    # same steps up to round-off.
+    np.testing.assert_allclose(data["R"], direct.R, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(data["L"], np.broadcast_to(scene.problem.L, data["L"].shape), atol=1e-15)
+    np.testing.assert_allclose(data["omega0"], [1.0, 0.05, 0.3], atol=1e-14)
+    assert str(data["solver"]) == "RKMK4"
+    e = data["invariant_energy"]
+    assert abs(e - e[0]).max() / e[0] < 1e-10
+
+    sizes = {"components": (900, 700), "euler": (800, 650), "invariants": (1000, 450)}
+    for what, size in sizes.items():
+        path = out / f"tee_test_{what}.png"
+        assert str(path) in stdout
+        with Image.open(path) as im:
+            assert im.format == "PNG" and im.size == size
+    with Image.open(out / "tee_test.gif") as im:
+        assert im.n_frames == 4 and im.size == tuple(int(s * plot.GIF_DPI) for s in plot.GIF_SIZE)
+    assert "max relative change of energy" in stdout and "flip interval" in stdout
+
+
+@pytest.mark.parametrize("text, atol", [(DAMPED_SCENE, 1e-13), (ADAPTIVE_SCENE, 1e-8)])
+def test_simulate_with_state_and_adaptive_steps(tmp_path, capsys, text, atol):
+    scene_path = write(tmp_path, text)
+    out = tmp_path / "out"
+    argv = ["simulate", scene_path, "--out", out, "--quiet", "--no-gif", "--chunks", "4"]
+    code, stdout, stderr = run_inprocess(argv, capsys)
+    assert code == 0, stderr
+    assert stderr == ""  # --quiet
+    scene = lierk.scene.load(scene_path)
+    direct = scene.solve()
+    (npz,) = out.glob("*.npz")
+    data = _npz(npz)
+    np.testing.assert_allclose(data["ts"], direct.ts, rtol=0, atol=1e-12)
+    # Adaptive chunks restart the step-size control, so they agree to the tolerance only.
+    np.testing.assert_allclose(data["R"], direct.R, rtol=0, atol=atol)
+    if direct.y is not None:
+        np.testing.assert_allclose(data["y"], direct.y, rtol=0, atol=atol * 1e-3)
+    assert not list(out.glob("*.gif"))
+
+
+# ---------------------------------------------------------------------------
+# sweep
+
+
+def _final_R(omega0, t1=1.0):
+    problem = lierk.FreeRigidBody(lierk.inertia.tee_handle(), omega0)
+    return np.asarray(lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01).R[-1])
+
+
+def test_sweep_on_two_devices_matches_exact_and_finite_differences(tmp_path):
+    scene_path = write(tmp_path, TEE_SCENE)
+    out = tmp_path / "out"
+    argv = ["sweep", scene_path, "--out", out, "--t1", "1", "--omega-y", "-0.1:0.1:3", "--omega-z", "0:0.2:2"]
+    code, stdout, stderr = run_subprocess([*argv, "--devices", "2", "--quiet", "--chunk-size", "4"])
+    assert code == 0, stderr
+    assert stderr == ""
+    data = _npz(out / "tee_test_sweep.npz")
+    np.testing.assert_allclose(data["omega0_y"], [-0.1, 0.0, 0.1])
+    np.testing.assert_allclose(data["omega0_z"], [0.0, 0.2])
+    grid = data["omega0"]
+    assert grid.shape == (3, 2, 3) and np.all(grid[..., 0] == 1.0)
+
+    inertia = lierk.inertia.tee_handle()
+    flip = np.vectorize(lambda y, z: float(lierk.exact.flip_interval(inertia, np.array([1.0, y, z]))))
+    np.testing.assert_allclose(data["flip_interval"], flip(grid[..., 1], grid[..., 2]), rtol=1e-12)
+
+    i, j = 2, 1
+    w = grid[i, j]
+    R = _final_R(w)
+    assert data["angle"][i, j] == pytest.approx(np.linalg.norm(lierk.so3.log(R)), rel=1e-10)
+    h = 1e-6
+    J = np.stack([(_final_R(w + h * e) - _final_R(w - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+    assert data["sensitivity"][i, j] == pytest.approx(np.linalg.norm(J), rel=1e-6)
+
+    with Image.open(out / "tee_test_sweep.png") as im:
+        assert im.size == (1380, 460)  # three 4.6 x 4.6 inch panels at 100 dpi
+
+
+def test_sweep_along_one_component_and_default_grid(tmp_path, capsys):
+    scene_path = write(tmp_path, TEE_SCENE)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_inprocess(
+        ["sweep", scene_path, "--out", out, "--t1", "0.2", "--omega-z", "-0.3:0.3:4", "--quiet"], capsys
+    )
+    assert code == 0, stderr
+    data = _npz(out / "tee_test_sweep.npz")
+    assert data["angle"].shape == (4,)
+    np.testing.assert_allclose(data["omega0"][:, :2], np.broadcast_to([1.0, 0.05], (4, 2)), atol=1e-14)
+    with Image.open(out / "tee_test_sweep.png") as im:
+        assert im.size == (700, 800)  # three stacked line plots
+
+    # --grid N varies the two smallest components of omega0 over +-span.
+    code, stdout, stderr = run_inprocess(
+        ["sweep", scene_path, "--out", out, "--t1", "0.2", "--grid", "3", "--span", "0.1", "--quiet"], capsys
+    )
+    assert code == 0, stderr
+    data = _npz(out / "tee_test_sweep.npz")
+    np.testing.assert_allclose(data["omega0_y"], [-0.05, 0.05, 0.15], atol=1e-14)
+    np.testing.assert_allclose(data["omega0_z"], [0.2, 0.3, 0.4], atol=1e-14)
+

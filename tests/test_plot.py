@@ -1,0 +1,145 @@
+"""Figures show the solution's data in the documented conventions, and the
+files they write decode with the documented sizes."""
+
+import matplotlib.image
+import numpy as np
+import pytest
+from PIL import Image
+
+import lierk
+from lierk import plot, so3
+from lierk.effects import Damping, RigidBodyWithEffects
+
+from helpers import OMEGA_GENERIC, TEE
+
+
+@pytest.fixture(scope="module")
+def flip():
+    """The T-handle off its axes, 3 s at dt = 0.01 s, every step saved."""
+    problem = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    sol = lierk.solve(problem, lierk.RKMK4(), 3.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=True))
+    return problem, sol
+
+
+def test_components_plot_every_entry_against_time(flip, tmp_path):
+    _, sol = flip
+    fig = plot.components(sol, "T-handle - RKMK4")
+    axs = np.array(fig.axes).reshape(3, 3)
+    for i in range(3):
+        for j in range(3):
+            ax = axs[i, j]
+            assert ax.get_title() == f"$R_{{{i + 1}{j + 1}}}$"
+            (line,) = ax.get_lines()[:1]
+            np.testing.assert_array_equal(line.get_xdata(), np.asarray(sol.ts))
+            np.testing.assert_array_equal(line.get_ydata(), np.asarray(sol.R)[:, i, j])
+            lo, hi = ax.get_ylim()
+            assert lo <= -1.0 and hi >= 1.0
+    assert all(ax.get_xlabel() == "t [s]" for ax in axs[-1])
+    assert fig.get_suptitle() == "T-handle - RKMK4"
+    path = tmp_path / "c.png"
+    fig.savefig(path, dpi=100)
+    img = matplotlib.image.imread(path)
+    assert img.shape[:2] == (700, 900)  # figsize (9, 7) at 100 dpi, constrained layout keeps it
+
+
+@pytest.mark.parametrize("degrees", [False, True])
+def test_euler_angles_rebuild_R_and_are_unwrapped(flip, degrees):
+    _, sol = flip
+    fig = plot.euler_angles(sol, "t", degrees=degrees)
+    angles = np.stack([ax.get_lines()[0].get_ydata() for ax in fig.axes], axis=-1)
+    unit = "deg" if degrees else "rad"
+    assert all(f"[{unit}]" in ax.get_ylabel() for ax in fig.axes)
+    rad = np.radians(angles) if degrees else angles
+    # R = Rz(phi) Ry(theta) Rx(psi), the report's convention, at every saved time.
+    np.testing.assert_allclose(so3.from_euler(rad[:, 0], rad[:, 1], rad[:, 2]), sol.R, atol=1e-12)
+    # Unwrapped: a 0.01 s step turns by ~0.01 rad, so no jump comes near pi.
+    assert np.abs(np.diff(rad, axis=0)).max() < 0.5
+
+
+def test_invariants_show_relative_drift_of_the_free_body(flip):
+    problem, sol = flip
+    fig = plot.invariants(sol, problem, "t")
+    (ax,) = fig.axes
+    assert ax.get_yscale() == "symlog"
+    q = problem.invariants(sol.R, None)
+    lines = {ln.get_label().split(":")[0]: ln for ln in ax.get_lines()}
+    assert set(lines) == set(q)
+    for name, values in q.items():
+        values = np.asarray(values)
+        np.testing.assert_allclose(lines[name].get_ydata(), (values - values[0]) / abs(values[0]), rtol=0, atol=1e-18)
+    # RKMK4 at dt = 0.01 s: energy drift well below 1e-8 but not zero.
+    drift = np.abs(lines["energy"].get_ydata()).max()
+    assert 0 < drift < 1e-8
+
+
+def test_invariants_put_dissipated_quantities_on_their_own_axis():
+    problem = RigidBodyWithEffects(TEE, OMEGA_GENERIC, effects=(Damping(2e-5),))
+    sol = lierk.solve(problem, lierk.RKMK4(), 5.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=10))
+    fig = plot.invariants(sol, problem, "damped")
+    assert problem.conserved() == ()
+    (ax,) = fig.axes  # nothing is conserved, so only the ratio panel
+    energy = next(ln for ln in ax.get_lines() if ln.get_label().startswith("energy"))
+    e = np.asarray(problem.invariants(sol.R, sol.y)["energy"])
+    np.testing.assert_allclose(energy.get_ydata(), e / e[0])
+    assert energy.get_ydata()[-1] < 0.99  # damping removes energy
+
+
+def test_trajectory_drops_adaptive_padding():
+    problem = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    sol = lierk.solve(problem, lierk.DP54(), 2.0, rtol=1e-6, saveat=lierk.SaveAt(steps=True), max_steps=200)
+    n = int(sol.n_saved)
+    assert n < sol.ts.shape[0]
+    ts, R, _ = plot.trajectory(sol)
+    assert ts.shape == (n,) and R.shape == (n, 3, 3)
+    assert np.isfinite(ts).all() and np.isfinite(R).all()
+    fig = plot.components(sol)
+    assert len(fig.axes[0].get_lines()[0].get_xdata()) == n
+
+
+def test_equivalent_box_has_the_principal_moments_up_to_scale():
+    inertia = np.array([[3.0, 0.4, 0.0], [0.4, 2.0, 0.1], [0.0, 0.1, 4.0]])
+    (part,) = plot.equivalent_box(inertia)
+    _, lx, ly, lz = part.shape
+    box = np.asarray(lierk.inertia.box(1.0, lx, ly, lz))
+    Q = np.asarray(part.rotation)
+    drawn = Q @ box @ Q.T
+    np.testing.assert_allclose(drawn / np.trace(drawn), inertia / np.trace(inertia), atol=1e-12)
+    assert np.linalg.det(Q) == pytest.approx(1.0)
+
+
+def test_animation_has_the_requested_frames_and_size(flip, tmp_path):
+    problem, sol = flip
+    path = plot.animate(sol, lierk.inertia.tee_handle_parts(), tmp_path / "a.gif", L=problem.L, frames=5, fps=10)
+    with Image.open(path) as im:
+        assert im.format == "GIF"
+        assert im.n_frames == 5
+        assert im.size == tuple(int(s * plot.GIF_DPI) for s in plot.GIF_SIZE)
+        im.seek(0)
+        first = np.asarray(im.convert("RGB"))
+        im.seek(4)
+        last = np.asarray(im.convert("RGB"))
+    # The body turns by ~3 rad in 3 s: the picture changes.
+    assert (np.abs(first.astype(int) - last.astype(int)).sum(axis=-1) > 60).mean() > 0.01
+
+
+def test_animation_draws_a_body_known_only_by_its_inertia(flip, tmp_path):
+    problem, sol = flip
+    with_box = plot.animate(sol, None, tmp_path / "box.gif", frames=2, inertia=TEE)
+    axes_only = plot.animate(sol, None, tmp_path / "axes.gif", frames=2)
+    with Image.open(with_box) as a, Image.open(axes_only) as b:
+        a, b = np.asarray(a.convert("RGB")).astype(int), np.asarray(b.convert("RGB")).astype(int)
+    assert (np.abs(a - b).sum(axis=-1) > 60).mean() > 0.01
+
+
+def test_demo_writes_one_grid_per_case_and_the_flip_interval(tmp_path, capsys):
+    from lierk import demo
+
+    paths = demo.run(tmp_path, t1=1.0)
+    assert sorted(paths) == ["a", "b", "c"]
+    for path in paths.values():
+        with Image.open(path) as im:
+            assert im.format == "PNG" and im.size == (900, 700)
+    out = capsys.readouterr().out
+    # The exact flip interval of case a (Landau-Lifshitz 2K/lambda) for the report's T-handle.
+    assert "flip every 23.63 s" in out
+    assert all(str(p) in out for p in paths.values())

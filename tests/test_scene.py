@@ -1,0 +1,243 @@
+"""Scenes from TOML: the example files load and give physically sensible runs,
+a scene without effects is exactly the free rigid body, and bad files fail
+with messages that name the key."""
+
+from __future__ import annotations
+
+import copy
+import dataclasses
+import pathlib
+
+import jax
+import numpy as np
+import pytest
+from helpers import reference_R
+
+import lierk
+from lierk import scene as S
+from lierk.effects import Damping, Gravity, RigidBodyWithEffects
+
+EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
+TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])
+
+
+def short(scene, t1):
+    return dataclasses.replace(scene, t1=t1)
+
+
+@pytest.mark.parametrize("letter, omega0", [("a", [1.0, 0.05, 0.0]), ("b", [0.0, 1.0, 0.05]), ("c", [0.05, 0.0, 1.0])])
+def test_tee_handle_examples(letter, omega0):
+    scene = S.load(EXAMPLES / f"tee_handle_{letter}.toml")
+    assert scene.name == f"tee_handle_{letter}"
+    assert type(scene.problem) is lierk.FreeRigidBody and scene.effects == ()
+    assert isinstance(scene.solver, lierk.RKMK4) and scene.solve_kwargs == {"dt": 0.01} and scene.t1 == 100.0
+    # The report's inertia, built from the file's geometry and density.
+    np.testing.assert_allclose(scene.problem.inertia, TEE, rtol=1e-8, atol=1e-14)
+    np.testing.assert_allclose(scene.problem.omega0, omega0, rtol=1e-12)
+    np.testing.assert_allclose(scene.fixed_point, [0.01, 0.0, 0.0], atol=1e-15)
+    sol = short(scene, 2.0).solve()
+    assert sol.R.shape == (21, 3, 3)  # t = 0 and every 10th of 200 steps
+    np.testing.assert_allclose(np.asarray(sol.ts)[[0, -1]], [0.0, 2.0])
+    assert np.abs(np.asarray(sol.R[-1]) - reference_R(TEE, omega0, 2.0)).max() < 1.5e-9  # RKMK4 h=0.01: measured 1.7e-11 (a) to 1.5e-10 (c)
+
+
+def test_sphere_example_turns_uniformly():
+    scene = S.load(EXAMPLES / "sphere.toml")
+    assert type(scene.problem) is lierk.FreeRigidBody
+    np.testing.assert_allclose(scene.problem.inertia, 0.4 * 1.0 * 0.1**2 * np.eye(3), rtol=1e-14)
+    sol = short(scene, 1.0).solve()
+    omega0 = np.array([1.0, 2.0, 3.0])
+    exact = np.asarray(lierk.so3.exp(np.asarray(sol.ts)[:, None] * omega0))
+    assert np.abs(np.asarray(sol.R) - exact).max() < 1e-12
+
+
+def test_heavy_top_example_precesses_and_nutates():
+    scene = S.load(EXAMPLES / "heavy_top.toml")
+    p = scene.problem
+    assert isinstance(p, RigidBodyWithEffects) and [type(e) for e in scene.effects] == [Gravity]
+    # The pivot is the tip (body origin); the inertia is moved there.
+    M, com = scene.mass, scene.center_of_mass
+    np.testing.assert_allclose(scene.fixed_point, 0.0, atol=1e-15)
+    np.testing.assert_allclose(scene.effects[0].pivot_to_com, com)
+    I_cm = lierk.inertia.composite(scene.body_parts).inertia
+    np.testing.assert_allclose(p.inertia, np.asarray(I_cm) + M * com[2] ** 2 * np.diag([1.0, 1.0, 0.0]), rtol=1e-12)
+    assert set(p.conserved()) == {"energy", "L_vertical", "m_chi"}
+    sol = short(scene, 0.5).solve()
+    R, m = np.asarray(sol.R), np.asarray(sol.y)
+    inv = p.invariants(R, m)
+    E = np.asarray(inv["energy"])
+    # RKMK4 at omega3 h = 0.15 (measured over 0.5 s: energy 9.3e-8, L_vertical 1.5e-6).
+    assert np.ptp(E) / E[0] < 5e-7
+    assert np.ptp(np.asarray(inv["L_vertical"])) / abs(float(inv["L_vertical"][0])) < 1e-5
+    assert np.ptp(np.asarray(inv["m_chi"])) < 1e-12
+    axis = R[:, :, 2]  # the symmetry axis in space
+    tilt = np.arccos(axis[:, 2])
+    assert tilt[0] == pytest.approx(0.3) and 0.1 < np.ptp(tilt) < 0.4  # nutation, about 0.2 rad
+    azimuth = np.unwrap(np.arctan2(axis[:, 1], axis[:, 0]))
+    # Precession at roughly M g l / (I3 omega3).
+    rate = (azimuth[-1] - azimuth[0]) / 0.5
+    slow = M * 9.81 * com[2] / (p.inertia[2, 2] * 150.0)
+    assert 0.5 * slow < rate < 2.0 * slow
+
+
+def test_damped_satellite_example_loses_energy_as_predicted():
+    scene = S.load(EXAMPLES / "damped_satellite.toml")
+    p = scene.problem
+    assert [type(e) for e in scene.effects] == [Damping] and "energy" not in p.conserved()
+    sol = dataclasses.replace(short(scene, 10.0), saveat_every=1).solve()
+    ts, R, m = np.asarray(sol.ts), np.asarray(sol.R), np.asarray(sol.y)
+    E = np.asarray(p.invariants(R, m)["energy"])
+    assert np.all(np.diff(E) < 0)
+    w2 = np.sum(np.einsum("ij,nj->ni", np.asarray(p.inertia_inv), m) ** 2, axis=1)
+    dissipated = 5.0 * np.concatenate([[0.0], np.cumsum(0.5 * (w2[1:] + w2[:-1]) * np.diff(ts))])
+    assert np.abs(E - E[0] + dissipated).max() / (E[0] - E[-1]) < 2e-5  # trapezoid at h = 0.05: measured 2.2e-6
+
+
+def test_no_effect_scene_is_the_free_body_with_the_same_jaxpr():
+    scene = S.load(EXAMPLES / "tee_handle_a.toml")
+    assert type(scene.problem) is lierk.FreeRigidBody and scene.problem.y0 is None
+    direct = lierk.FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
+
+    def program(problem):
+        run = lambda p: lierk.solve(p, scene.solver, 1.0, dt=0.01, max_steps=100, saveat=scene.saveat()).R
+        return str(jax.make_jaxpr(run)(problem))
+
+    assert program(scene.problem) == program(direct)
+    # A scene with an effect is a different program (the comparison can fail).
+    damped = S.from_dict(_tee(effects=[{"kind": "damping", "c": 0.1}]))
+    assert program(damped.problem) != program(direct)
+
+
+def _tee(**changes):
+    d = {
+        "body": {"kind": "tee_handle"},
+        "initial": {"omega": [1.0, 0.05, 0.0]},
+        "run": {"solver": "RKMK4", "dt": 0.01, "t1": 1.0},
+    }
+    for k, v in changes.items():
+        if isinstance(v, dict) and k in d:
+            d[k] = {**d[k], **v}
+        else:
+            d[k] = v
+    return d
+
+
+def test_attitude_forms_agree():
+    phi, theta, psi = 0.3, -0.5, 1.2
+    R = np.asarray(lierk.so3.from_euler(phi, theta, psi))
+    q = np.asarray(lierk.so3.to_quaternion(R))
+    forms = [{"euler": [phi, theta, psi]}, {"matrix": R.tolist()}, {"quaternion": q.tolist()}]
+    for f in forms:
+        R0 = S.from_dict(_tee(initial={"omega": [1.0, 0.0, 0.0], **f})).problem.R0
+        np.testing.assert_allclose(R0, R, atol=1e-14)
+    np.testing.assert_array_equal(S.from_dict(_tee(initial={"omega": [1.0, 0, 0], "attitude": "identity"})).problem.R0, np.eye(3))
+
+
+def test_composite_rotated_part_and_tensor_gravity():
+    # A box rotated by 90 degrees about z has its x and y edges swapped.
+    part = {"kind": "box", "mass": 2.0, "lx": 1.0, "ly": 2.0, "lz": 3.0, "euler": [np.pi / 2, 0.0, 0.0], "offset": [0.1, 0, 0]}
+    sc = S.from_dict(_tee(body={"kind": "composite", "parts": [part]}))
+    np.testing.assert_allclose(sc.problem.inertia, lierk.inertia.box(2.0, 2.0, 1.0, 3.0), atol=1e-14)
+    np.testing.assert_allclose(sc.center_of_mass, [0.1, 0, 0])
+    # Simo-Wong's top from a tensor about the centre: diag(4, 4, 1) + M l^2 = diag(5, 5, 1).
+    top = S.from_dict(
+        {
+            "body": {"kind": "tensor", "inertia": [4.0, 4.0, 1.0], "mass": 1.0},
+            "initial": {"omega": [0.0, 0.0, 50.0], "euler": [0.0, 0.3, 0.0]},
+            "effects": [{"kind": "gravity", "pivot_to_com": [0.0, 0.0, 1.0], "g": 20.0}],
+            "run": {"solver": "DP54", "rtol": 1e-10, "t1": 1.0, "n_save": 11},
+        }
+    )
+    np.testing.assert_allclose(top.problem.inertia, np.diag([5.0, 5.0, 1.0]))
+    assert top.body_parts is None and top.solve_kwargs == {"rtol": 1e-10, "atol": 1e-10}
+    sol = top.solve()
+    np.testing.assert_allclose(sol.ts, np.linspace(0.0, 1.0, 11))
+    E = np.asarray(top.problem.invariants(sol.R, sol.y)["energy"])
+    assert np.ptp(E) / E[0] < 5e-11  # interpolated outputs: measured 4.8e-12
+
+
+def _mutate(path, value):
+    """``_tee()`` with the entry at ``path`` (keys and indices) set to ``value``,
+    or removed when ``value`` is ``DELETE``."""
+    d = _tee(effects=[{"kind": "damping", "c": 0.1}])
+    d["body"] = {"kind": "composite", "parts": [{"kind": "sphere", "mass": 1.0, "radius": 0.1}]}
+    d = copy.deepcopy(d)
+    node = d
+    for k in path[:-1]:
+        node = node[k]
+    if value is DELETE:
+        del node[path[-1]]
+    elif isinstance(node, list) and path[-1] == len(node):
+        node.append(value)
+    else:
+        node[path[-1]] = value
+    return d
+
+
+DELETE = object()
+BAD = [
+    (("colour",), "red", "unknown key 'colour'"),
+    (("body", "kind"), "cube", "body.kind = 'cube' is not allowed; choose one of: 'tee_handle', 'box'"),
+    (("body", "parts", 0, "colour"), "red", r"body.parts\[0\]: unknown key 'colour'"),
+    (("body", "parts", 0, "mass"), -1.0, r"body.parts\[0\].mass must be > 0, got -1.0"),
+    (("body", "parts", 0, "radius"), 0.0, r"body.parts\[0\].radius must be > 0"),
+    (("body", "parts", 0, "radius"), DELETE, r"body.parts\[0\]: missing required key 'radius'"),
+    (("body", "parts", 0, "matrix"), [[1, 0, 0], [0, 1, 0], [0, 0, -1]], r"body.parts\[0\].matrix: R0 must be a rotation"),
+    (("initial", "omega"), DELETE, "initial: missing required key 'omega'"),
+    (("initial", "omega"), [1.0, 2.0], r"initial.omega must be a list of 3 numbers"),
+    (("initial", "spin"), 1.0, "initial: unknown key 'spin'"),
+    (("initial", "attitude"), "upright", "initial.attitude = 'upright' is not allowed; choose one of: 'identity'"),
+    (("initial", "matrix"), [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "initial.matrix: R0 must be a rotation matrix"),
+    (("initial", "quaternion"), [0, 0, 0, 0], "initial.quaternion must be a nonzero quaternion"),
+    (("effects", 0, "kind"), "magnetism", r"effects\[0\].kind = 'magnetism' is not allowed; choose one of: 'gravity'"),
+    (("effects", 0, "k"), 1.0, r"effects\[0\]: unknown key 'k'"),
+    (("effects", 0, "c"), DELETE, r"effects\[0\]: missing required key 'c'"),
+    (("effects", 0, "c"), -0.1, r"effects\[0\].c must be >= 0"),
+    (("effects", 1), {"kind": "damping", "c": 1.0}, r"effects\[1\].kind = 'damping' appears twice"),
+    (("effects", 0), {"kind": "gravity", "mass": 1.0}, "exactly one of 'pivot_to_com' or 'pivot'"),
+    (("effects", 0), {"kind": "gravity", "pivot": [0, 0, 0], "mass": -2.0}, r"effects\[0\].mass must be > 0"),
+    (("run", "solver"), "RK45", "run.solver = 'RK45' is not allowed; choose one of: ExplicitEuler"),
+    (("run", "t1"), DELETE, "run: missing required key 't1'"),
+    (("run", "t1"), "ten", "run.t1 must be a finite number, got 'ten'"),
+    (("run", "dt"), -0.01, "run.dt must be > 0"),
+    (("run", "rtol"), 1e-6, "exactly one of 'dt'"),
+    (("run", "steps"), 10, "run: unknown key 'steps'"),
+    (("run", "save_every"), 0, "run.save_every must be a positive integer, got 0"),
+]
+
+
+@pytest.mark.parametrize("path, value, match", BAD, ids=[".".join(map(str, p)) + "=" + repr(v)[:12] for p, v, _ in BAD])
+def test_bad_scenes_raise_naming_the_key(path, value, match):
+    with pytest.raises(ValueError, match=match):
+        S.from_dict(_mutate(path, value))
+
+
+def test_bad_run_combinations():
+    def with_run(run):
+        d = _tee()
+        d["run"] = run
+        return d
+
+    with pytest.raises(ValueError, match="run.solver = 'RKMK4' has no error estimate.*RKF45, DP54, DOP853"):
+        S.from_dict(with_run({"solver": "RKMK4", "rtol": 1e-6, "t1": 1.0}))
+    with pytest.raises(ValueError, match="run.save_every applies to fixed-step runs"):
+        S.from_dict(with_run({"solver": "DP54", "rtol": 1e-6, "t1": 1.0, "save_every": 2}))
+    with pytest.raises(ValueError, match="run.atol applies to adaptive runs"):
+        S.from_dict(with_run({"solver": "DP54", "dt": 0.1, "t1": 1.0, "atol": 1e-6}))
+    with pytest.raises(ValueError, match=r"effects\[0\].mass is required"):
+        S.from_dict(
+            _tee(body={"kind": "tensor", "inertia": [1.0, 1.0, 1.0]}, effects=[{"kind": "gravity", "pivot": [0, 0, -1.0]}])
+        )
+    with pytest.raises(ValueError, match="body.inertia: inertia must be positive definite"):
+        S.from_dict(_tee(body={"kind": "tensor", "inertia": [1.0, -1.0, 1.0]}))
+
+
+def test_load_reports_the_file(tmp_path):
+    bad = tmp_path / "broken.toml"
+    bad.write_text("[body\nkind = 'sphere'\n")
+    with pytest.raises(ValueError, match="broken.toml: not valid TOML"):
+        S.load(bad)
+    wrong = tmp_path / "wrong.toml"
+    wrong.write_text((EXAMPLES / "sphere.toml").read_text().replace("radius = 0.1", "radius = -0.1"))
+    with pytest.raises(ValueError, match=r"wrong.toml: body.radius must be > 0, got -0.1"):
+        S.load(wrong)

@@ -1,0 +1,344 @@
+"""Claims of lierk.so3: batching, dtypes, exactness at 0 and past 2 pi,
+stability of log near 0 and pi, derivatives, and dexp/dexpinv."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from lierk import so3 as _so3
+
+
+class _Jitted:
+    """lierk.so3 with every function wrapped in jax.jit: the maps under test are the
+    same, but eager op-by-op dispatch (slow for these tiny arrays) is avoided."""
+
+    def __getattr__(self, name):
+        f = jax.jit(getattr(_so3, name))
+        setattr(self, name, f)
+        return f
+
+
+so3 = _Jitted()
+
+RNG = np.random.default_rng(0)
+E = np.eye(3)
+
+
+def _random_vectors(shape, scale=1.0, rng=RNG):
+    return scale * rng.standard_normal(shape + (3,))
+
+
+def _vectors_with_norms(norms, rng=RNG):
+    d = rng.standard_normal((len(norms), 3))
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    return np.asarray(norms)[:, None] * d
+
+
+def _central_jacobian(f, x, eps):
+    """d f / d x by central differences, as an array of shape f(x).shape + x.shape."""
+    x = np.asarray(x, dtype=float)
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros(x.size)
+        dx[i] = eps
+        dx = dx.reshape(x.shape)
+        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps))
+    return np.stack(cols, axis=-1).reshape(cols[0].shape + x.shape)
+
+
+# --- batching and dtypes --------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-14), (np.float32, 2e-6)])
+def test_every_function_broadcasts_over_leading_axes(dtype, tol):
+    """Each map applied to a (2, 4, ...) batch equals the map applied element by element,
+    and keeps the input's dtype."""
+    u = _random_vectors((2, 4)).astype(dtype)
+    v = _random_vectors((2, 4)).astype(dtype)
+    R = np.asarray(so3.exp(u))
+    batched = {
+        "hat": (so3.hat(u), lambda i: so3.hat(u[i])),
+        "vee": (so3.vee(so3.hat(u)), lambda i: so3.vee(so3.hat(u[i]))),
+        "exp": (so3.exp(u), lambda i: so3.exp(u[i])),
+        "log": (so3.log(R), lambda i: so3.log(R[i])),
+        "dexp": (so3.dexp(u, v), lambda i: so3.dexp(u[i], v[i])),
+        "dexpinv": (so3.dexpinv(u, v), lambda i: so3.dexpinv(u[i], v[i])),
+        "rotate": (so3.rotate(u, v), lambda i: so3.rotate(u[i], v[i])),
+        "cross": (so3.cross(u, v), lambda i: so3.cross(u[i], v[i])),
+        "orthogonality_error": (so3.orthogonality_error(R), lambda i: so3.orthogonality_error(R[i])),
+    }
+    for name, (out, single) in batched.items():
+        assert out.dtype == dtype, name
+        assert out.shape[:2] == (2, 4), name
+        for i in np.ndindex(2, 4):
+            np.testing.assert_allclose(out[i], single(i), rtol=0, atol=tol, err_msg=name)
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-14), (np.float32, 1e-5)])
+def test_hat_vee_cross_agree(dtype, tol):
+    a = _random_vectors((5,)).astype(dtype)
+    b = _random_vectors((5,)).astype(dtype)
+    np.testing.assert_allclose(so3.hat(a) @ b[..., None], np.cross(a, b)[..., None], atol=tol)
+    np.testing.assert_allclose(so3.cross(a, b), np.cross(a, b), atol=tol)
+    np.testing.assert_array_equal(so3.vee(so3.hat(a)), a)
+    H = np.asarray(so3.hat(a))
+    np.testing.assert_array_equal(H, -np.swapaxes(H, -1, -2))
+
+
+def test_broadcasting_mixes_batch_shapes():
+    """A single u against a batch of x (and vice versa) broadcasts like NumPy."""
+    u = _random_vectors(())
+    x = _random_vectors((6,))
+    np.testing.assert_allclose(so3.rotate(u, x), (np.asarray(so3.exp(u)) @ x.T).T, atol=1e-14)
+    np.testing.assert_allclose(so3.dexpinv(u, x), [so3.dexpinv(u, xi) for xi in x], atol=1e-14)
+
+
+def test_wrong_shapes_raise():
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        so3.exp(np.zeros(4))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3\)"):
+        so3.hat(np.zeros((2, 2)))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
+        so3.log(np.zeros((3, 4)))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
+        so3.vee(np.zeros(3))
+
+
+# --- exp --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_exp_at_zero_is_exact_in_value_and_both_derivative_modes(dtype):
+    z = np.zeros(3, dtype)
+    R = so3.exp(z)
+    np.testing.assert_array_equal(R, np.eye(3, dtype=dtype))
+    generators = np.stack([np.asarray(so3.hat(e)) for e in E], axis=-1)  # (3, 3, 3): [:, :, i] = hat(e_i)
+    for jac in (jax.jit(jax.jacfwd(so3.exp)), jax.jit(jax.jacrev(so3.exp))):
+        J = np.asarray(jac(z))
+        assert J.dtype == dtype
+        np.testing.assert_array_equal(J, generators.astype(dtype))
+    # A batch of zeros, through vmap of the gradient of a scalar, stays finite and exact.
+    g = jax.jit(jax.vmap(jax.grad(lambda w: jnp.sum(so3.exp(w) * so3.hat(jnp.ones(3, dtype))))))(np.zeros((4, 3), dtype))
+    np.testing.assert_array_equal(g, np.full((4, 3), 2.0, dtype))
+
+
+def test_exp_matches_scipy_over_many_turns():
+    """Angles up to 20 rad (over three full turns) in one call, against SciPy's rotvec."""
+    norms = np.concatenate([[1e-9, 1e-4, 0.05, 0.3, 1.0, np.pi - 1e-9, np.pi, 4.0], np.linspace(2 * np.pi - 0.5, 20.0, 12)])
+    w = _vectors_with_norms(norms)
+    np.testing.assert_allclose(so3.exp(w), Rotation.from_rotvec(w).as_matrix(), rtol=0, atol=1e-14)
+    # Exactly 2 pi k about any axis is the identity.
+    k = np.arange(1, 4)[:, None] * 2 * np.pi * np.array([0.6, 0.0, 0.8])
+    np.testing.assert_allclose(so3.exp(k), np.broadcast_to(np.eye(3), (3, 3, 3)), atol=1e-14)
+
+
+def test_exp_float32_matches_float64():
+    w = _vectors_with_norms(np.array([1e-6, 0.2, 0.31, 1.0, 3.0, 9.0]))
+    R32 = so3.exp(w.astype(np.float32))
+    assert R32.dtype == np.float32
+    np.testing.assert_allclose(R32, so3.exp(w), atol=3e-6)
+    assert np.all(so3.orthogonality_error(R32) < 1e-6)
+
+
+def test_exp_is_a_one_parameter_group():
+    """exp(s w) exp(t w) = exp((s + t) w) across the series/closed-form threshold."""
+    w = _vectors_with_norms(np.array([1.0]))[0]
+    for s, t in [(0.01, 0.02), (0.09, 0.02), (1.3, 2.9), (4.0, 5.0)]:
+        np.testing.assert_allclose(so3.exp(s * w) @ so3.exp(t * w), so3.exp((s + t) * w), atol=1e-14)
+
+
+def test_exp_continuous_across_series_threshold():
+    """The series and closed forms agree where exp switches between them (theta^2 = 1e-2
+    in float64, 1e-1 in float32): no jump larger than a few ulp."""
+    axis = np.array([0.36, 0.48, 0.8])
+    for dtype, t2, tol in [(np.float64, 1e-2, 1e-15), (np.float32, 1e-1, 3e-7)]:
+        th = np.sqrt(t2)
+        w = (th * np.array([1 - 1e-7, 1 + 1e-7]))[:, None] * axis
+        a, b = np.asarray(so3.exp(w.astype(dtype)))
+        # The true difference is ~1e-7 th |dR/dth| <= 1e-7 th.
+        assert np.abs(a - b).max() < 2e-7 * th + tol
+
+
+def test_rotate_equals_exp_times_x():
+    u = _vectors_with_norms(np.array([0.0, 1e-8, 1e-3, 0.5, np.pi, 7.0, 15.0]))
+    x = _random_vectors((7,))
+    expected = np.einsum("nij,nj->ni", np.asarray(so3.exp(u)), x)
+    np.testing.assert_allclose(so3.rotate(u, x), expected, atol=1e-14)
+
+
+# --- log --------------------------------------------------------------------------------
+
+
+def test_log_inverts_exp_below_pi():
+    norms = np.concatenate([[0.0, 1e-300, 1e-12, 1e-8, 1e-5, 0.01, 0.099, 0.1, 0.101], RNG.uniform(0, np.pi, 30), [3.0, np.pi - 1e-4, np.pi - 1e-7]])
+    w = _vectors_with_norms(norms)
+    back = np.asarray(so3.log(so3.exp(w)))
+    # Relative to |w| for small angles (no absolute 1e-16 floor that hides a 100% error).
+    err = np.linalg.norm(back - w, axis=-1)
+    assert np.all(err <= 4e-16 * np.maximum(norms, 1e-300) + 2e-15 * (norms > 1e-3)), err.max()
+
+
+def test_log_near_zero_is_accurate_relative_to_angle():
+    for theta in [1e-15, 1e-10, 1e-7, 1e-4]:
+        w = theta * np.array([0.6, -0.48, 0.64])
+        np.testing.assert_allclose(so3.log(so3.exp(w)), w, rtol=1e-14, atol=0)
+    np.testing.assert_array_equal(so3.log(np.eye(3)), np.zeros(3))
+
+
+def test_log_near_and_at_pi():
+    axis = np.array([2.0, -1.0, 2.0]) / 3.0
+    for gap in [1e-3, 1e-6, 1e-9, 1e-12]:
+        w = (np.pi - gap) * axis
+        np.testing.assert_allclose(so3.log(so3.exp(w)), w, atol=2e-14)
+    # At exactly pi, +axis and -axis give the same rotation: either answer is right,
+    # and exp(log(R)) must reproduce R.
+    R = Rotation.from_rotvec(np.pi * axis).as_matrix()
+    w = np.asarray(so3.log(R))
+    assert abs(np.linalg.norm(w) - np.pi) < 1e-14
+    assert min(np.abs(w - np.pi * axis).max(), np.abs(w + np.pi * axis).max()) < 1e-14
+    np.testing.assert_allclose(so3.exp(w), R, atol=1e-14)
+
+
+def test_log_matches_scipy_for_random_rotations():
+    R = Rotation.random(50, random_state=1)
+    np.testing.assert_allclose(so3.log(R.as_matrix()), R.as_rotvec(), atol=1e-14)
+
+
+def test_log_float32():
+    w = _vectors_with_norms(np.array([1e-6, 1e-3, 0.3, 2.0, np.pi - 1e-2]))
+    w32 = w.astype(np.float32)
+    out = so3.log(so3.exp(w32))
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, w, atol=2e-6)
+
+
+# --- derivatives vs finite differences --------------------------------------------------
+
+
+def _log_along_group(x, R0):
+    return _so3.log(R0 @ _so3.exp(x))
+
+
+# Compiled once for the whole module; the base point is an argument, not a constant.
+_JACOBIANS = {
+    name: (f, jax.jit(jax.jacfwd(f)), jax.jit(jax.jacrev(f)))
+    for name, f in [("exp", _so3.exp), ("log", _so3.log), ("log_along_group", _log_along_group)]
+}
+
+
+def _check_jacobians(name, x, fd_eps, atol, *args):
+    f, jf, jr = _JACOBIANS[name]
+    fj = jax.jit(f)
+    fd = _central_jacobian(lambda y: fj(y, *args), x, fd_eps)
+    for jac in (jf, jr):
+        J = np.asarray(jac(jnp.asarray(x), *args))
+        assert np.all(np.isfinite(J))
+        np.testing.assert_allclose(J, fd, rtol=0, atol=atol)
+
+
+def test_exp_jacobian_matches_finite_differences():
+    for theta in [0.0, 1e-9, 0.1, 1.0, np.pi - 1e-3, np.pi - 1e-7, 5.0]:
+        _check_jacobians("exp", theta * np.array([0.6, -0.48, 0.64]), 1e-6, 1e-9)
+
+
+def test_log_jacobian_matches_finite_differences():
+    """The derivative of log along the group, x -> log(R0 exp(x)) at x = 0, and with
+    respect to the matrix entries of R (a smooth function of R near R0).  log jumps
+    at |w| = pi, so the difference step stays below pi - theta."""
+    cases = [(0.0, 1e-6, 1e-8), (1e-9, 1e-6, 1e-8), (0.1, 1e-6, 1e-8), (1.0, 1e-6, 1e-8), (np.pi - 1e-3, 1e-6, 1e-8), (np.pi - 1e-5, 1e-7, 1e-7)]
+    for theta, eps, atol in cases:
+        R0 = np.asarray(so3.exp(theta * np.array([0.6, -0.48, 0.64])))
+        _check_jacobians("log_along_group", np.zeros(3), eps, atol, R0)
+        _check_jacobians("log", R0, eps, atol)
+
+
+def test_log_jacobian_at_identity_is_vee():
+    """d log / d R at R = I applied to a skew direction hat(a) gives a."""
+    a = np.array([0.3, -1.2, 0.5])
+    _, t = jax.jvp(so3.log, (jnp.eye(3),), (so3.hat(a),))
+    np.testing.assert_allclose(t, a, atol=1e-15)
+    _, vjp = jax.vjp(so3.log, jnp.eye(3))
+    (g,) = vjp(jnp.asarray(a))
+    # <g, hat(b)> = <a, b> for every b: the cotangent's antisymmetric part is hat(a)/2.
+    for b in E:
+        assert abs(np.sum(np.asarray(g) * np.asarray(so3.hat(b))) - a @ b) < 1e-15
+
+
+# --- dexp and dexpinv -------------------------------------------------------------------
+
+
+def test_dexp_is_the_derivative_of_exp():
+    """d/ds exp(u + s v) at s = 0 equals hat(dexp_u(v)) exp(u) (left trivialisation)."""
+    for theta in [0.0, 1e-6, 0.05, 1.0, 3.0, 8.0]:
+        u = theta * np.array([0.6, -0.48, 0.64])
+        v = np.array([0.2, 0.7, -0.4])
+        _, dR = jax.jvp(so3.exp, (jnp.asarray(u),), (jnp.asarray(v),))
+        expected = np.asarray(so3.hat(so3.dexp(u, v))) @ np.asarray(so3.exp(u))
+        np.testing.assert_allclose(dR, expected, atol=1e-14)
+        # Body form: exp(u) hat(dexp_{-u}(v)).
+        body = np.asarray(so3.exp(u)) @ np.asarray(so3.hat(so3.dexp(-u, v)))
+        np.testing.assert_allclose(dR, body, atol=1e-14)
+
+
+def test_dexpinv_inverts_dexp():
+    norms = np.concatenate([[0.0, 1e-10, 1e-4, 0.05, 0.1, 0.2], RNG.uniform(0.2, 2 * np.pi - 0.3, 20)])
+    u = _vectors_with_norms(norms)
+    v = _random_vectors((len(norms),))
+    np.testing.assert_allclose(so3.dexpinv(u, so3.dexp(u, v)), v, atol=1e-13)
+    np.testing.assert_allclose(so3.dexp(u, so3.dexpinv(u, v)), v, atol=1e-13)
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-15), (np.float32, 1e-7)])
+def test_dexpinv_matches_series_for_small_u(dtype, tol):
+    """dexpinv_u(v) = v - u x v / 2 + u x (u x v) / 12 + O(|u|^4 |v|)."""
+    v = np.array([0.3, -0.9, 0.4])
+    for theta in [0.0, 1e-8, 1e-4, 1e-3]:
+        u = theta * np.array([0.6, -0.48, 0.64])
+        series = v - 0.5 * np.cross(u, v) + np.cross(u, np.cross(u, v)) / 12.0
+        out = so3.dexpinv(u.astype(dtype), v.astype(dtype))
+        assert out.dtype == dtype
+        np.testing.assert_allclose(out, series, rtol=0, atol=tol + theta**4)
+
+
+def test_dexpinv_series_term_is_not_truncated():
+    """At a moderate angle the closed form differs from the 3-term series by the next
+    Bernoulli term -|u|^2/720 u x (u x v) (to O(|u|^6)): the formula is exact, not truncated."""
+    u = 0.05 * np.array([0.6, -0.48, 0.64])
+    v = np.array([0.3, -0.9, 0.4])
+    uuv = np.cross(u, np.cross(u, v))
+    series3 = v - 0.5 * np.cross(u, v) + uuv / 12.0
+    diff = np.asarray(so3.dexpinv(u, v)) - series3
+    np.testing.assert_allclose(diff, (u @ u) / 720.0 * uuv, rtol=1e-3, atol=1e-18)
+
+
+def test_dexp_dexpinv_float32_finite_gradients_at_zero():
+    z = np.zeros(3, np.float32)
+    v = np.array([0.3, -0.9, 0.4], np.float32)
+    for f in (so3.dexp, so3.dexpinv, so3.rotate):
+        for jac in (jax.jacfwd, jax.jacrev):
+            J = np.asarray(jax.jit(jac(f))(z, v))
+            assert J.dtype == np.float32
+            # d/du (v + c1 u x v + ...) at 0 = c1 * (-hat(v)) with c1 = 1/2 (dexp),
+            # -1/2 (dexpinv), 1 (rotate).
+            c1 = {so3.dexp: 0.5, so3.dexpinv: -0.5, so3.rotate: 1.0}[f]
+            np.testing.assert_allclose(J, -c1 * np.asarray(so3.hat(v)), atol=1e-7)
+
+
+# --- quaternions and Euler angles -------------------------------------------------------
+
+
+def test_quaternion_and_euler_round_trips():
+    R = Rotation.random(20, random_state=2)
+    q = np.asarray(so3.to_quaternion(R.as_matrix()))
+    q_scipy = R.as_quat()[:, [3, 0, 1, 2]]
+    q_scipy *= np.sign(q_scipy[:, :1])
+    np.testing.assert_allclose(q, q_scipy, atol=1e-14)
+    np.testing.assert_allclose(so3.from_quaternion(q), R.as_matrix(), atol=1e-14)
+    ang = np.asarray(so3.to_euler(R.as_matrix()))
+    np.testing.assert_allclose(so3.from_euler(ang[:, 0], ang[:, 1], ang[:, 2]), R.as_matrix(), atol=1e-14)
+    # Rz(phi) Ry(theta) Rx(psi) is SciPy's extrinsic "xyz" with angles (psi, theta, phi).
+    np.testing.assert_allclose(ang, R.as_euler("xyz")[:, ::-1], atol=1e-12)

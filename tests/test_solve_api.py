@@ -1,0 +1,308 @@
+"""Claims of lierk.solve: what it saves, where it ends, jit/vmap, derivatives,
+no recompilation, and input validation."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import numpy as np
+import pytest
+from helpers import OMEGA_GENERIC, TEE, reference_R
+from scipy.spatial.transform import Rotation
+
+import lierk
+from lierk import so3
+
+R0_GENERIC = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
+
+
+def _tee(omega0=OMEGA_GENERIC, R0=None, inertia=TEE):
+    return lierk.FreeRigidBody(inertia, omega0, R0=R0)
+
+
+# --- SaveAt -----------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def all_steps():
+    """RKMK4 on the T-handle, 12 steps of 0.1 s, every state saved (t0 included)."""
+    return lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, saveat=lierk.SaveAt(t0=True, steps=True))
+
+
+def test_saveat_final_only(all_steps):
+    sol = lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1)
+    assert sol.ts.shape == (1,) and sol.R.shape == (1, 3, 3) and int(sol.n_saved) == 1
+    assert float(sol.ts[0]) == 1.2
+    np.testing.assert_allclose(sol.R[0], all_steps.R[-1], rtol=0, atol=1e-15)
+    assert int(sol.stats["num_steps"]) == 12 and int(sol.result) == lierk.RESULTS.successful
+
+
+def test_saveat_all_steps(all_steps):
+    assert all_steps.ts.shape == (13,) and all_steps.R.shape == (13, 3, 3) and int(all_steps.n_saved) == 13
+    np.testing.assert_allclose(all_steps.ts, 0.1 * np.arange(13), rtol=1e-15, atol=0)
+    assert float(all_steps.ts[-1]) == 1.2
+    np.testing.assert_array_equal(all_steps.R[0], np.eye(3))
+    # Each saved state is the one the steps reach: compare a few with the reference.
+    for k in (3, 12):
+        np.testing.assert_allclose(all_steps.R[k], reference_R(TEE, OMEGA_GENERIC, 0.1 * k), atol=1e-6)
+
+
+@pytest.mark.parametrize("k, t1_flag, expected_steps", [(3, False, [3, 6, 9, 12]), (5, False, [5, 10]), (5, True, [5, 10, 12])])
+def test_saveat_every_kth_step_matches_all_steps(all_steps, k, t1_flag, expected_steps):
+    sol = lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, saveat=lierk.SaveAt(steps=k, t1=t1_flag))
+    n = len(expected_steps)
+    assert sol.ts.shape == (n,) and sol.R.shape == (n, 3, 3) and int(sol.n_saved) == n
+    np.testing.assert_allclose(sol.ts, all_steps.ts[np.array(expected_steps)], rtol=0, atol=0)
+    np.testing.assert_allclose(sol.R, all_steps.R[np.array(expected_steps)], rtol=0, atol=1e-15)
+
+
+def test_t1_not_a_multiple_of_dt_ends_exactly_at_t1():
+    """The last step is shortened: 1.0 = 3 x 0.3 + 0.1.  On a sphere the Lie solvers are
+    exact, so any error would be a wrong end time."""
+    omega0 = np.array([0.7, -1.3, 2.1])
+    sol = lierk.solve(lierk.FreeRigidBody(np.eye(3), omega0), lierk.RKMK4(), 1.0, dt=0.3, saveat=lierk.SaveAt(steps=True))
+    np.testing.assert_allclose(sol.ts, [0.3, 0.6, 0.9, 1.0], rtol=1e-15)
+    assert float(sol.ts[-1]) == 1.0
+    assert int(sol.stats["num_steps"]) == 4
+    np.testing.assert_allclose(sol.R[-1], so3.exp(1.0 * omega0), atol=1e-14)
+    np.testing.assert_allclose(sol.R[2], so3.exp(0.9 * omega0), atol=1e-14)
+    # 0.9 / 0.3 is 3.0000000000000004 in floating point: three steps, not a fourth of 1e-16 s.
+    sol = lierk.solve(lierk.FreeRigidBody(np.eye(3), omega0), lierk.RKMK4(), 0.9, dt=0.3)
+    assert int(sol.stats["num_steps"]) == 3
+    np.testing.assert_allclose(sol.R[-1], so3.exp(0.9 * omega0), atol=1e-14)
+
+
+def test_t0_nonzero_and_t1_equal_t0():
+    sol = lierk.solve(_tee(), lierk.RKMK4(), 2.2, t0=1.0, dt=0.1)
+    np.testing.assert_allclose(sol.R[-1], lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1).R[-1], atol=1e-14)
+    sol = lierk.solve(_tee(R0=R0_GENERIC), lierk.RKMK4(), 1.0, t0=1.0, dt=0.1)
+    np.testing.assert_allclose(sol.R[-1], R0_GENERIC, atol=1e-15)
+
+
+# --- jit and vmap -----------------------------------------------------------------------
+
+
+def _final(omega0, R0, dt, max_steps=None, t1=1.2):
+    return lierk.solve(lierk.FreeRigidBody(TEE, omega0, R0=R0), lierk.RKMK4(), t1, dt=dt, max_steps=max_steps).R[-1]
+
+
+def test_jit_matches_eager():
+    eager = _final(OMEGA_GENERIC, R0_GENERIC, 0.1)
+    jitted = jax.jit(_final, static_argnames="max_steps")(OMEGA_GENERIC, R0_GENERIC, 0.1, max_steps=12)
+    np.testing.assert_allclose(jitted, eager, rtol=0, atol=1e-15)
+
+
+def test_jit_with_constant_dt_needs_no_max_steps():
+    """t1 and dt written as Python numbers inside a jitted function are known while
+    tracing, so the step count can be read from them (only traced ones need max_steps)."""
+    jitted = jax.jit(lambda w: _final(w, None, 0.1))(OMEGA_GENERIC)
+    np.testing.assert_allclose(jitted, _final(OMEGA_GENERIC, None, 0.1), rtol=0, atol=1e-15)
+
+
+def test_vmap_over_omega0_equals_loop():
+    omegas = OMEGA_GENERIC + 0.3 * np.random.default_rng(7).standard_normal((4, 3))
+    batched = jax.vmap(lambda w: _final(w, None, 0.1))(omegas)
+    loop = np.stack([_final(w, None, 0.1) for w in omegas])
+    np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
+    assert np.abs(loop[0] - loop[1]).max() > 1e-3  # the sweep really varies
+
+
+def test_vmap_over_R0_equals_loop():
+    R0s = Rotation.random(3, random_state=8).as_matrix()
+    batched = jax.jit(jax.vmap(lambda R0: _final(OMEGA_GENERIC, R0, 0.1, max_steps=12)))(R0s)
+    loop = np.stack([_final(OMEGA_GENERIC, R0, 0.1) for R0 in R0s])
+    np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
+
+
+def test_vmap_over_dt_with_max_steps_equals_loop():
+    """A traced dt needs a static step count; steps past t1 are exact no-ops, and the
+    last step of each member is shortened to end at t1 (1.2/0.125 = 9.6)."""
+    dts = np.array([0.1, 0.125, 0.2, 0.3])
+    batched = jax.jit(jax.vmap(lambda dt: _final(OMEGA_GENERIC, None, dt, max_steps=12)))(dts)
+    loop = np.stack([_final(OMEGA_GENERIC, None, dt) for dt in dts])
+    np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-14)
+    assert np.abs(loop[0] - loop[-1]).max() > 1e-8
+
+
+def test_max_steps_too_small_is_reported():
+    sol = lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, max_steps=5, throw=False)
+    assert int(sol.result) == lierk.RESULTS.max_steps_reached
+    with pytest.raises(Exception, match="max_steps"):
+        lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, max_steps=5)
+
+
+# --- derivatives ------------------------------------------------------------------------
+
+
+def _fd_jacobian(f, x, eps):
+    """Central differences with per-component steps eps (array like x)."""
+    cols = []
+    for i in range(x.size):
+        dx = np.zeros_like(x)
+        dx.flat[i] = eps.flat[i]
+        cols.append((np.asarray(f(x + dx)) - np.asarray(f(x - dx))) / (2 * eps.flat[i]))
+    return np.stack(cols, axis=-1)
+
+
+def _assert_rel(J, ref, rtol):
+    rel = np.linalg.norm(np.asarray(J) - ref) / np.linalg.norm(ref)
+    assert rel < rtol, rel
+
+
+def _final_R(inertia, omega0, t1, dt):
+    """Final R of RKMK4; t1 and dt are arguments (so one compilation serves the
+    T-handle and the sphere cases), hence the static max_steps."""
+    return lierk.solve(lierk.FreeRigidBody(inertia, omega0), lierk.RKMK4(), t1, dt=dt, max_steps=30).R[-1]
+
+
+_final_R_jit = jax.jit(_final_R)
+_jacfwd = jax.jit(jax.jacfwd(_final_R, argnums=(0, 1)))
+_jacrev = jax.jit(jax.jacrev(_final_R, argnums=(0, 1)))
+
+
+def test_jacobians_wrt_omega0_and_inertia_match_finite_differences():
+    """jacfwd and jacrev with respect to omega0 (rad/s) and the (3, 3) inertia tensor,
+    against central differences: along each omega0 component, each principal moment,
+    and one symmetric off-diagonal perturbation of the tensor."""
+    t1, dt = 1.5, 0.05
+    eps_w, eps_I = 1e-6, 1e-5 * np.diag(TEE)
+    fd_w = _fd_jacobian(lambda w: _final_R_jit(TEE, w, t1, dt), OMEGA_GENERIC, np.full(3, eps_w))
+    fd_d = _fd_jacobian(lambda d: _final_R_jit(np.diag(d), OMEGA_GENERIC, t1, dt), np.diag(TEE).copy(), eps_I)
+    S = np.array([[0.0, 1.0, 0.3], [1.0, 0.0, -0.5], [0.3, -0.5, 0.2]]) * 1e-5  # 10% of TEE
+    eps_S = 1e-3
+    fd_S = (np.asarray(_final_R_jit(TEE + eps_S * S, OMEGA_GENERIC, t1, dt)) - np.asarray(_final_R_jit(TEE - eps_S * S, OMEGA_GENERIC, t1, dt))) / (2 * eps_S)
+    for fd in (fd_w, fd_d, fd_S):
+        assert np.linalg.norm(fd) > 1e-2  # R really depends on each of them here
+    for jac in (_jacfwd, _jacrev):
+        J_I, J_w = (np.asarray(J) for J in jac(TEE, OMEGA_GENERIC, t1, dt))  # (3, 3, 3, 3), (3, 3, 3)
+        _assert_rel(J_w, fd_w, 1e-7)
+        _assert_rel(np.stack([J_I[..., k, k] for k in range(3)], axis=-1), fd_d, 1e-7)
+        _assert_rel(np.einsum("abij,ij->ab", J_I, S), fd_S, 1e-7)
+
+
+def test_sphere_jacobian_is_derivative_of_exp():
+    """For I = c E the numerical solution is exp(t1 hat(omega0)) for every omega0, so
+    its Jacobian is that of the exponential (here with a shortened last step)."""
+    t1, dt = 1.3, 0.2
+    w = np.array([0.7, -1.3, 2.1])
+    exact = np.asarray(jax.jacfwd(lambda w: so3.exp(t1 * w))(w))
+    for jac in (_jacfwd, _jacrev):
+        np.testing.assert_allclose(jac(0.4 * np.eye(3), w, t1, dt)[1], exact, atol=1e-13)
+
+
+# --- one compilation for every value ----------------------------------------------------
+
+
+def test_fixed_step_solve_never_recompiles():
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def final(inertia, omega0, dt):
+        return lierk.solve(lierk.FreeRigidBody(inertia, omega0), lierk.RKMK4(), 1.0, dt=dt, max_steps=20).R[-1]
+
+    cases = [
+        (TEE, OMEGA_GENERIC, 0.1),
+        (np.diag([1.0, 2.0, 3.0]), np.array([0.0, 1.0, 0.1]), 0.05),
+        (TEE * 1e3, np.array([2.0, -0.1, 0.4]), 0.07),
+    ]
+    for inertia, omega0, dt in cases:
+        out = final(np.asarray(inertia, float), omega0, np.float64(dt))
+        np.testing.assert_allclose(out, _final_any(inertia, omega0, dt), rtol=0, atol=1e-14)
+
+
+def _final_any(inertia, omega0, dt):
+    return lierk.solve(lierk.FreeRigidBody(inertia, omega0), lierk.RKMK4(), 1.0, dt=dt).R[-1]
+
+
+def test_adaptive_solve_never_recompiles():
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def final(inertia, omega0, rtol):
+        return lierk.solve(lierk.FreeRigidBody(inertia, omega0), lierk.DP54(), 1.0, rtol=rtol).R[-1]
+
+    errs = []
+    for rtol in [1e-4, 1e-6, 1e-8]:
+        for inertia, omega0 in [(TEE, OMEGA_GENERIC), (np.diag([1.0, 2.0, 3.0]), np.array([0.0, 1.0, 0.1]))]:
+            out = final(np.asarray(inertia, float), omega0, np.float64(rtol))
+            errs.append(np.abs(np.asarray(out) - reference_R(inertia, omega0, 1.0)).max())
+    # The tolerance is really used, not frozen at its first value.
+    assert errs[0] > 10 * errs[-2] and errs[1] > 10 * errs[-1], errs
+
+
+# --- bad input --------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda: _tee(omega0=[np.nan, 0.0, 1.0]), "omega0 has NaN or inf"),
+        (lambda: _tee(omega0=[np.inf, 0.0, 1.0]), "omega0 has NaN or inf"),
+        (lambda: _tee(omega0=np.ones(4)), r"omega0 must have shape \(3,\)"),
+        (lambda: _tee(omega0=np.ones((3, 1))), r"omega0 must have shape \(3,\)"),
+        (lambda: _tee(R0=1.00001 * np.eye(3)), "R0 must be a rotation"),
+        (lambda: _tee(R0=np.diag([1.0, 1.0, -1.0])), "R0 must be a rotation"),
+        (lambda: _tee(R0=np.full((3, 3), np.nan)), "R0"),
+        (lambda: _tee(R0=np.eye(4)), r"R0 must have shape \(3, 3\)"),
+        (lambda: _tee(inertia=np.array([[1.0, 0.1, 0], [0, 1, 0], [0, 0, 1]])), "symmetric"),
+        (lambda: _tee(inertia=np.diag([1.0, -1.0, 1.0])), "positive definite"),
+        (lambda: _tee(inertia=np.diag([1.0, np.nan, 1.0])), "NaN"),
+        (lambda: _tee(inertia=np.eye(2)), "shape"),
+    ],
+)
+def test_bad_problem_raises(make, match):
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_R0_within_tolerance_accepted():
+    R0 = R0_GENERIC + 1e-8 * np.random.default_rng(9).standard_normal((3, 3))
+    np.testing.assert_allclose(_tee(R0=R0).R0, R0, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(t1=1.0, dt=0.0), "dt must be > 0"),
+        (dict(t1=1.0, dt=-0.1), "dt must be > 0"),
+        (dict(t1=1.0, dt=np.nan), "dt must be finite"),
+        (dict(t1=1.0, dt=np.array([0.1, 0.2])), "dt must be a scalar"),
+        (dict(t1=-1.0, dt=0.1), "t1 must be >= t0"),
+        (dict(t1=1.0, t0=2.0, dt=0.1), "t1 must be >= t0"),
+        (dict(t1=np.inf, dt=0.1), "t1 must be finite"),
+        (dict(t1=np.array([1.0, 2.0]), dt=0.1), "t1 must be a scalar"),
+        (dict(t1=1.0), "needs a fixed step: pass dt="),
+        (dict(t1=1.0, dt=0.1, rtol=1e-6), "rtol"),
+        (dict(t1=1.0, dt=0.1, max_steps=0), "max_steps"),
+        (dict(t1=1.0, dt=0.1, max_steps=2.5), "max_steps"),
+    ],
+)
+def test_bad_solve_arguments_raise(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        lierk.solve(_tee(), lierk.RKMK4(), **kwargs)
+
+
+def test_bad_adaptive_and_structural_arguments_raise():
+    with pytest.raises(ValueError, match="rtol"):
+        lierk.solve(_tee(), lierk.DP54(), 1.0)
+    with pytest.raises(ValueError, match="dt0 must be > 0"):
+        lierk.solve(_tee(), lierk.DP54(), 1.0, rtol=1e-6, dt0=-1.0)
+    with pytest.raises(ValueError, match="problem"):
+        lierk.solve(np.eye(3), lierk.RKMK4(), 1.0, dt=0.1)
+    with pytest.raises(ValueError, match="solver"):
+        lierk.solve(_tee(), "RKMK4", 1.0, dt=0.1)
+    with pytest.raises(ValueError, match="SaveAt"):
+        lierk.SaveAt()
+    with pytest.raises(ValueError, match="max_steps"):
+        jax.jit(lambda dt: lierk.solve(_tee(), lierk.RKMK4(), 1.0, dt=dt).R)(0.1)
+
+
+def test_bad_traced_values_raise_at_run_time():
+    run = jax.jit(lambda dt, w: lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 1.0, dt=dt, max_steps=10).R[-1])
+    np.testing.assert_allclose(run(0.1, OMEGA_GENERIC), _final_any(TEE, OMEGA_GENERIC, 0.1), atol=1e-15)
+    with pytest.raises(Exception, match="dt must be > 0"):
+        run(-0.1, OMEGA_GENERIC)
+    with pytest.raises(Exception, match="dt must be > 0"):
+        run(0.0, OMEGA_GENERIC)
+    with pytest.raises(Exception, match="dt"):
+        run(np.nan, OMEGA_GENERIC)
+    with pytest.raises(Exception, match="omega0"):
+        run(0.1, np.array([np.nan, 0.0, 1.0]))
