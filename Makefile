@@ -1,5 +1,5 @@
 # Two commands do all the set-up on a fresh machine with Python 3.11 and pip:
-#   make demo   create .venv, install, run the T-handle demo (writes figures to out/)
+#   make demo   create .venv, install, simulate the T-handle scene (figures and GIF in out/)
 #   make test   create .venv if missing, install, run the test suite
 PYTHON ?= python3
 VENV := .venv
@@ -17,7 +17,8 @@ $(STAMP): $(BIN)/python pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(BIN)/python -m lierk.demo --out out
+	$(BIN)/lierk simulate examples/tee_handle_a.toml --out out/
+	$(BIN)/python -m lierk.demo --out out/report_cases
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

@@ -10,14 +10,14 @@ script that wants several host devices sets it before importing jax.
 
 from __future__ import annotations
 
-import sys
-import time
 from typing import Any, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from ._progress import Progress
 
 __all__ = ["sweep"]
 
@@ -87,7 +87,7 @@ def sweep(
     n_dev = len(devices) if sharding is not None else 1
 
     mapped = jax.jit(jax.vmap(fn))
-    bar = _Progress(n) if progress else None
+    bar = Progress("sweep", n, " members") if progress else None
     outs = []
     for start in range(0, n, chunk):
         stop = min(start + chunk, n)
@@ -106,26 +106,6 @@ def sweep(
         if bar is not None:
             jax.block_until_ready(out)
             bar.update(stop)
-    if bar is not None:
-        bar.close()
     if len(outs) == 1:
         return outs[0]
     return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs, axis=0), *outs)
-
-
-class _Progress:
-    """A one-line text bar on stderr (no dependency on tqdm)."""
-
-    def __init__(self, total: int, width: int = 30):
-        self.total, self.width, self.start = total, width, time.perf_counter()
-        self.update(0)
-
-    def update(self, done: int) -> None:
-        filled = self.width * done // self.total
-        elapsed = time.perf_counter() - self.start
-        sys.stderr.write(f"\r[{'#' * filled}{'.' * (self.width - filled)}] {done}/{self.total}  {elapsed:.1f} s")
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        sys.stderr.write("\n")
-        sys.stderr.flush()

@@ -25,6 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from ._progress import Progress
+
 __all__ = ["main"]
 
 N_CHUNKS = 20
@@ -43,37 +45,6 @@ class _Parser(argparse.ArgumentParser):
         # argparse's default prints the whole usage first; one line is enough,
         # --help has the rest.
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
-
-
-class Progress:
-    """A progress bar on stderr: redrawn in place on a terminal, otherwise a
-    line at every quarter so logs stay short."""
-
-    def __init__(self, label: str, total: float, unit: str = "", quiet: bool = False, stream=None):
-        self.label, self.total, self.unit, self.quiet = label, float(total), unit, quiet
-        self.stream = sys.stderr if stream is None else stream
-        self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.start = time.perf_counter()
-        self.next_quarter = 0.25
-
-    def update(self, done: float) -> None:
-        if self.quiet:
-            return
-        frac = min(max(done / self.total, 0.0), 1.0) if self.total > 0 else 1.0
-        if not self.tty and frac < self.next_quarter - 1e-12:
-            return
-        while self.next_quarter <= frac + 1e-12:
-            self.next_quarter += 0.25
-        width = 30
-        bar = "#" * int(round(frac * width)) + "." * (width - int(round(frac * width)))
-        text = (
-            f"{self.label} [{bar}] {100 * frac:5.1f}%  {done:g}/{self.total:g}{self.unit}"
-            f"  {time.perf_counter() - self.start:.1f} s"
-        )
-        self.stream.write(("\r" + text) if self.tty else text + "\n")
-        if self.tty and frac >= 1.0:
-            self.stream.write("\n")
-        self.stream.flush()
 
 
 # --------------------------------------------------------------------------
@@ -315,7 +286,7 @@ def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None)
     import numpy as np
 
     from .solution import RESULTS, SaveAt, Solution
-    from .solve import _num_steps, solve
+    from .solve import num_steps, solve
 
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
     dtype = problem.R0.dtype
@@ -325,7 +296,7 @@ def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None)
     if not scene.adaptive:
         dt = float(kw["dt"])
         every = scene.saveat_every
-        n_total = _num_steps(0.0, t1, dt, None)
+        n_total = num_steps(0.0, t1, dt, None)
         # Chunks hold a whole number of save intervals, so the saved grid is
         # the one a single solve would save.
         per = every * max(1, math.ceil(n_total / (n_chunks * every)))
@@ -535,7 +506,7 @@ def sweep(args) -> int:
     from .batch import sweep as batch_sweep
     from .fields import FreeRigidBody
     from .solution import SaveAt
-    from .solve import _num_steps, solve
+    from .solve import num_steps, solve
 
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
     dtype = problem.R0.dtype
@@ -552,7 +523,7 @@ def sweep(args) -> int:
     kw = dict(scene.solve_kwargs)
     if not scene.adaptive:
         # Under vmap/jit the step count cannot be read from t1 and dt.
-        kw["max_steps"] = _num_steps(0.0, t1, float(kw["dt"]), None)
+        kw["max_steps"] = num_steps(0.0, t1, float(kw["dt"]), None)
     else:
         # Reverse mode cannot go through the adaptive while loop; forward can.
         kw["adjoint"] = ForwardMode()

@@ -31,6 +31,7 @@ __all__ = [
     "dexp",
     "dexpinv",
     "rotate",
+    "right_exp",
     "exp_coefficients",
     "cross",
     "orthogonality_error",
@@ -165,6 +166,28 @@ def _matmul(X: Array, Y: Array) -> Array:
     """``X @ Y`` for ``(..., 3, 3)`` stacks as elementwise products that fuse
     with their neighbours (see `exp`): for the last product of a solver step."""
     return X[..., :, 0:1] * Y[..., 0:1, :] + X[..., :, 1:2] * Y[..., 1:2, :] + X[..., :, 2:3] * Y[..., 2:3, :]
+
+
+def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
+    """The group update of a body-frame step, ``R exp(hat(u)) exp(hat(more[0])) ...``:
+    ``(..., 3, 3), (..., 3)... -> (..., 3, 3)``.
+
+    Every Lie-group solver advances its attitude through this one function.  In
+    float32 (and narrower) the result gets one Newton-Schulz step
+    ``R <- R (3I - R^T R)/2``, which squares the distance to SO(3): the rounding
+    of each product leaves ``||R^T R - I||`` of order eps ~ 1e-7 per step, and
+    without the correction that random walk reaches ~2e-5 after 10^4 steps.  The
+    correction moves ``R`` only by that rounding-level amount, so it changes
+    nothing about the method's accuracy.  In float64 the same drift is ~1e-14
+    after 10^5 steps, so nothing is done (the check is on the static dtype).
+    """
+    R = _float(R)
+    for v in (u,) + more:
+        R = _matmul(R, exp(v))
+    if jnp.finfo(R.dtype).bits < 64:
+        S = _matmul(jnp.swapaxes(R, -1, -2), R)
+        R = 1.5 * R - 0.5 * _matmul(R, S)
+    return R
 
 
 def rotate(u: ArrayLike, x: ArrayLike) -> Array:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 from typing import Any, NamedTuple
 
+import equinox as eqx
 import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
@@ -93,7 +94,7 @@ def solve(
     t1 = _scalar(t1, "t1", dtype)
     t1 = _checks.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not _checks.is_traced(t0) else 't0'}, got t1 = {{value}}")
     if saveat.ts is not None:
-        ts = jnp.asarray(saveat.ts, dtype=dtype)
+        ts = _checks.asarray(saveat.ts, dtype)
         _checks.check(
             ts,
             lambda x: (x >= t0).all() & (x <= t1).all() & (x[1:] >= x[:-1]).all(),
@@ -108,7 +109,7 @@ def solve(
             raise ValueError("SaveAt(ts=...) needs an adaptive solve; with fixed steps use SaveAt(steps=k)")
         dt = _scalar(dt, "dt", dtype)
         dt = _checks.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
-        sol = _solve_fixed(problem, solver, t0, t1, dt, saveat, max_steps)
+        sol = _solve_fixed(problem, solver, t0, t1, dt, saveat, num_steps(t0, t1, dt, max_steps))
         return raise_if_failed(sol, throw)
 
     if not solver.adaptive:
@@ -146,7 +147,10 @@ def _scalar(x, name, dtype) -> Array:
     return _checks.check(x, lambda v: (v == v) & (abs(v) < float("inf")), f"{name} must be finite, got {{value}}")
 
 
-def _num_steps(t0, t1, dt, max_steps) -> int:
+def num_steps(t0, t1, dt, max_steps=None) -> int:
+    """Number of fixed steps `solve` takes from ``t0`` to ``t1`` with step ``dt``:
+    ``max_steps`` if given, else ``ceil((t1 - t0)/dt)`` (a multiple of ``dt`` up
+    to rounding counts exactly).  Needs concrete values."""
     if max_steps is not None:
         return int(max_steps)
     if _checks.is_traced(t0, t1, dt):
@@ -169,8 +173,11 @@ def _finite(tree) -> Array:
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
 
 
-def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps) -> Solution:
-    n = _num_steps(t0, t1, dt, max_steps)
+# Both loops are compiled once per problem/solver/SaveAt structure and step
+# count, like diffrax's diffeqsolve: values (t0, t1, dt, tolerances, inertia,
+# omega0) are traced, so eager calls with new values reuse the compilation.
+@eqx.filter_jit
+def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
     # Times within rounding of t1 count as t1.  1e-9 dt alone is below float32
     # resolution: there n * dt can miss t1 by a few ulps of t1.
     snap = jnp.maximum(1e-9 * dt, 64 * jnp.finfo(dt.dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
@@ -209,15 +216,15 @@ def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps) -> Solu
         states.append(jax.tree_util.tree_map(lambda x: x[None], state))
     R, y = _stack(states)
     ks = jnp.arange(n)
-    num_steps = jnp.sum(time(ks + 1) > time(ks)) if n else jnp.asarray(0)
+    taken = jnp.sum(time(ks + 1) > time(ks)) if n else jnp.asarray(0)
     reached = (t0 + n * dt >= t1 - snap) | (t1 == t0)
     result = jnp.where(reached, RESULTS.successful, RESULTS.max_steps_reached)
     result = jnp.where(_finite(state), result, RESULTS.nonfinite)
     stats = {
-        "num_steps": num_steps,
-        "num_accepted_steps": num_steps,
-        "num_rejected_steps": jnp.zeros_like(num_steps),
-        "num_fevals": num_steps * solver.stages,
+        "num_steps": taken,
+        "num_accepted_steps": taken,
+        "num_rejected_steps": jnp.zeros_like(taken),
+        "num_fevals": taken * solver.stages,
     }
     return Solution(jnp.concatenate(ts), R, y, jnp.asarray(sum(len(t) for t in ts)), stats, result)
 
@@ -266,6 +273,7 @@ def _initial_step(problem, controller: Controller, q: int, t0, t1, R0, y0, f0):
     return sg(jnp.clip(h, 0, controller.dtmax))
 
 
+@eqx.filter_jit
 def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: Controller, adjoint):
     tab_q = solver.error_order
     R0, y0 = problem.R0, problem.y0

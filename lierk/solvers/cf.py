@@ -39,4 +39,4 @@ class CF4(AbstractSolver):
         y1 = combine(y, h, (1 / 6, 1 / 3, 1 / 3, 1 / 6), (g1, g2, g3, g4))
         # The step is a product of two exponentials, not one, so there is no
         # algebra increment to report.
-        return Step(R @ (so3.exp(ua) @ so3.exp(ub)), y1, None, None, None)
+        return Step(so3.right_exp(R, ua, ub), y1, None, None, None)
