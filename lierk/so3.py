@@ -219,20 +219,35 @@ def dexp(u: ArrayLike, v: ArrayLike) -> Array:
     return v + B[..., None] * uv + C[..., None] * cross(u, uv)
 
 
-def dexpinv(u: ArrayLike, v: ArrayLike) -> Array:
-    """Inverse of :func:`dexp`, in closed form (exact, not truncated).
+def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None) -> Array:
+    """Inverse of :func:`dexp`: exact closed form, or its truncated series.
 
     ``dexpinv_u(v) = v - 1/2 u x v + D(theta) u x (u x v)`` with ``theta = |u|``
-    and ``D = (1 - (theta/2) cot(theta/2))/theta^2``.
+    and ``D = (1 - (theta/2) cot(theta/2))/theta^2 = 1/12 + theta^2/720 + ...``.
+
+    Args:
+        u, v: ``(..., 3)``.
+        terms: None for the exact closed form (singular at ``|u| = 2 pi k``,
+            k >= 1, as dexpinv is).  An int keeps the series up to
+            ``ad_u^terms``: 0 gives ``v``, 1 adds ``-u x v/2``, 2 adds
+            ``u x (u x v)/12`` (no trigonometry, no singularity).  An RKMK
+            method of order p needs ``terms >= p - 2`` (Munthe-Kaas 1999).
 
     Sign convention: this is the left (space-frame) form.  For the body-frame
     equation ``dR/dt = R hat(omega)`` with ``R = R_n exp(hat(u))`` one has
     ``u' = dexpinv(-u, omega) = omega + 1/2 u x omega + D u x (u x omega)``.
-    Singular at ``|u| = 2 pi k`` (k >= 1), as dexpinv is.
     """
     u, v = _float(u), _float(v)
-    _, _, D = exp_coefficients(_sq(u))
+    if terms is not None and not (isinstance(terms, int) and 0 <= terms <= 2):
+        raise ValueError(f"terms must be None (exact) or 0, 1 or 2, got {terms!r}")
+    if terms == 0:
+        return v
     uv = cross(u, v)
+    if terms == 1:
+        return v - 0.5 * uv
+    if terms == 2:
+        return v - 0.5 * uv + cross(u, uv) / 12.0
+    _, _, D = exp_coefficients(_sq(u))
     return v - 0.5 * uv + D[..., None] * cross(u, uv)
 
 

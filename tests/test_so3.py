@@ -342,3 +342,27 @@ def test_quaternion_and_euler_round_trips():
     np.testing.assert_allclose(so3.from_euler(ang[:, 0], ang[:, 1], ang[:, 2]), R.as_matrix(), atol=1e-14)
     # Rz(phi) Ry(theta) Rx(psi) is SciPy's extrinsic "xyz" with angles (psi, theta, phi).
     np.testing.assert_allclose(ang, R.as_euler("xyz")[:, ::-1], atol=1e-12)
+
+
+@pytest.mark.parametrize("terms", [0, 1, 2])
+def test_truncated_dexpinv_is_the_series(terms):
+    """``dexpinv(u, v, terms=k)`` keeps the series up to ad_u^k exactly, and
+    differs from the closed form by O(|u|^(k+1)) (k = 2: by O(|u|^4))."""
+    v = np.array([0.3, -0.9, 0.4])
+    d = np.array([0.6, -0.48, 0.64])
+    series = [v, -0.5 * np.cross(d, v), np.cross(d, np.cross(d, v)) / 12.0]
+    gaps = []
+    for theta in [0.2, 0.1]:
+        u = theta * d
+        want = sum(theta**j * series[j] for j in range(terms + 1))
+        got = np.asarray(_so3.dexpinv(u, v, terms))
+        np.testing.assert_allclose(got, want, atol=1e-15)
+        gaps.append(np.linalg.norm(np.asarray(_so3.dexpinv(u, v)) - got))
+    # The next non-zero term is ad^(k+1) for k < 2, ad^4 for k = 2.
+    expected = {0: 1, 1: 2, 2: 4}[terms]
+    assert abs(np.log2(gaps[0] / gaps[1]) - expected) < 0.2, gaps
+
+
+def test_truncated_dexpinv_rejects_unknown_truncation():
+    with pytest.raises(ValueError, match="terms"):
+        _so3.dexpinv(np.zeros(3), np.ones(3), 3)
