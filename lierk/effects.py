@@ -39,9 +39,8 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from . import _checks, so3
-from . import inertia as _inertia
 from .body import kinetic_energy
-from .fields import AbstractProblem, check_attitude, check_vector
+from .fields import AbstractProblem, check_vector, rigid_body_state
 
 __all__ = [
     "AbstractEffect",
@@ -246,14 +245,9 @@ class RigidBodyWithEffects(AbstractProblem):
                 raise ValueError(
                     f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
                 )
-        inertia = _inertia.tensor(inertia)
-        dtype = jnp.result_type(inertia.dtype, jnp.asarray(omega0).dtype, float)
-        self.inertia = inertia.astype(dtype)
-        omega0 = check_vector(omega0, "omega0", dtype)
-        self.R0 = check_attitude(R0, dtype)
-        self.inertia_inv = jnp.linalg.inv(self.inertia)
+        self.inertia, self.inertia_inv, omega0, self.R0 = rigid_body_state(inertia, omega0, R0)
         self.y0 = self.inertia @ omega0
-        self.effects = tuple(e._cast(dtype) for e in effects)
+        self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
 
     @property
     def omega0(self) -> Array:

