@@ -51,27 +51,18 @@ class _Parser(argparse.ArgumentParser):
 # Arguments
 
 
-def _positive_float(name):
+def _positive(name, kind=float):
+    """An argparse type for a positive finite number (``kind=float``) or a
+    positive integer (``kind=int``), with a one-line message naming the option."""
+    what = "integer" if kind is int else "finite number"
+
     def parse(s):
         try:
-            x = float(s)
+            x = kind(s)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {s!r}") from None
+            raise argparse.ArgumentTypeError(f"{name} must be a positive {what}, got {s!r}") from None
         if not (x > 0 and math.isfinite(x)):
-            raise argparse.ArgumentTypeError(f"{name} must be a positive finite number, got {s!r}")
-        return x
-
-    return parse
-
-
-def _positive_int(name):
-    def parse(s):
-        try:
-            x = int(s)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {s!r}") from None
-        if x < 1:
-            raise argparse.ArgumentTypeError(f"{name} must be a positive integer, got {s!r}")
+            raise argparse.ArgumentTypeError(f"{name} must be a positive {what}, got {s!r}")
         return x
 
     return parse
@@ -105,7 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--float32", action="store_true", help="single precision (default: double)")
     g.add_argument(
         "--devices",
-        type=_positive_int("--devices"),
+        type=_positive("--devices", int),
         metavar="N",
         help="split the CPU into N XLA devices (sets XLA_FLAGS=--xla_force_host_platform_device_count=N); "
         "sweeps are sharded across devices",
@@ -134,18 +125,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     sim.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
     sim.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
-    sim.add_argument("--t1", type=_positive_float("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
+    sim.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
     sim.add_argument(
         "--chunks",
-        type=_positive_int("--chunks"),
+        type=_positive("--chunks", int),
         default=N_CHUNKS,
         metavar="K",
         help=f"integrate in K pieces, reporting progress between them (default {N_CHUNKS})",
     )
     sim.add_argument(
-        "--frames", type=_positive_int("--frames"), default=120, metavar="N", help="GIF frames (default 120)"
+        "--frames", type=_positive("--frames", int), default=120, metavar="N", help="GIF frames (default 120)"
     )
-    sim.add_argument("--fps", type=_positive_int("--fps"), default=20, help="GIF frames per second (default 20)")
+    sim.add_argument("--fps", type=_positive("--fps", int), default=20, help="GIF frames per second (default 20)")
     sim.add_argument("--no-gif", action="store_true", help="skip the animation (the slowest output)")
     sim.add_argument("--degrees", action="store_true", help="Euler angles in degrees (default rad)")
 
@@ -175,21 +166,21 @@ def build_parser() -> argparse.ArgumentParser:
         )
     sw.add_argument(
         "--grid",
-        type=_positive_int("--grid"),
+        type=_positive("--grid", int),
         default=21,
         metavar="N",
         help="points per varied component when no --omega-* is given (default 21)",
     )
     sw.add_argument(
         "--span",
-        type=_positive_float("--span"),
+        type=_positive("--span"),
         metavar="S",
         help="half-width in rad/s of the --grid ranges (default: 0.25 |omega0|)",
     )
-    sw.add_argument("--t1", type=_positive_float("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
+    sw.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
     sw.add_argument(
         "--chunk-size",
-        type=_positive_int("--chunk-size"),
+        type=_positive("--chunk-size", int),
         default=256,
         metavar="K",
         help="grid points per vmapped batch (default 256); progress is reported between batches",
