@@ -27,6 +27,8 @@ bench: $(STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py
 	$(BIN)/python benchmarks/work_precision.py
+	$(BIN)/python benchmarks/long_horizon.py
+	$(BIN)/python benchmarks/scene_overhead.py
 
 clean:
 	rm -rf $(VENV) out
