@@ -15,8 +15,6 @@ class Step(NamedTuple):
     Attributes:
         R: ``(3, 3)`` attitude at ``t + h``.
         y: extra state at ``t + h`` (pytree or None).
-        u: ``(3,)`` algebra increment, ``R_new = R exp(hat(u))`` (None for
-            `ExplicitEuler`, which leaves the group).
         error: ``(e_u, e_y)`` embedded error estimate in the algebra and in y,
             or None for a method without one.
         fsal: field value at the new point, reusable as the next step's first
@@ -25,7 +23,6 @@ class Step(NamedTuple):
 
     R: Array
     y: Any
-    u: Array | None
     error: tuple | None
     fsal: Any
 

@@ -37,6 +37,4 @@ class CF4(AbstractSolver):
         ua = (h / 12.0) * (3.0 * w1 + 2.0 * w2 + 2.0 * w3 - w4)
         ub = (h / 12.0) * (-w1 + 2.0 * w2 + 2.0 * w3 + 3.0 * w4)
         y1 = combine(y, h, (1 / 6, 1 / 3, 1 / 3, 1 / 6), (g1, g2, g3, g4))
-        # The step is a product of two exponentials, not one, so there is no
-        # algebra increment to report.
-        return Step(so3.right_exp(R, ua, ub), y1, None, None, None)
+        return Step(so3.right_exp(R, ua, ub), y1, None, None)

@@ -19,7 +19,7 @@ class ExplicitEuler(AbstractSolver):
 
     def step(self, problem, t, h, R, y, fsal=None):
         omega, ydot = problem.at(problem.base(t, R, y), t, y)
-        return Step(R + h * so3._matmul(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None, None)
+        return Step(R + h * so3._matmul(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None)
 
 
 class LieEuler(AbstractSolver):
@@ -30,4 +30,4 @@ class LieEuler(AbstractSolver):
     def step(self, problem, t, h, R, y, fsal=None):
         omega, ydot = problem.at(problem.base(t, R, y), t, y)
         u = h * omega
-        return Step(so3.right_exp(R, u), combine(y, h, (1.0,), (ydot,)), u, None, None)
+        return Step(so3.right_exp(R, u), combine(y, h, (1.0,), (ydot,)), None, None)

@@ -89,7 +89,7 @@ class AbstractRKMK(AbstractSolver):
                 error = error + (
                     (_stage_sum(h, tab.b_error3, ks), combine(None, h, tab.b_error3, kys) if y is not None else None),
                 )
-        return Step(so3.right_exp(R, u1), y1, u1, error, (omega, ydot) if tab.fsal else None)
+        return Step(so3.right_exp(R, u1), y1, error, (omega, ydot) if tab.fsal else None)
 
 
 class RKMK(AbstractRKMK):
