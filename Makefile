@@ -13,8 +13,14 @@ $(BIN)/python:
 	$(BIN)/python -m pip install --quiet --upgrade pip
 
 $(STAMP): $(BIN)/python pyproject.toml
-	$(BIN)/python -m pip install --quiet -e ".[dev]"
+	$(BIN)/python -m pip install --quiet -e ".[test]"
 	touch $(STAMP)
+
+# The peers (diffrax, MuJoCo) only for benchmarks: tests and CI stay light.
+BENCH_STAMP := $(VENV)/.bench-installed
+$(BENCH_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[bench]"
+	touch $(BENCH_STAMP)
 
 demo: $(STAMP)
 	$(BIN)/lierk simulate examples/tee_handle_a.toml --out out/
@@ -23,10 +29,12 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
 
-bench: $(STAMP)
+bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py
 	$(BIN)/python benchmarks/work_precision.py
+	$(BIN)/python benchmarks/formulation.py
+	$(BIN)/python benchmarks/error_estimate.py
 	$(BIN)/python benchmarks/long_horizon.py
 	$(BIN)/python benchmarks/scene_overhead.py
 

@@ -24,7 +24,8 @@ jax.config.update("jax_enable_x64", True)
 
 import lierk  # noqa: E402
 from lierk import scene as scene_mod  # noqa: E402
-from lierk.effects import Damping, RigidBodyWithEffects  # noqa: E402
+from lierk import RigidBodyWithEffects
+from lierk.effects import Damping  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 EXAMPLE = HERE.parent / "examples" / "tee_handle_a.toml"

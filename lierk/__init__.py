@@ -4,12 +4,14 @@ The public API is re-exported here; each concept lives in its own module.
 Data flows one way: problem (``fields``) -> ``solve(solver)`` -> `Solution`.
 """
 
+from . import accuracy as accuracy
 from . import adjoint as adjoint
 from . import batch as batch
 from . import body as body
 from . import effects as effects
 from . import exact as exact
 from . import inertia as inertia
+from . import rigid_body as rigid_body
 from . import scene as scene
 from . import so3 as so3
 from . import tableaux as tableaux
@@ -20,10 +22,11 @@ from .controller import Controller as Controller
 from .effects import BodyTorque as BodyTorque
 from .effects import Damping as Damping
 from .effects import Gravity as Gravity
-from .effects import RigidBodyWithEffects as RigidBodyWithEffects
 from .effects import SpaceTorque as SpaceTorque
 from .fields import AbstractProblem as AbstractProblem
-from .fields import FreeRigidBody as FreeRigidBody
+from .fields import SpatialFreeRigidBody as SpatialFreeRigidBody
+from .rigid_body import FreeRigidBody as FreeRigidBody
+from .rigid_body import RigidBodyWithEffects as RigidBodyWithEffects
 from .solution import RESULTS as RESULTS
 from .solution import SaveAt as SaveAt
 from .solution import Solution as Solution

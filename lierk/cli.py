@@ -2,8 +2,9 @@
 
     lierk simulate SCENE.toml --out DIR      trajectory (.npz), figures and a GIF
     lierk sweep SCENE.toml --out DIR ...     a grid of initial angular velocities
+    lierk accuracy SCENE.toml --out DIR      work against precision of the solvers
 
-Both run in double precision unless ``--float32`` is given: the command line
+All run in double precision unless ``--float32`` is given: the command line
 is an application and picks its precision itself (the library never touches
 JAX's global configuration).  ``--devices N`` splits the CPU into N XLA
 devices (``--xla_force_host_platform_device_count``) for sharded sweeps; it
@@ -127,6 +128,13 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
     sim.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
     sim.add_argument(
+        "--target-error",
+        type=_positive("--target-error"),
+        metavar="EPS",
+        help="the attitude error ||R - R_exact||_F wanted at every saved time, instead of the scene's dt/rtol: "
+        "the scene's solver chooses its own step or tolerances (solved in one piece)",
+    )
+    sim.add_argument(
         "--chunks",
         type=_positive("--chunks", int),
         default=N_CHUNKS,
@@ -185,7 +193,49 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="K",
         help="grid points per vmapped batch (default 256); progress is reported between batches",
     )
+
+    acc = sub.add_parser(
+        "accuracy",
+        parents=[common],
+        help="work against precision: which solver and setting reach each error, and how fast",
+        description="Solve SCENE.toml's problem with each solver over a range of steps dt (RKMK4, CF4) "
+        "and tolerances rtol (DP54, DOP853, RKF45), each with its own error estimate, and measure the wall "
+        "time and the true error max_t ||R(t) - R_ref(t)||_F at equally spaced times. The reference is the "
+        "closed form (lierk.exact) for a torque-free body, otherwise a tight DOP853 solve cross-checked by "
+        "DP54. Writes work_precision.png and work_precision.json to DIR and prints, per error decade, the "
+        "cheapest solver and setting. The scene's own [run] settings other than t1 are not used.",
+        epilog="example: lierk accuracy examples/heavy_top.toml --out out/accuracy",
+    )
+    acc.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
+    acc.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    acc.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
+    acc.add_argument(
+        "--solvers",
+        type=_solver_list,
+        metavar="A,B,...",
+        help="comma-separated solvers (default: RKMK4,CF4,DP54,DOP853,RKF45)",
+    )
+    acc.add_argument(
+        "--max-settings",
+        type=_positive("--max-settings", int),
+        metavar="N",
+        help="at most N steps or tolerances per solver (default 10); fewer is faster",
+    )
+    acc.add_argument("--quick", action="store_true", help="a faster, coarser run: same as --max-settings 4")
     return parser
+
+
+def _solver_list(s: str) -> list[str]:
+    from .scene import SOLVERS
+
+    names = {n.lower(): n for n in SOLVERS}
+    out = []
+    for part in s.split(","):
+        name = part.strip()
+        if name.lower() not in names:
+            raise argparse.ArgumentTypeError(f"unknown solver {name!r}; choose from: {', '.join(SOLVERS)}")
+        out.append(names[name.lower()])
+    return out
 
 
 def _version() -> str:
@@ -232,34 +282,23 @@ def _one_line(e: BaseException) -> str:
     return first
 
 
-def _run_settings(scene) -> str:
+def _run_settings(scene, sol=None) -> str:
+    """The scene's run settings; with the `Solution` of a target_error run,
+    the step or tolerance it chose too."""
     kw = scene.solve_kwargs
     if "dt" in kw:
         return f"dt = {kw['dt']:g} s"
+    if "target_error" in kw:
+        text = f"target_error = {kw['target_error']:g}"
+        return text if sol is None else f"{text} (chose {_chosen(sol)})"
     return f"rtol = {kw['rtol']:g}, atol = {kw['atol']:g}"
 
 
-def _with_omega0(problem, omega0):
-    """``problem`` with a new initial body angular velocity ``(3,)`` (rad/s)."""
-    import equinox as eqx
-
-    from .fields import FreeRigidBody
-
-    if isinstance(problem, FreeRigidBody):
-        # The free body stores the spatial momentum L = R0 I omega0.
-        return eqx.tree_at(lambda p: p.L, problem, problem.R0 @ (problem.inertia @ omega0))
-    # Problems with effects carry the body momentum m = I omega0 as y.
-    return eqx.tree_at(lambda p: p.y0, problem, problem.inertia @ omega0)
-
-
-def _restart(problem, R, y):
-    """``problem`` started from attitude ``R`` and state ``y`` instead."""
-    import equinox as eqx
-
-    problem = eqx.tree_at(lambda p: p.R0, problem, R)
-    if problem.y0 is not None:
-        problem = eqx.tree_at(lambda p: p.y0, problem, y)
-    return problem
+def _chosen(sol) -> str:
+    """The setting a target_error solve chose, from its stats."""
+    if "dt" in sol.stats:
+        return f"dt = {float(sol.stats['dt']):.4g} s"
+    return f"rtol = atol = {float(sol.stats['rtol']):.3g}"
 
 
 # --------------------------------------------------------------------------
@@ -283,6 +322,31 @@ def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None)
     dtype = problem.R0.dtype
     kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
     start = time.perf_counter()
+
+    if scene.target_error is not None:
+        # target_error bounds the global error at every saved time, so it is
+        # solved in one piece, on the scene's own grid (the one scene.solve()
+        # saves).  Choosing the setting on the first piece and reusing it
+        # would not do: the error grows over the run (across a flip it grows
+        # fastest), so a step fine enough for the first twentieth is not fine
+        # enough for the whole, and targets per piece would not bound the
+        # total either.  The progress bar therefore shows only start and end.
+        if progress is not None:
+            progress.update(0.0)
+        sol = jax.block_until_ready(scene.solve(throw=False))
+        code = int(sol.result)
+        if code == RESULTS.target_error_not_reached:
+            worst = float(np.max(np.asarray(sol.error_estimate)))
+            raise RunError(
+                f"target_error = {scene.target_error:g} was not reached: the best estimate was {worst:.2g} "
+                f"(last tried {_chosen(sol)}); loosen it or use another solver"
+            )
+        if code != RESULTS.successful:
+            raise RunError(f"integration failed between t = 0 s and {t1:g} s: {RESULTS.message(code)}")
+        if progress is not None:
+            progress.update(t1)
+        stats = {k: (float(v) if k in ("dt", "rtol") else int(v)) for k, v in sol.stats.items()}
+        return eqx.tree_at(lambda s: s.stats, sol, stats), time.perf_counter() - start
 
     if not scene.adaptive:
         dt = float(kw["dt"])
@@ -339,7 +403,7 @@ def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None)
         R_out.append(np.asarray(sol.R)[keep])
         y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
         stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
-        problem = _restart(problem, sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
+        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
         if progress is not None:
             progress.update(tb)
     wall = time.perf_counter() - start
@@ -370,6 +434,8 @@ def simulate(args) -> int:
     from . import plot
     from .body import angular_momentum
 
+    if args.target_error is not None:
+        scene = scene.with_target_error(args.target_error)
     problem, solver = scene.problem, scene.solver
     progress = Progress(f"{scene.name}: t", scene.t1, " s", quiet=args.quiet)
     sol, wall = integrate(scene, args.chunks, progress)
@@ -399,10 +465,12 @@ def simulate(args) -> int:
     }
     if y is not None:
         data["y"] = y
+    if sol.error_estimate is not None:
+        data["error_estimate"] = np.asarray(sol.error_estimate)[: len(ts)]
     npz = out / f"{stem}.npz"
     np.savez(npz, **data)
 
-    settings = f"{solver.name}, {_run_settings(scene)}"
+    settings = f"{solver.name}, {_run_settings(scene, sol)}"
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     figures = {
         "components": plot.components(sol, title),
@@ -435,6 +503,13 @@ def simulate(args) -> int:
         + (f" ({st['num_rejected_steps']} rejected)" if st.get("num_rejected_steps") else "")
         + f", {st['num_fevals']} field evaluations, {wall:.2f} s wall (incl. compilation)"
     )
+    if scene.target_error is not None:
+        est = np.asarray(sol.error_estimate)
+        print(
+            f"  target_error {scene.target_error:.3g}: chose {_chosen(sol)} "
+            f"after {st['num_solves']} solves (steps above: the last, finest solve); "
+            f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
+        )
     conserved = problem.conserved() if hasattr(problem, "conserved") else tuple(inv)
     for k, v in drift.items():
         note = "" if k in conserved else "  (not conserved by this scene)"
@@ -450,7 +525,7 @@ def simulate(args) -> int:
 
 
 def _flip_interval(problem):
-    from .fields import FreeRigidBody
+    from .rigid_body import FreeRigidBody
 
     if not isinstance(problem, FreeRigidBody):
         return None
@@ -495,10 +570,15 @@ def sweep(args) -> int:
     from . import so3
     from .adjoint import ForwardMode
     from .batch import sweep as batch_sweep
-    from .fields import FreeRigidBody
+    from .rigid_body import FreeRigidBody
     from .solution import SaveAt
     from .solve import num_steps, solve
 
+    if scene.target_error is not None:
+        raise CLIError(
+            "sweep needs a scene with run.dt or run.rtol: target_error chooses a setting per solve, and the "
+            "sensitivity is a derivative through one fixed setting"
+        )
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
     dtype = problem.R0.dtype
     omega0 = np.asarray(problem.omega0, dtype=float)
@@ -527,7 +607,7 @@ def sweep(args) -> int:
 
     def point(w):
         def final(w):
-            sol = solve(_with_omega0(problem, w), solver, t1, saveat=SaveAt(t1=True), throw=False, **kw)
+            sol = solve(problem.with_omega0(w), solver, t1, saveat=SaveAt(t1=True), throw=False, **kw)
             return sol.R[-1], (sol.R[-1], sol.result)
 
         J, (R, result) = jax.jacfwd(final, has_aux=True)(w)
@@ -627,6 +707,53 @@ def _sweep_figure(res, axes, varied, omega0, title):
 
 
 # --------------------------------------------------------------------------
+# accuracy
+
+
+def accuracy(args) -> int:
+    scene = _load(args)
+    from . import accuracy as _accuracy
+
+    start = time.perf_counter()
+    max_settings = args.max_settings if args.max_settings is not None else (4 if args.quick else None)
+    report = _accuracy.work_precision(
+        scene, solvers=args.solvers, progress=not args.quiet, max_settings=max_settings
+    )
+    wall = time.perf_counter() - start
+
+    out = args.out
+    out.mkdir(parents=True, exist_ok=True)
+    png, js = out / "work_precision.png", out / "work_precision.json"
+    _accuracy.figure(report).savefig(png, dpi=100)
+    js.write_text(_accuracy.to_json(report) + "\n")
+
+    print(
+        f"scene {report.scene}: {len(report.rows)} runs of {', '.join(report.solvers)}, T = {report.t1:g} s, "
+        f"errors max_t ||R - R_ref||_F at {len(report.ts)} equally spaced times, {wall:.1f} s wall (incl. compilation)"
+    )
+    print(f"  reference: {report.reference}, error about {report.reference_error:.1e}")
+    if report.check is not None:
+        d = report.check_disagreement
+        print(f"  cross-check: {report.check}" + (f", disagrees by {d:.1e}" if d is not None else ""))
+    header = f"{'error <=':>9}  {'cheapest':<8}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"
+    print(header)
+    for decade, row in report.best_per_decade().items():
+        if row is not None:
+            print(
+                f"{decade:>9.0e}  {row.solver:<8}  {row.label:<18}  {row.time:>9.3g}  {row.error:>8.1e}  "
+                f"{row.error_estimate:>8.1e}"
+            )
+        elif decade < report.floor:
+            print(f"{decade:>9.0e}  (below the reference's accuracy, {report.floor:.1e})")
+        else:
+            print(f"{decade:>9.0e}  (no run reached it)")
+    print("wrote:")
+    for p in (png, js):
+        print(f"  {p}")
+    return 0
+
+
+# --------------------------------------------------------------------------
 
 
 def _join_negative_ranges(argv: list[str]) -> list[str]:
@@ -649,7 +776,7 @@ def main(argv=None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(_join_negative_ranges(argv))
     if args.command is None:
-        print("lierk: error: a command is required: simulate or sweep (see lierk --help)", file=sys.stderr)
+        print("lierk: error: a command is required: simulate, sweep or accuracy (see lierk --help)", file=sys.stderr)
         return 2
     prog = f"lierk {args.command}"
     try:
@@ -659,7 +786,7 @@ def main(argv=None) -> int:
         # The command line is an application: it picks its precision, scoped to
         # this call, and leaves the global config alone.
         with jax.enable_x64(not args.float32):
-            return {"simulate": simulate, "sweep": sweep}[args.command](args)
+            return {"simulate": simulate, "sweep": sweep, "accuracy": accuracy}[args.command](args)
     except CLIError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2

@@ -2,9 +2,22 @@
 
 The error is measured in the Lie algebra: a step's estimate ``e_u`` is the
 difference of the two solutions' increments ``u_high - u_low`` from the same
-base point.  Attitude entries are O(1), so ``e_u`` is scaled by
-``atol + rtol``; extra state ``y`` is scaled per component by
-``atol + rtol * max(|y_0|, |y_1|)``.  All controller arithmetic runs under
+base point.  It is an angle (rad) and the attitude is O(1), so ``e_u`` is
+scaled by ``atol + rtol``.  Extra state ``y`` is scaled by what the problem
+says (`lierk.AbstractProblem.error_tolerance`): the rigid body measures its
+momentum relative to ``|m|``, so tolerances are dimensionless and mean the
+same for any body size.
+
+Tolerances are calibrated to mean global error.  Error-per-step control bounds
+each step's local error, and near the intermediate axis those errors are
+amplified on the way to the end of the run, so how far the global error lands
+from ``tol`` depends on the pair.  Each tableau therefore carries a measured
+``tolerance_calibration`` (`lierk.tableaux.ButcherTableau`): the step's error
+estimate is held to ``tol * tolerance_calibration``.  With it the largest
+attitude error on near-axis batches of four very different bodies stays
+between 1x and 10x of ``tol`` for ``tol`` from 1e-6 to 1e-12, for RKF45, DP54
+and DOP853 (``tests/test_accuracy.py``).  The global error estimate
+(``solve(..., estimate_error=True)``) reports what was actually reached.  All controller arithmetic runs under
 `jax.lax.stop_gradient`: step sizes are not differentiated (otherwise
 ``0 * inf`` turns into NaN on the backward pass).
 """
@@ -78,11 +91,13 @@ class Controller(eqx.Module):
         self.dtmin = positive("dtmin", dtmin, allow_zero=True)
         self.dtmax = positive("dtmax", dtmax)
 
-    def norm(self, e_u: Array, e_y, y0, y1) -> Array:
-        """RMS of the scaled error over the algebra's 3 components and y's."""
+    def norm(self, e_u: Array, e_y, tol_y) -> Array:
+        """RMS of the scaled error over the algebra's 3 components and y's:
+        ``e_u / (atol + rtol)`` and ``e_y / tol_y``, with ``tol_y`` from
+        `lierk.AbstractProblem.error_tolerance`."""
         terms = [e_u / (self.atol + self.rtol)]
-        for e, a, b in zip(_leaves(e_y), _leaves(y0), _leaves(y1)):
-            terms.append(e / (self.atol + self.rtol * jnp.maximum(jnp.abs(a), jnp.abs(b))))
+        for e, s in zip(_leaves(e_y), _leaves(tol_y)):
+            terms.append(e / s)
         x = jnp.concatenate(terms)
         return jnp.sqrt(jnp.mean(x * x))
 

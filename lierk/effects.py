@@ -1,9 +1,7 @@
 """Opt-in effects on a rigid body: gravity about a pivot, constant torques, damping.
 
-The torque-free body (`lierk.FreeRigidBody`) needs no extra state because its
-spatial angular momentum is constant.  Under a torque it is not, so
-`RigidBodyWithEffects` carries the body momentum ``m`` (kg m^2/s, body frame)
-as its state ``y`` and integrates Euler's equations with torque,
+`lierk.RigidBodyWithEffects` carries the body momentum ``m`` (kg m^2/s, body
+frame) as its state ``y`` and integrates Euler's equations with torque,
 
     dR/dt = R hat(omega),    omega = I^{-1} m,
     dm/dt = m x omega + sum_k tau_k(t, R, m, omega),
@@ -39,8 +37,7 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from . import _checks, so3
-from .body import kinetic_energy
-from .fields import AbstractProblem, check_vector, rigid_body_state
+from .fields import check_vector
 
 __all__ = [
     "AbstractEffect",
@@ -48,7 +45,6 @@ __all__ = [
     "BodyTorque",
     "SpaceTorque",
     "Damping",
-    "RigidBodyWithEffects",
 ]
 
 
@@ -74,6 +70,16 @@ class AbstractEffect(eqx.Module):
         """Quantities conserved by the free body with this effect alone, besides
         the energy of a conservative effect.  ``R`` ``(..., 3, 3)``, ``m`` ``(..., 3)``."""
         return {}
+
+    def energy_scale(self) -> Array:
+        """The energy (J) this effect can give a body that starts at rest, as a
+        scale for absolute momentum tolerances; 0 where it has none."""
+        return jnp.zeros(())
+
+    def conserved(self, inertia: Array) -> tuple[str, ...]:
+        """Keys of `invariants` that the body with this effect alone conserves,
+        for a body of ``inertia`` ``(3, 3)`` (kg m^2)."""
+        return tuple(self.invariants(jnp.eye(3), jnp.zeros(3)))
 
     def _cast(self, dtype) -> "AbstractEffect":
         """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
@@ -147,6 +153,14 @@ class Gravity(AbstractEffect):
             "m_chi": jnp.einsum("...j,j->...", m, axis),
         }
 
+    def energy_scale(self):
+        # The potential's full range: the centre of mass from top to bottom.
+        return 2 * self.mass * self.g * jnp.linalg.norm(self.pivot_to_com)
+
+    def conserved(self, inertia):
+        keys = ("L_vertical", "m_chi")
+        return keys if _symmetric_about(inertia, self.pivot_to_com) else keys[:1]
+
 
 class BodyTorque(AbstractEffect):
     """A torque ``tau`` (N m) constant in the body frame (a thruster fixed to the body).
@@ -202,99 +216,6 @@ class Damping(AbstractEffect):
 
     def torque(self, t, R, m, omega):
         return -self.c * omega
-
-
-class RigidBodyWithEffects(AbstractProblem):
-    """A rigid body under a tuple of effects; state ``y`` is the body momentum ``m``.
-
-    ``dm/dt = m x omega + sum(effect.torque(t, R, m, omega))`` with
-    ``omega = I^{-1} m``.  The sum is unrolled in Python over ``effects``, so
-    only the effects present are traced.  With ``effects=()`` it solves the
-    same problem as `FreeRigidBody` (which is cheaper: no state).
-
-    Args:
-        inertia: ``(3, 3)`` or ``(3,)`` principal moments (kg m^2), body frame,
-            about the point the body turns about (the pivot for `Gravity`,
-            otherwise the centre of mass).
-        omega0: ``(3,)`` initial body angular velocity (rad/s).
-        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
-        effects: tuple of `AbstractEffect`.
-
-    Example:
-        >>> top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.0, 0.3, 50.0],
-        ...                            effects=(Gravity([0, 0, 1.0], 1.0, 20.0),))
-        >>> sol = lierk.solve(top, lierk.RKMK4(), 1.0, dt=1e-3)
-    """
-
-    inertia: Array
-    inertia_inv: Array
-    R0: Array
-    y0: Array
-    effects: tuple
-
-    def __init__(
-        self,
-        inertia: ArrayLike,
-        omega0: ArrayLike,
-        R0: ArrayLike | None = None,
-        effects: tuple | list = (),
-    ):
-        effects = tuple(effects)
-        for i, e in enumerate(effects):
-            if not isinstance(e, AbstractEffect):
-                raise ValueError(
-                    f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
-                )
-        self.inertia, self.inertia_inv, omega0, self.R0 = rigid_body_state(inertia, omega0, R0)
-        self.y0 = self.inertia @ omega0
-        self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
-
-    @property
-    def omega0(self) -> Array:
-        return self.inertia_inv @ self.y0
-
-    def field(self, t, R, y):
-        omega = self.inertia_inv @ y
-        dm = so3.cross(y, omega)
-        for e in self.effects:
-            # The scope names the effect's equations (including the sum, so a
-            # constant torque shows up too) in jaxprs and profiles.
-            with jax.named_scope(f"lierk_effect_{type(e).__name__}"):
-                dm = dm + e.torque(t, R, y, omega)
-        return omega, dm
-
-    def invariants(self, R, y):
-        """``"energy"`` (kinetic plus every effect's potential, J), ``"|L|"``
-        (kg m^2/s) and each effect's own `AbstractEffect.invariants`.  Which of
-        them the exact flow conserves is `conserved`."""
-        omega = jnp.einsum("ij,...j->...i", self.inertia_inv, y)
-        energy = kinetic_energy(self.inertia, omega)
-        out = {}
-        for e in self.effects:
-            energy = energy + e.potential(R)
-            out.update(e.invariants(R, y))
-        return {"energy": energy, "|L|": jnp.linalg.norm(y, axis=-1), **out}
-
-    def conserved(self) -> tuple[str, ...]:
-        """Keys of `invariants` that the exact flow conserves for this set of effects.
-
-        ``"energy"`` when every effect is conservative; ``"|L|"`` with no effects;
-        an effect's own invariants when it is the only effect (``"m_chi"`` of
-        `Gravity` only when the inertia is symmetric about ``chi``, checked on
-        concrete values).
-        """
-        keys = []
-        if all(e.conservative for e in self.effects):
-            keys.append("energy")
-        if not self.effects:
-            keys.append("|L|")
-        if len(self.effects) == 1:
-            (e,) = self.effects
-            own = list(e.invariants(self.R0, self.y0))
-            if isinstance(e, Gravity) and not _symmetric_about(self.inertia, e.pivot_to_com):
-                own.remove("m_chi")
-            keys.extend(own)
-        return tuple(keys)
 
 
 def _symmetric_about(inertia, chi, tol: float = 1e-9) -> bool:

@@ -12,8 +12,10 @@ stage points in local coordinates about the step's base point,
 describes the base point, ``problem.advance(base, u)`` describes
 ``R_n exp(hat(u))`` and ``problem.at(base, t, y)`` evaluates the field there.
 The default base is the matrix ``R`` itself; a problem can do better.  The
-torque-free body needs only its body momentum, ``m = exp(-u) m_n``, which is a
-Rodrigues rotation of one 3-vector, so its stages need no 3x3 products.
+report's torque-free body (`SpatialFreeRigidBody`) needs only its body
+momentum, ``m = exp(-u) m_n``, which is a Rodrigues rotation of one 3-vector,
+so its stages need no 3x3 products.  The rigid body with momentum as state
+(`lierk.rigid_body`) needs no stage point at all when it has no torques.
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -30,7 +33,7 @@ from . import _checks, so3
 from . import inertia as _inertia
 from .body import kinetic_energy
 
-__all__ = ["AbstractProblem", "FreeRigidBody", "check_attitude", "check_vector", "rigid_body_state"]
+__all__ = ["AbstractProblem", "SpatialFreeRigidBody", "check_attitude", "check_vector", "rigid_body_state"]
 
 
 def check_attitude(R0: ArrayLike | None, dtype) -> Array:
@@ -106,23 +109,40 @@ class AbstractProblem(eqx.Module):
         leading axes ``(..., 3, 3)``."""
         return {}
 
+    def error_tolerance(self, y0: Any, y1: Any, rtol: Array, atol: Array) -> Any:
+        """What an adaptive step's error in ``y`` is measured against: a pytree
+        like ``y`` of positive scales, for a step from ``y0`` to ``y1``.  The
+        default is per component, ``atol + rtol * max(|y0|, |y1|)``."""
+        return jax.tree_util.tree_map(lambda a, b: atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)), y0, y1)
 
-class FreeRigidBody(AbstractProblem):
-    """The torque-free rigid body (the report's problem).
+    def restart(self, R0: ArrayLike, y0: Any) -> "AbstractProblem":
+        """The same problem started from attitude ``R0`` ``(3, 3)`` and state ``y0``
+        (for solving in pieces)."""
+        problem = eqx.tree_at(lambda p: p.R0, self, jnp.asarray(R0, self.R0.dtype))
+        if self.y0 is not None:
+            problem = eqx.tree_at(lambda p: p.y0, problem, y0)
+        return problem
 
-    Spatial angular momentum ``L = R0 I omega0`` is constant, so there is no
-    extra state (``y0 = None``) and ``omega = I^{-1} R^T L`` (the report's
+
+class SpatialFreeRigidBody(AbstractProblem):
+    """The torque-free rigid body as the report writes it: spatial angular
+    momentum ``L = R0 I omega0`` is fixed, there is no extra state
+    (``y0 = None``) and ``omega = I^{-1} R^T L`` (the report's
     ``omega_i = I^{-1} W_i^T L``).
+
+    It conserves ``L``, and so ``|m|``, to rounding, which `FreeRigidBody`
+    does only to the solver's accuracy.  It is not the default because the
+    body momentum ``R^T L`` inherits every attitude error: near the
+    intermediate axis that shifts the flip, and the error at a given cost was
+    20 to 1000 times larger than `FreeRigidBody`'s in every case measured
+    (``benchmarks/results/formulation.md``).  Pick it when exact conservation
+    of ``L`` matters more than the attitude, or to reproduce the report.
 
     Args:
         inertia: ``(3, 3)`` symmetric positive-definite, or ``(3,)`` principal
             moments (kg m^2), in the body frame.
         omega0: ``(3,)`` initial body angular velocity (rad/s).
         R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
-
-    Example:
-        >>> body = FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
-        >>> sol = lierk.solve(body, lierk.RKMK4(), 10.0, dt=0.01)
     """
 
     inertia: Array
@@ -138,6 +158,11 @@ class FreeRigidBody(AbstractProblem):
     @property
     def omega0(self) -> Array:
         return self.inertia_inv @ (self.R0.T @ self.L)
+
+    def with_omega0(self, omega0: ArrayLike) -> "SpatialFreeRigidBody":
+        """The same body started with body angular velocity ``omega0`` (rad/s)."""
+        omega0 = check_vector(omega0, "omega0", self.L.dtype)
+        return eqx.tree_at(lambda p: p.L, self, self.R0 @ (self.inertia @ omega0))
 
     def field(self, t, R, y):
         return self.inertia_inv @ (R.T @ self.L), None

@@ -1,9 +1,8 @@
 """Scenes: a rigid body, its initial state, opt-in effects and a run, from TOML.
 
 A scene simulates only the effects it lists.  With no ``[[effects]]`` its
-problem is a plain `lierk.FreeRigidBody` (no extra state, spatial momentum
-constant); otherwise it is a `lierk.effects.RigidBodyWithEffects` holding
-just those effects.
+problem is a plain `lierk.FreeRigidBody`; otherwise it is a
+`lierk.RigidBodyWithEffects` holding just those effects.
 
 Schema (every table rejects keys it does not know)::
 
@@ -50,10 +49,16 @@ Schema (every table rejects keys it does not know)::
     solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
                                 # RKMK4, CF4 (fixed step), RKF45, DP54, DOP853 (adaptive)
     t1 = 100.0                  # end time (s); runs start at t = 0
-    dt = 0.01                   # fixed step (s); or rtol = 1e-8 (and atol) for adaptive
-    save_every = 10             # fixed step: keep every k-th step (default 1)
-    # n_save = 1001             # adaptive: equally spaced output times (default 1001)
-    # max_steps = 100000        # adaptive: bound on steps (accepted + rejected)
+    dt = 0.01                   # exactly one of: dt, the fixed step (s);
+    # rtol = 1e-8               #   rtol (and optional atol), adaptive solvers only;
+    # target_error = 1e-8       #   target_error, the attitude error ||R - R_exact||_F
+                                #   wanted at every saved time: any solver, which then
+                                #   chooses its own dt or rtol (lierk.solve(target_error=))
+    save_every = 10             # dt: keep every k-th step (default 1)
+    # n_save = 1001             # rtol, target_error: equally spaced output times
+                                # (default 1001)
+    # max_steps = 100000        # rtol: bound on steps (accepted + rejected);
+                                # target_error: bound on the steps of each solve
 
 With gravity the body turns about the pivot, so the problem's inertia is the
 centre-of-mass inertia moved there (`lierk.inertia.parallel_axis`) and its
@@ -84,9 +89,11 @@ import numpy as np
 from . import inertia as _inertia
 from . import so3
 from . import solvers as _solvers
-from .effects import AbstractEffect, BodyTorque, Damping, Gravity, RigidBodyWithEffects, SpaceTorque
-from .fields import AbstractProblem, FreeRigidBody, check_attitude
+from .effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque
+from .fields import AbstractProblem, check_attitude
+from .rigid_body import FreeRigidBody, RigidBodyWithEffects
 from .solution import SaveAt, Solution
+from .solve import num_steps as _num_steps
 from .solve import solve as _solve
 
 __all__ = ["Scene", "load", "from_dict", "SOLVERS"]
@@ -116,14 +123,15 @@ class Scene:
     Attributes:
         name: the scene's name.
         problem: `lierk.FreeRigidBody` without effects, else
-            `lierk.effects.RigidBodyWithEffects`.
+            `lierk.RigidBodyWithEffects`.
         solver: a lierk solver instance.
         t1: end time (s); runs start at 0.
         solve_kwargs: keyword arguments for `lierk.solve` besides ``saveat``:
-            ``{"dt": ...}`` or ``{"rtol": ..., "atol": ...[, "max_steps": ...]}``.
-        saveat_every: fixed step: save every k-th step (None when adaptive).
-        n_save: adaptive: number of equally spaced output times in ``[0, t1]``
-            (None when fixed step).
+            ``{"dt": ...}``, ``{"rtol": ..., "atol": ...[, "max_steps": ...]}``
+            or ``{"target_error": ...[, "max_steps": ...]}``.
+        saveat_every: fixed step: save every k-th step (None otherwise).
+        n_save: rtol or target_error: number of equally spaced output times
+            in ``[0, t1]`` (None with a fixed step).
         body_parts: the solids for drawing (`lierk.inertia.Part`, offsets in the
             body frame, ``shape`` one of ``("cylinder", radius, length, axis)``,
             ``("box", lx, ly, lz)``, ``("sphere", radius)``), or None for ``kind = "tensor"``.
@@ -152,15 +160,46 @@ class Scene:
 
     @property
     def adaptive(self) -> bool:
+        """True unless the scene gives a fixed step ``dt``: with ``rtol`` or
+        ``target_error`` the steps are chosen by the solve, and the scene
+        saves at ``n_save`` equally spaced times."""
         return "dt" not in self.solve_kwargs
+
+    @property
+    def target_error(self) -> float | None:
+        """``run.target_error``, or None when the scene gives ``dt`` or ``rtol``."""
+        return self.solve_kwargs.get("target_error")
 
     def saveat(self) -> SaveAt:
         """Fixed step: the initial state and every ``saveat_every``-th step (the
-        last state too when the step count is a multiple).  Adaptive: ``n_save``
-        equally spaced times from 0 to ``t1``."""
+        last state too when the step count is not a multiple).  ``rtol`` or
+        ``target_error``: ``n_save`` equally spaced times from 0 to ``t1``
+        (``target_error`` cannot save steps: they differ per setting tried)."""
         if self.adaptive:
             return SaveAt(ts=jnp.linspace(0.0, self.t1, self.n_save, dtype=self.problem.R0.dtype))
         return SaveAt(t0=True, steps=self.saveat_every, t1=True)
+
+    def with_target_error(self, target_error: float) -> "Scene":
+        """This scene run with ``target_error`` instead of its ``dt``/``rtol``.
+
+        The solver is kept and chooses its own step or tolerances.  The scene
+        then saves at ``n_save`` equally spaced times: its own ``n_save`` if
+        it has one, else as many points as its fixed-step run saves, so the
+        output keeps the resolution the scene asked for.  A ``max_steps``
+        given for ``rtol`` is dropped (it bounded steps at that tolerance).
+
+        Raises:
+            ValueError: ``target_error`` is not a finite number > 0.
+        """
+        eps = _number(target_error, "target_error", positive=True)
+        kw = {"target_error": eps}
+        if self.target_error is not None and "max_steps" in self.solve_kwargs:
+            kw["max_steps"] = self.solve_kwargs["max_steps"]
+        n_save = self.n_save
+        if n_save is None:
+            n = _num_steps(0.0, self.t1, self.solve_kwargs["dt"])
+            n_save = max(2, 1 + n // self.saveat_every + (1 if n % self.saveat_every else 0))
+        return dataclasses.replace(self, solve_kwargs=kw, saveat_every=None, n_save=n_save)
 
     def solve(self, **overrides) -> Solution:
         """``lierk.solve(problem, solver, t1, saveat=self.saveat(), **solve_kwargs)``;
@@ -453,16 +492,29 @@ def _effects(items: list, body: _Body) -> tuple[tuple[AbstractEffect, ...], np.n
 # --- run -----------------------------------------------------------------------
 
 
+_RUN_MODES = (
+    "run: give exactly one of 'dt' (fixed step), 'rtol' (adaptive, with optional 'atol') "
+    "or 'target_error' (the solver chooses its step or tolerances)"
+)
+
+
 def _run(t):
-    _table(t, "run", {"solver", "t1", "dt", "rtol", "atol", "save_every", "n_save", "max_steps"}, required={"solver", "t1"})
+    _table(
+        t,
+        "run",
+        {"solver", "t1", "dt", "rtol", "atol", "target_error", "save_every", "n_save", "max_steps"},
+        required={"solver", "t1"},
+    )
     names = {n.lower(): n for n in SOLVERS}
     s = t["solver"]
     if not isinstance(s, str) or s.lower() not in names:
         raise ValueError(f"run.solver = {s!r} is not allowed; choose one of: {', '.join(SOLVERS)}")
     solver = SOLVERS[names[s.lower()]]()
     t1 = _number(t["t1"], "run.t1", positive=True)
-    if ("dt" in t) == ("rtol" in t):
-        raise ValueError("run: give exactly one of 'dt' (fixed step) or 'rtol' (adaptive, with optional 'atol')")
+    modes = [k for k in ("dt", "rtol", "target_error") if k in t]
+    if len(modes) != 1:
+        given = f"; got {', '.join(modes)}" if modes else ""
+        raise ValueError(_RUN_MODES + given)
     if "dt" in t:
         for k in ("atol", "n_save", "max_steps"):
             if k in t:
@@ -470,15 +522,25 @@ def _run(t):
         dt = _number(t["dt"], "run.dt", positive=True)
         every = _int(t.get("save_every", 1), "run.save_every")
         return solver, t1, {"dt": dt}, every, None
-    if not solver.adaptive:
-        adaptive = [n for n, c in SOLVERS.items() if c.adaptive]
-        raise ValueError(
-            f"run.solver = {s!r} has no error estimate, so it needs run.dt; adaptive solvers (for rtol): {', '.join(adaptive)}"
-        )
-    if "save_every" in t:
-        raise ValueError("run.save_every applies to fixed-step runs (dt=); adaptive runs use run.n_save")
-    rtol = _number(t["rtol"], "run.rtol", positive=True)
-    kw = {"rtol": rtol, "atol": _number(t.get("atol", rtol), "run.atol", positive=True)}
+    if "target_error" in t:
+        if "atol" in t:
+            raise ValueError("run.atol applies to rtol runs; with run.target_error the solver chooses its tolerances itself")
+        if "save_every" in t:
+            raise ValueError(
+                "run.save_every applies to fixed-step runs (dt=); runs with run.target_error save at run.n_save times"
+            )
+        kw = {"target_error": _number(t["target_error"], "run.target_error", positive=True)}
+    else:
+        if not solver.adaptive:
+            adaptive = [n for n, c in SOLVERS.items() if c.adaptive]
+            raise ValueError(
+                f"run.solver = {s!r} has no error estimate, so it needs run.dt (or run.target_error); "
+                f"adaptive solvers (for rtol): {', '.join(adaptive)}"
+            )
+        if "save_every" in t:
+            raise ValueError("run.save_every applies to fixed-step runs (dt=); adaptive runs use run.n_save")
+        rtol = _number(t["rtol"], "run.rtol", positive=True)
+        kw = {"rtol": rtol, "atol": _number(t.get("atol", rtol), "run.atol", positive=True)}
     if "max_steps" in t:
         kw["max_steps"] = _int(t["max_steps"], "run.max_steps")
     n_save = _int(t.get("n_save", _DEFAULT_N_SAVE), "run.n_save")

@@ -19,6 +19,7 @@ class RESULTS:
     max_steps_reached = 1
     dt_min_reached = 2
     nonfinite = 3
+    target_error_not_reached = 4
 
     messages = {
         0: "successful",
@@ -26,6 +27,8 @@ class RESULTS:
         2: "the step size fell below dtmin (or below machine precision relative to t): "
         "the tolerance is unreachable here; loosen rtol/atol or lower dtmin",
         3: "the solution became non-finite (NaN or inf)",
+        4: "target_error was not reached: the estimated error stayed above it (below rounding, "
+        "or more steps than max_steps allow); see Solution.error_estimate",
     }
 
     @classmethod
@@ -82,6 +85,10 @@ class Solution(eqx.Module):
         stats: dict of int arrays: ``num_steps`` (attempted), ``num_accepted_steps``,
             ``num_rejected_steps``, ``num_fevals``.
         result: ``(...)`` int code from `RESULTS`; 0 is success.
+        error_estimate: ``(..., n_save)`` estimate of the global attitude error
+            ``||R(t) - R_exact(t)||_F`` at each saved time, from
+            ``solve(..., estimate_error=True)`` or ``target_error=``; None
+            otherwise.  ``inf`` where the finer solve behind it failed.
     """
 
     ts: Array
@@ -90,6 +97,7 @@ class Solution(eqx.Module):
     n_saved: Array
     stats: dict
     result: Array
+    error_estimate: Array | None = None
 
     @property
     def ok(self) -> Array:

@@ -15,6 +15,7 @@ from jax.typing import ArrayLike
 
 from . import _checks, so3
 from .adjoint import AbstractAdjoint, RecursiveCheckpointAdjoint
+from .adjoint import ForwardMode as ForwardModeAdjoint
 from .controller import Controller
 from .fields import AbstractProblem
 from .solution import RESULTS, SaveAt, Solution, raise_if_failed
@@ -40,6 +41,8 @@ def solve(
     controller: Controller | None = None,
     throw: bool = True,
     adjoint: AbstractAdjoint | None = None,
+    estimate_error: bool = False,
+    target_error: ArrayLike | None = None,
 ) -> Solution:
     """Integrate ``problem`` from ``t0`` to ``t1`` (s) with ``solver``.
 
@@ -56,6 +59,29 @@ def solve(
     (default 4096) bounds accepted plus rejected steps.  ``dt0`` is the first
     step; by default it is chosen automatically (Hairer-Norsett-Wanner).
 
+    Global error (``estimate_error=True``): a second solve at a finer setting
+    (``2 dt/3``, or ``dt/2`` when saving every odd k-th step; tolerances
+    divided by 10) fills `Solution.error_estimate` with
+    ``||R - R_fine|| K/(K-1)`` at each saved time, where ``K`` is the expected
+    accuracy ratio (``(dt/dt_fine)^order``, or 10).  This is Richardson's
+    estimate: it needs only that the finer solve is the more accurate one, so
+    it holds near the intermediate axis, with effects, and in float32.  It
+    costs about 2.5x a fixed-step solve (3x with an odd save interval) and
+    2.3 to 2.6x an adaptive one (``benchmarks/results/error_estimate.md``).
+    It is not differentiated.
+
+    Accuracy on request (``target_error=eps``, instead of ``dt``/``rtol``):
+    chooses the step (fixed-step solvers) or the tolerances (adaptive) per
+    batch member, with traced settings so nothing recompiles, until the
+    estimated attitude error is at most ``eps`` at every saved time.  Each
+    round solves a pair (a setting and its finer twin) and returns the finer
+    solution; ``stats["num_solves"]`` counts the solves and
+    ``stats["dt"]``/``stats["rtol"]`` give the setting chosen.  A target that
+    cannot be met within the rounds (below rounding, or needing more than
+    ``max_steps``, default 100000 per solve) ends with
+    `RESULTS.target_error_not_reached`.  Not differentiable: to
+    differentiate, solve again at the chosen setting.
+
     Args:
         problem: e.g. `FreeRigidBody`.
         solver: e.g. `RKMK4()` or `DP54()`.
@@ -65,13 +91,17 @@ def solve(
         saveat: what to return; default `SaveAt(t1=True)`.
         max_steps: static bound on the number of steps.
         rtol, atol: tolerances of the default `Controller` (``atol`` defaults
-            to ``rtol``).
+            to ``rtol``).  Dimensionless: the attitude in radians, the
+            momentum relative to its size.
         dt0: initial step of an adaptive solve (s).
         controller: full control of step-size selection.
         throw: raise on failure (default).  With ``throw=False`` the partial
             `Solution` comes back with its `Solution.result` code, per batch
             member under `vmap`.
         adjoint: how an adaptive solve is differentiated (`lierk.adjoint`).
+        estimate_error: fill `Solution.error_estimate`.
+        target_error: the attitude error wanted at every saved time
+            (Frobenius norm, dimensionless), ``> 0``.
 
     Returns:
         A `Solution`.
@@ -89,6 +119,8 @@ def solve(
         raise ValueError(f"saveat must be a lierk.SaveAt, got {saveat!r}")
     if max_steps is not None and not (isinstance(max_steps, (int, np.integer)) and max_steps >= 1):
         raise ValueError(f"max_steps must be a positive Python int, got {max_steps!r}")
+    if not isinstance(estimate_error, bool):
+        raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
     dtype = problem.R0.dtype
     t0 = _scalar(t0, "t0", dtype)
     t1 = _scalar(t1, "t1", dtype)
@@ -101,6 +133,18 @@ def solve(
             "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1], got {value}",
         )
 
+    if target_error is not None:
+        given = [n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None]
+        if given:
+            raise ValueError(f"target_error= chooses the step or the tolerances itself, so {', '.join(given)} cannot be given too")
+        if saveat.steps is not False:
+            raise ValueError("target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used")
+        eps = _checks.check(
+            _scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
+        )
+        sol = _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps or _DEFAULT_TARGET_MAX_STEPS, adjoint)
+        return raise_if_failed(sol, throw)
+
     if dt is not None:
         given = [n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None]
         if given:
@@ -109,17 +153,28 @@ def solve(
             raise ValueError("SaveAt(ts=...) needs an adaptive solve; with fixed steps use SaveAt(steps=k)")
         dt = _scalar(dt, "dt", dtype)
         dt = _checks.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
-        sol = _solve_fixed(problem, solver, t0, t1, dt, saveat, num_steps(t0, t1, dt, max_steps))
+        n = num_steps(t0, t1, dt, max_steps)
+        sol = _solve_fixed(problem, solver, t0, t1, dt, saveat, n)
+        if estimate_error:
+            # The finer solve takes 3 steps for every 2 (cost 1.5x), or 2 for
+            # 1 when an odd save interval leaves no other common grid.
+            num, den = (2, 1) if saveat.steps and saveat.every % 2 else (3, 2)
+            fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
+            fine_dt = jax.lax.stop_gradient(dt) * den / num
+            fine = _solve_fixed(_frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
+            sol = _with_estimate(sol, fine, (num / den) ** solver.order)
         return raise_if_failed(sol, throw)
 
     if not solver.adaptive:
         raise ValueError(
-            f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=. "
+            f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=, or target_error=. "
             "Adaptive solvers: RKF45(), DP54(), DOP853()."
         )
     if controller is None:
         if rtol is None:
-            raise ValueError(f"adaptive {solver.name} needs rtol= (and atol=), or controller=; or pass dt= for fixed steps")
+            raise ValueError(
+                f"adaptive {solver.name} needs rtol= (and atol=), or controller=, or target_error=; or pass dt= for fixed steps"
+            )
         controller = Controller(rtol, rtol if atol is None else atol)
     elif rtol is not None or atol is not None:
         raise ValueError("pass tolerances either as rtol=/atol= or inside controller=, not both")
@@ -127,6 +182,11 @@ def solve(
         raise ValueError(f"adaptive solves save every accepted step (SaveAt(steps=True)), not every {saveat.steps}-th")
     if saveat.steps and saveat.ts is not None:
         raise ValueError("SaveAt(steps=True) and SaveAt(ts=...) cannot be combined in one adaptive solve")
+    if saveat.steps and estimate_error:
+        raise ValueError(
+            "estimate_error=True compares with a finer solve at the same saved times, and adaptive "
+            "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
+        )
     # Tolerances given as Python floats become float64 under x64; compute in the problem's dtype.
     controller = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype), controller)
     adjoint = RecursiveCheckpointAdjoint() if adjoint is None else adjoint
@@ -134,10 +194,125 @@ def solve(
         raise ValueError(f"adjoint must be a lierk.adjoint object, got {adjoint!r}")
     if dt0 is not None:
         dt0 = _checks.check(_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
-    sol = _solve_adaptive(
-        problem, solver, t0, t1, dt0, saveat, max_steps or _DEFAULT_ADAPTIVE_MAX_STEPS, controller, adjoint
-    )
+    max_steps = max_steps or _DEFAULT_ADAPTIVE_MAX_STEPS
+    sol = _solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
+    if estimate_error:
+        fine = _solve_adaptive(
+            _frozen(problem), solver, t0, t1, None, saveat, 2 * max_steps, _finer(controller), adjoint
+        )
+        sol = _with_estimate(sol, fine, _TOLERANCE_RATIO)
     return raise_if_failed(sol, throw)
+
+
+# The finer solve of an adaptive error estimate divides both tolerances by
+# this; the calibrated pairs' global error is proportional to the tolerance
+# (tests/test_accuracy.py), so the finer solution is about this much better.
+_TOLERANCE_RATIO = 10.0
+_DEFAULT_TARGET_MAX_STEPS = 100_000
+_TARGET_ROUNDS = 6
+
+
+def _frozen(problem):
+    """The problem with its array leaves out of the gradient: the estimate's
+    finer solve is a diagnostic and would double the cost of a backward pass."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, problem)
+
+
+def _finer(controller: Controller) -> Controller:
+    return eqx.tree_at(
+        lambda c: (c.rtol, c.atol), controller, (controller.rtol / _TOLERANCE_RATIO, controller.atol / _TOLERANCE_RATIO)
+    )
+
+
+def _attitude_gap(sol: Solution, fine: Solution) -> Array:
+    """``||R - R_fine||_F`` at each saved time, ``inf`` where the finer solve failed."""
+    gap = jnp.linalg.norm(jax.lax.stop_gradient(sol.R) - fine.R, axis=(-2, -1))
+    # Padding entries (save times past a failed solve's end) are NaN in both.
+    gap = jnp.where(jnp.isnan(gap) & jnp.isnan(sol.R[..., 0, 0]), 0.0, gap)
+    return jnp.where(fine.result == RESULTS.successful, gap, jnp.inf)
+
+
+def _with_estimate(sol: Solution, fine: Solution, ratio) -> Solution:
+    """``sol`` with Richardson's estimate from a solve ``ratio`` times more accurate."""
+    est = _attitude_gap(sol, fine) * (ratio / (ratio - 1.0))
+    return eqx.tree_at(lambda s: s.error_estimate, sol, est, is_leaf=lambda x: x is None)
+
+
+@eqx.filter_jit
+def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoint) -> Solution:
+    """Rounds of (setting, finer setting) pairs until the finer solution's
+    estimated error is at most ``eps``; see `solve`."""
+    problem = _frozen(problem)
+    dtype = problem.R0.dtype
+    adaptive = solver.adaptive
+    if adaptive:
+        ratio, power = _TOLERANCE_RATIO, 1.0
+        if adjoint is None:
+            adjoint = ForwardModeAdjoint()
+        # The calibrated tolerances give errors near tol, so the first try is eps.
+        s0 = eps
+    else:
+        ratio, power = 2.0**solver.order, float(solver.order)
+        # A coarse first try, cheap next to the rounds that follow: at most
+        # a radian per step and an eighth of the interval.
+        omega = jnp.linalg.norm(_field_at(problem, t0, problem.R0, problem.y0)[0])
+        s0 = jnp.minimum((t1 - t0) / 8, 1.0 / jnp.maximum(omega, 1e-30))
+        s0 = jnp.where(s0 > 0, s0, 1.0)
+        if saveat.ts is not None:
+            # Steps end on every save time: a step longer than their spacing
+            # would be cut to the same grid in both solves of a pair, whose
+            # gap would then say nothing about the error.
+            grid = jnp.concatenate([t0[None], jnp.asarray(saveat.ts, dtype), t1[None]])
+            gaps = jnp.diff(grid)
+            s0 = jnp.minimum(s0, jnp.min(jnp.where(gaps > 0, gaps, jnp.inf)))
+
+    def pair(s):
+        if adaptive:
+            c = Controller(s, s)
+            coarse = _solve_adaptive(problem, solver, t0, t1, None, saveat, max_steps, c, adjoint)
+            fine = _solve_adaptive(problem, solver, t0, t1, None, saveat, max_steps, _finer(c), adjoint)
+        else:
+            coarse = _solve_adaptive(problem, solver, t0, t1, s, saveat, max_steps, None, adjoint or ForwardModeAdjoint())
+            fine = _solve_adaptive(problem, solver, t0, t1, s / 2, saveat, max_steps, None, adjoint or ForwardModeAdjoint())
+        gap = _attitude_gap(coarse, fine)
+        ok = (coarse.result == RESULTS.successful) & (fine.result == RESULTS.successful)
+        # The finer solution's estimate: the gap is (ratio - 1) of its error.
+        est = gap / (ratio - 1.0)
+        return fine, jnp.where(ok, jnp.max(est), jnp.inf), est
+
+    sol0, worst0, est0 = pair(s0)
+
+    def cond(c):
+        k, s, sol, worst, est = c
+        return (worst > eps) & (k < _TARGET_ROUNDS) & (s > 0)
+
+    def body(c):
+        k, s, sol, worst, est = c
+        # Aim at a third of eps; from a failed or saturated solve, tighten 100x.
+        ratio_s = jnp.where(jnp.isfinite(worst) & (worst > 0), (eps / 3 / worst) ** (1.0 / power), 0.01)
+        s_new = s * jnp.clip(ratio_s, 1e-3, 1.0)
+        if not adaptive:
+            # Stay within max_steps: the finer solve takes twice the steps.
+            s_new = jnp.maximum(s_new, 2.5 * (t1 - t0) / max_steps)
+        else:
+            s_new = jnp.maximum(s_new, 4 * jnp.finfo(dtype).eps)
+        sol, worst, est = pair(s_new)
+        # No finer setting left (max_steps or rounding): stop, flagged by s = -s.
+        return k + 1, jnp.where(s_new < s, s_new, -s_new), sol, worst, est
+
+    k, s, sol, worst, est = jax.lax.while_loop(cond, body, (jnp.asarray(1), s0, sol0, worst0, est0))
+    result = jnp.where(
+        sol.result != RESULTS.successful,
+        sol.result,
+        jnp.where(worst <= eps, RESULTS.successful, RESULTS.target_error_not_reached),
+    ).astype(jnp.int32)
+    stats = dict(sol.stats)
+    stats["num_solves"] = 2 * k
+    s = jnp.abs(s)
+    stats["rtol" if adaptive else "dt"] = s / ratio if adaptive else s / 2
+    return eqx.tree_at(
+        lambda x: (x.result, x.stats, x.error_estimate), sol, (result, stats, est), is_leaf=lambda x: x is None
+    )
 
 
 def _scalar(x, name, dtype) -> Array:
@@ -253,15 +428,16 @@ def _initial_step(problem, controller: Controller, q: int, t0, t1, R0, y0, f0):
     """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""
     omega0, ydot0 = f0
     sg = jax.lax.stop_gradient
+    tol = problem.error_tolerance(y0, y0, controller.rtol, controller.atol)
     # The attitude's size is 1 (entries of R are O(1)); y's is its own.
-    d0 = sg(controller.norm(jnp.ones_like(omega0), y0, y0, y0))
-    d1 = sg(controller.norm(omega0, ydot0, y0, y0))
+    d0 = sg(controller.norm(jnp.ones_like(omega0), y0, tol))
+    d1 = sg(controller.norm(omega0, ydot0, tol))
     big = (d0 > 1e-5) & (d1 > 1e-5)
     h0 = jnp.where(big, 0.01 * d0 / jnp.where(big, d1, 1.0), 1e-6)
     y1 = jax.tree_util.tree_map(lambda a, b: a + h0 * b, y0, ydot0)
     omega1, ydot1 = problem.local(problem.base(t0, R0, y0), t0 + h0, h0 * omega0, y1)
     d2 = sg(
-        controller.norm(omega1 - omega0, jax.tree_util.tree_map(lambda a, b: a - b, ydot1, ydot0), y0, y0) / h0
+        controller.norm(omega1 - omega0, jax.tree_util.tree_map(lambda a, b: a - b, ydot1, ydot0), tol) / h0
     )
     dmax = jnp.maximum(d1, d2)
     safe = jnp.where(dmax > 0, dmax, 1.0)
@@ -274,10 +450,13 @@ def _initial_step(problem, controller: Controller, q: int, t0, t1, R0, y0, f0):
 
 
 @eqx.filter_jit
-def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: Controller, adjoint):
-    tab_q = solver.error_order
+def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: Controller | None, adjoint):
+    # controller=None: fixed steps of dt0 in this loop, whose trip count may
+    # differ per batch member (a traced step size needs no static step count).
+    fixed = controller is None
+    tab_q = None if fixed else solver.error_order
     R0, y0 = problem.R0, problem.y0
-    f0 = _field_at(problem, t0, R0, y0)
+    f0 = None if fixed else _field_at(problem, t0, R0, y0)
     h0 = _initial_step(problem, controller, tab_q, t0, t1, R0, y0, f0) if dt0 is None else dt0
     dtype = R0.dtype
     eps = jnp.finfo(dtype).eps
@@ -328,23 +507,32 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         last = clipped & (stop >= t1)
         h = jax.lax.stop_gradient(jnp.where(clipped, remaining, c.h))
         st = solver.step(problem, c.t, h, c.R, c.y, c.f)
-        err = controller.norm(st.error[0], st.error[1], c.y, st.y)
-        if len(st.error) == 3:
-            # DOP853 (Hairer, Norsett, Wanner I, II.10): blend the 5th- and
-            # 3rd-order estimates so the norm behaves like O(h^8).
-            e3 = controller.norm(st.error[2][0], st.error[2][1], c.y, st.y)
-            denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
-            err = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
-        err = jax.lax.stop_gradient(err)
         t_new = jnp.where(clipped, stop, c.t + h)
-        f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
-        finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)
-        accept = finite & (err <= 1.0)
-        h_next = jnp.minimum(h * controller.factor(err, tab_q, c.rejected_last), controller.dtmax)
-        # Keep the proposed step when only a save time or t1 shortened it.
-        h_next = jnp.where(accept & clipped, jnp.maximum(h_next, c.h), h_next)
-        h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
-        stuck = ~accept & (h_next < h_floor)
+        if fixed:
+            f_new = None
+            finite = _finite((st.R, st.y))
+            # Every fixed step is taken; a non-finite one ends the loop and is reported.
+            accept = jnp.asarray(True)
+            h_next = c.h
+            stuck = jnp.asarray(False)
+        else:
+            tol_y = problem.error_tolerance(c.y, st.y, controller.rtol, controller.atol)
+            err = controller.norm(st.error[0], st.error[1], tol_y)
+            if len(st.error) == 3:
+                # DOP853 (Hairer, Norsett, Wanner I, II.10): blend the 5th- and
+                # 3rd-order estimates so the norm behaves like O(h^8).
+                e3 = controller.norm(st.error[2][0], st.error[2][1], tol_y)
+                denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
+                err = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
+            err = jax.lax.stop_gradient(err / solver.tableau.tolerance_calibration)
+            f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
+            finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)
+            accept = finite & (err <= 1.0)
+            h_next = jnp.minimum(h * controller.factor(err, tab_q, c.rejected_last), controller.dtmax)
+            # Keep the proposed step when only a save time or t1 shortened it.
+            h_next = jnp.where(accept & clipped, jnp.maximum(h_next, c.h), h_next)
+            h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
+            stuck = ~accept & (h_next < h_floor)
 
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, z: jnp.where(accept, x, z), a, b)
@@ -379,7 +567,7 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             num_accepted=c.num_accepted + accept.astype(jnp.int32),
             num_rejected=c.num_rejected + (~accept).astype(jnp.int32),
             rejected_last=~accept,
-            done=(accept & last) | stuck,
+            done=(accept & last) | stuck | (fixed & ~finite),
             result=jnp.where(stuck, RESULTS.dt_min_reached, c.result).astype(jnp.int32),
             save_index=save_index,
             saved=saved,
@@ -389,7 +577,9 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         cond, body, init, max_steps=max_steps, kind=adjoint.kind, checkpoints=adjoint.checkpoints
     )
     result = jnp.where(
-        final.done, final.result, jnp.where(_finite((final.R, final.y)), RESULTS.max_steps_reached, RESULTS.nonfinite)
+        final.done & _finite((final.R, final.y)),
+        final.result,
+        jnp.where(_finite((final.R, final.y)), RESULTS.max_steps_reached, RESULTS.nonfinite),
     ).astype(jnp.int32)
     ts, states = [], []
     if saveat.t0:
@@ -407,9 +597,9 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         n_saved = n_saved - jnp.sum(ts_req > final.t)
     # The first stage is reused from the previous step; the field at the new
     # point is either the FSAL stage or one extra evaluation.
-    fevals_per_attempt = solver.stages - (1 if solver.tableau.fsal else 0)
+    fevals_per_attempt = solver.stages - (0 if fixed or not solver.tableau.fsal else 1)
     # One evaluation at t0, plus one inside the automatic first-step estimate.
-    fevals_setup = 1 if dt0 is not None else 2
+    fevals_setup = 0 if fixed else 1 if dt0 is not None else 2
     stats = {
         "num_steps": final.num_steps,
         "num_accepted_steps": final.num_accepted,

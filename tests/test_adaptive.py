@@ -100,11 +100,12 @@ def test_rejected_steps_restart_from_the_step_start(solver):
     sol = lierk.solve(BODY, solver, T, rtol=1e-8, dt0=5.0, saveat=lierk.SaveAt(t0=True, steps=True))
     n = int(sol.n_saved)
     assert int(sol.stats["num_rejected_steps"]) >= 1
-    ts, Rs = sol.ts[:n], sol.R[:n]
+    ts, Rs, ms = sol.ts[:n], sol.R[:n], sol.y[:n]
     assert bool(jnp.all(jnp.diff(ts) > 0))
     for k in range(n - 1):
-        st = solver.step(BODY, ts[k], ts[k + 1] - ts[k], Rs[k], None)
+        st = solver.step(BODY, ts[k], ts[k + 1] - ts[k], Rs[k], ms[k])
         assert frob(st.R, Rs[k + 1]) < 1e-14, k
+        assert float(jnp.max(jnp.abs(st.y - ms[k + 1]))) < 1e-14 * float(jnp.linalg.norm(ms[k])), k
     assert frob(Rs[-1], R_EXACT) < 1e-5
 
 
@@ -171,9 +172,9 @@ def test_stats_are_consistent(solver, dt0):
     counter = []
 
     class Counted(lierk.FreeRigidBody):
-        def at(self, base, t, y):
+        def field(self, t, R, y):
             jax.debug.callback(lambda: counter.append(1))
-            return super().at(base, t, y)
+            return super().field(t, R, y)
 
     body = Counted(TEE, OMEGA_GENERIC)
     sol = lierk.solve(body, solver, T, rtol=1e-7, dt0=dt0, saveat=lierk.SaveAt(steps=True))
@@ -284,6 +285,8 @@ def test_float32():
 def test_dop853_needs_far_fewer_steps_at_tight_tolerance():
     dp = lierk.solve(BODY, lierk.DP54(), T, rtol=1e-12)
     d8 = lierk.solve(BODY, lierk.DOP853(), T, rtol=1e-12)
-    assert frob(d8.R[-1], R_EXACT) <= frob(dp.R[-1], R_EXACT)
+    # Calibrated tolerances: both reach about the error asked for (see
+    # test_accuracy.py), DOP853 with far less work.
+    assert frob(d8.R[-1], R_EXACT) <= 30 * 1e-12 and frob(dp.R[-1], R_EXACT) <= 30 * 1e-12
     assert int(d8.stats["num_steps"]) * 4 < int(dp.stats["num_steps"])
     assert int(d8.stats["num_fevals"]) * 3 < int(dp.stats["num_fevals"])

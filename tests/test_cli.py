@@ -60,6 +60,21 @@ t1 = 2.0
 n_save = 41
 """
 
+# Few saved times (0.5 s apart): the steps a target_error solve tries fit
+# between them.
+SMALL_TARGET_SCENE = """
+name = "small target"
+[body]
+kind = "tee_handle"
+[initial]
+omega = [1.0, 0.05, 0.3]
+[run]
+solver = "RKMK4"
+target_error = 1e-10
+t1 = 2.0
+n_save = 5
+"""
+
 LIERK = str(Path(sys.executable).parent / "lierk")
 
 
@@ -132,6 +147,13 @@ def test_progress_reports_quarters_off_a_terminal():
         (["sweep", "{scene}", "--out", "{out}", "--omega-x", "0:1:2", "--omega-y", "0:1:2", "--omega-z", "0:1:2"],
          2, "at most two"),
         (["frobnicate"], 2, "invalid choice"),
+        (["simulate", "{scene}", "--out", "{out}", "--target-error", "0"], 2, "--target-error must be a positive"),
+        (["simulate", "{scene}", "--out", "{out}", "--target-error", "nan"], 2, "--target-error must be a positive"),
+        (["simulate", "{bad_target}", "--out", "{out}"], 2, "run.target_error must be > 0"),
+        (["simulate", "{unreachable}", "--out", "{out}", "--quiet", "--no-gif"], 1,
+         "target_error = 1e-30 was not reached"),
+        (["sweep", "{target}", "--out", "{out}", "--omega-y", "0:0.1:2"], 2,
+         "sweep needs a scene with run.dt or run.rtol"),
     ],
 )
 def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
@@ -141,6 +163,13 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
         "bad_toml": write(tmp_path, "[body\n", "bad.toml"),
         "scene": write(tmp_path, TEE_SCENE),
         "too_few_steps": write(tmp_path, ADAPTIVE_SCENE.replace("n_save = 41", "max_steps = 2"), "few.toml"),
+        "bad_target": write(
+            tmp_path, TEE_SCENE.replace("dt = 0.01", "target_error = -1e-8").replace("save_every = 2", ""), "bad_target.toml"
+        ),
+        "target": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "target_error = 1e-8").replace("save_every = 2", ""),
+                        "target.toml"),
+        "unreachable": write(tmp_path, SMALL_TARGET_SCENE.replace("target_error = 1e-10", "target_error = 1e-30"),
+                             "unreachable.toml"),
         "out": tmp_path / "out",
     }
     argv = [a.format(**files) for a in argv]
@@ -162,8 +191,9 @@ def test_console_script_errors_without_traceback(tmp_path):
 @pytest.mark.parametrize(
     "argv, words",
     [
-        ([], ["simulate", "sweep"]),
-        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif"]),
+        ([], ["simulate", "sweep", "accuracy"]),
+        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif", "--target-error"]),
+        (["accuracy"], ["SCENE.toml", "--out", "--solvers", "--max-settings", "--quick", "work_precision.png"]),
         (["sweep"], ["--omega-x", "START:STOP:N", "--grid", "--span", "flip interval", "--chunk-size"]),
     ],
 )
@@ -236,6 +266,61 @@ def test_simulate_with_state_and_adaptive_steps(tmp_path, capsys, text, atol):
     if direct.y is not None:
         np.testing.assert_allclose(data["y"], direct.y, rtol=0, atol=atol * 1e-3)
     assert not list(out.glob("*.gif"))
+
+
+def _exact_errors(data):
+    """``||R(t) - R_exact(t)||_F`` at each saved time of a simulate .npz."""
+    R_exact = np.stack(
+        [np.asarray(lierk.exact.free_rigid_body(data["inertia"], data["omega0"], t, data["R0"])[0]) for t in data["ts"]]
+    )
+    return np.linalg.norm(data["R"] - R_exact, axis=(-2, -1))
+
+
+@pytest.mark.parametrize("solver, eps", [("RKMK4", 1e-9), ("DOP853", 1e-7)])
+def test_simulate_target_error_meets_it_against_the_exact_solution(tmp_path, capsys, solver, eps):
+    # A fixed-step scene turned into a target_error run by the option: its
+    # dt is replaced, and it saves as many points as it did (5, 0.5 s apart).
+    text = TEE_SCENE.replace("RKMK4", solver).replace("t1 = 100.0", "t1 = 2.0").replace("dt = 0.01", "dt = 0.5")
+    scene_path = write(tmp_path, text.replace("save_every = 2", "save_every = 1"))
+    out = tmp_path / "out"
+    argv = ["simulate", scene_path, "--out", out, "--target-error", eps, "--quiet", "--no-gif"]
+    code, stdout, stderr = run_inprocess(argv, capsys)
+    assert code == 0, stderr
+    data = _npz(out / "tee_test.npz")
+    np.testing.assert_allclose(data["ts"], np.linspace(0.0, 2.0, 5), atol=1e-14)
+    err = _exact_errors(data)
+    assert err.max() <= eps, err
+    assert err[-1] > eps / 1e4  # the target was used: not a needlessly tiny step
+    est = data["error_estimate"]
+    assert est.max() <= eps and est[-1] > 0
+    setting = "dt = " if solver == "RKMK4" else "rtol = atol = "
+    assert f"target_error = {eps:g} (chose {setting}" in stdout
+    assert f"estimated error at t1 {est[-1]:.2e}" in stdout
+
+
+def test_simulate_target_error_with_dense_saved_times(tmp_path, capsys):
+    text = SMALL_TARGET_SCENE.replace("n_save = 5", "n_save = 41")  # 0.05 s apart
+    out = tmp_path / "out"
+    code, stdout, stderr = run_inprocess(
+        ["simulate", write(tmp_path, text), "--out", out, "--quiet", "--no-gif"], capsys
+    )
+    assert code == 0, stderr
+    data = _npz(out / "small_target.npz")
+    assert _exact_errors(data).max() <= 1e-10
+
+
+def test_simulate_target_error_scene_with_chunks_is_one_solve(tmp_path, capsys):
+    # --chunks does not split a target_error run: the output is scene.solve()'s.
+    scene_path = write(tmp_path, SMALL_TARGET_SCENE)
+    out = tmp_path / "out"
+    code, stdout, stderr = run_inprocess(["simulate", scene_path, "--out", out, "--chunks", "4", "--no-gif"], capsys)
+    assert code == 0, stderr
+    assert "100.0%" in stderr
+    direct = lierk.scene.load(scene_path).solve()
+    data = _npz(out / "small_target.npz")
+    np.testing.assert_array_equal(data["ts"], direct.ts)
+    np.testing.assert_allclose(data["R"], direct.R, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(data["error_estimate"], direct.error_estimate, rtol=0, atol=1e-18)
 
 
 # ---------------------------------------------------------------------------

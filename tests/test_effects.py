@@ -12,7 +12,8 @@ from helpers import reference_R
 from scipy.integrate import solve_ivp
 
 import lierk
-from lierk.effects import BodyTorque, Damping, Gravity, RigidBodyWithEffects, SpaceTorque
+from lierk import RigidBodyWithEffects
+from lierk.effects import BodyTorque, Damping, Gravity, SpaceTorque
 
 # Simo & Wong's heavy symmetric top: J = diag(5, 5, 1) about the pivot,
 # M g l = 20, fast spin about the symmetry axis, slightly tilted.

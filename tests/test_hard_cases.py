@@ -41,8 +41,8 @@ def exact_R(inertia, omega0, t):
 SEP_TIME = 4.0
 SEPARATRIX_RUNS = [
     # (solver, solve kwargs, bound on ||R - R_exact|| at SEP_TIME)
-    # Measured (all three starts alike): RKMK4 1.3e-10, CF4 3.0e-10, DP54 2.9e-10,
-    # DOP853 3.3e-10; |m| drift <= 2e-15; orthogonality <= 8.4e-15.
+    # Measured (all three starts alike) with the report's spatial form: RKMK4
+    # 1.3e-10, CF4 3.0e-10, DP54 2.9e-10, DOP853 3.3e-10; orthogonality <= 8.4e-15.
     (lierk.RKMK4(), dict(dt=1e-2), 5e-10),
     (lierk.CF4(), dict(dt=1e-2), 1e-9),
     (lierk.DP54(), dict(rtol=1e-10), 1e-9),
@@ -68,11 +68,14 @@ def test_separatrix_starts(solver, kw, bound):
         sol = run(jnp.asarray(w))
         t = np.asarray(sol.ts)
         err = np.linalg.norm(np.asarray(sol.R) - exact_R(TEE, w, t), axis=(-2, -1)).max()
-        dL = rel_drift(np.concatenate([[float(p.invariants(jnp.eye(3), None)["|L|"])], np.asarray(sol.invariants(p)["|L|"])])).max()
+        dL = rel_drift(np.concatenate([[float(p.invariants(p.R0, p.y0)["|L|"])], np.asarray(sol.invariants(p)["|L|"])])).max()
         orth = float(np.asarray(sol.orthogonality_error).max())
         print(f"{solver.name} {w}: err {err:.2e}, |m| drift {dL:.2e}, orth {orth:.2e}")
         assert err < bound
-        assert dL < 1e-13
+        # The momentum-state body keeps |m| to the solver's accuracy (RKMK4
+        # measured 8.9e-13 here); the report's spatial form keeps it to
+        # rounding (test_accuracy.py).
+        assert dL < 1e-11
         assert orth < 1e-12
 
 
@@ -128,7 +131,7 @@ def test_nearly_symmetric_inertia():
     inertia = np.diag([1.0, 1.0 + 1e-9, 2.0])
     T = 5.0
     p = lierk.FreeRigidBody(inertia, OMEGA_GENERIC)
-    E0 = float(p.invariants(jnp.eye(3), None)["energy"])
+    E0 = float(p.invariants(p.R0, p.y0)["energy"])
     R_ex = exact_R(inertia, OMEGA_GENERIC, T)
     gap = np.linalg.norm(R_ex - symmetric_top_R(np.diag([1.0, 1.0, 2.0]), OMEGA_GENERIC, T))
     print(f"exact vs symmetric-top closed form: {gap:.2e}")
@@ -153,15 +156,20 @@ FAST = 1e4 * OMEGA_GENERIC / np.linalg.norm(OMEGA_GENERIC)  # |omega| = 1e4 rad/
 
 @pytest.mark.parametrize("solver", LIE_SOLVERS, ids=lambda s: s.name)
 def test_fast_spin_fixed_steps_stay_on_so3(solver):
-    """dt = 1e-3 s turns the body by 10 rad per step: no accuracy is claimed,
-    only that the attitude stays a finite rotation."""
-    sol = lierk.solve(lierk.FreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20))
+    """dt = 1e-3 s turns the body by 10 rad per step: no accuracy is claimed.
+    The report's spatial form keeps |m| by construction, so its attitude stays
+    a finite rotation.  The momentum-state default integrates Euler's
+    equations far outside any explicit method's stability region, and must
+    say so rather than return a number."""
+    sol = lierk.solve(lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20))
     R = np.asarray(sol.R)
     orth = float(np.asarray(sol.orthogonality_error).max())
     print(f"{solver.name}: max orth {orth:.2e}")
     assert np.all(np.isfinite(R))
     assert orth < 1e-12
     assert np.all(np.linalg.det(R) > 0)
+    sol = lierk.solve(lierk.FreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, throw=False)
+    assert int(sol.result) == lierk.RESULTS.nonfinite
 
 
 @pytest.mark.parametrize("solver", ADAPTIVE_SOLVERS, ids=lambda s: s.name)
@@ -187,7 +195,7 @@ def test_rkmk4_million_steps():
     sol = lierk.solve(p, lierk.RKMK4(), 1e4, dt=0.01, saveat=lierk.SaveAt(steps=10_000))
     assert int(sol.stats["num_steps"]) == 1_000_000
     t = np.asarray(sol.ts)
-    E0 = float(p.invariants(jnp.eye(3), None)["energy"])
+    E0 = float(p.invariants(p.R0, p.y0)["energy"])
     dE = np.maximum.accumulate(np.abs(np.asarray(sol.invariants(p)["energy"]) / E0 - 1))
     orth = np.maximum.accumulate(np.asarray(sol.orthogonality_error))
     rate_E = np.polyfit(np.log(t), np.log(dE), 1)[0]

@@ -183,7 +183,7 @@ def test_free_rigid_body_stores_consistent_momentum():
     np.testing.assert_allclose(p.L, body.angular_momentum(TEE, omega0, R0), rtol=1e-14)
     np.testing.assert_allclose(p.omega0, omega0, rtol=1e-13)
     np.testing.assert_allclose(p.inertia_inv @ p.inertia, np.eye(3), atol=1e-13)
-    inv = p.invariants(np.stack([R0, np.eye(3)]), None)
+    inv = p.invariants(np.stack([R0, np.eye(3)]), np.stack([p.y0, p.y0]))
     # At R0 the invariants are the initial energy and |L|.
     assert inv["energy"][0] == pytest.approx(float(body.kinetic_energy(TEE, omega0)), rel=1e-13)
     assert inv["|L|"][0] == pytest.approx(float(np.linalg.norm(TEE @ omega0)), rel=1e-13)

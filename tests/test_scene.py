@@ -15,7 +15,8 @@ from helpers import reference_R
 
 import lierk
 from lierk import scene as S
-from lierk.effects import Damping, Gravity, RigidBodyWithEffects
+from lierk import RigidBodyWithEffects
+from lierk.effects import Damping, Gravity
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])
@@ -95,7 +96,7 @@ def test_damped_satellite_example_loses_energy_as_predicted():
 
 def test_no_effect_scene_is_the_free_body_with_the_same_jaxpr():
     scene = S.load(EXAMPLES / "tee_handle_a.toml")
-    assert type(scene.problem) is lierk.FreeRigidBody and scene.problem.y0 is None
+    assert type(scene.problem) is lierk.FreeRigidBody and scene.problem.effects == ()
     direct = lierk.FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
 
     def program(problem):
@@ -241,3 +242,65 @@ def test_load_reports_the_file(tmp_path):
     wrong.write_text((EXAMPLES / "sphere.toml").read_text().replace("radius = 0.1", "radius = -0.1"))
     with pytest.raises(ValueError, match=r"wrong.toml: body.radius must be > 0, got -0.1"):
         S.load(wrong)
+
+
+# --- run.target_error ----------------------------------------------------------
+
+
+def _target_run(**run):
+    d = _tee()
+    d["run"] = {"solver": "RKMK4", "t1": 1.0, **run}
+    return d
+
+
+def test_target_error_scene_solves_to_the_target():
+    scene = S.from_dict(_target_run(target_error=1e-9, n_save=5, t1=2.0))
+    assert scene.target_error == 1e-9 and scene.solve_kwargs == {"target_error": 1e-9}
+    assert scene.adaptive and scene.saveat_every is None and scene.n_save == 5
+    sol = scene.solve()
+    np.testing.assert_allclose(sol.ts, np.linspace(0.0, 2.0, 5))
+    assert int(sol.stats["num_solves"]) >= 2 and float(sol.stats["dt"]) > 0
+    exact = np.stack([reference_R(TEE, [1.0, 0.05, 0.0], t) for t in np.asarray(sol.ts)])
+    err = np.linalg.norm(np.asarray(sol.R) - exact, axis=(-2, -1))
+    assert err.max() <= 1e-9
+    assert np.asarray(sol.error_estimate).max() <= 1e-9
+    # Adaptive solvers choose a tolerance instead, and max_steps bounds each solve.
+    adaptive = S.from_dict(_target_run(solver="DOP853", target_error=1e-7, max_steps=500))
+    assert adaptive.solve_kwargs == {"target_error": 1e-7, "max_steps": 500} and adaptive.n_save == 1001
+
+
+@pytest.mark.parametrize(
+    "run, match",
+    [
+        ({"target_error": 0.0}, "run.target_error must be > 0, got 0.0"),
+        ({"target_error": -1e-8}, "run.target_error must be > 0"),
+        ({"target_error": float("inf")}, "run.target_error must be a finite number, got inf"),
+        ({"target_error": float("nan")}, "run.target_error must be a finite number, got nan"),
+        ({"target_error": "1e-8"}, "run.target_error must be a finite number, got '1e-8'"),
+        ({"target_error": 1e-8, "dt": 0.01}, "exactly one of 'dt'.*'target_error'.*got dt, target_error"),
+        ({"target_error": 1e-8, "rtol": 1e-8, "solver": "DP54"}, "exactly one of.*got rtol, target_error"),
+        ({}, "exactly one of 'dt'"),
+        ({"target_error": 1e-8, "atol": 1e-8}, "run.atol applies to rtol runs"),
+        ({"target_error": 1e-8, "save_every": 2}, "run.save_every applies to fixed-step runs"),
+        ({"target_error": 1e-8, "n_save": 1}, "run.n_save must be >= 2"),
+    ],
+)
+def test_bad_target_error_runs_name_the_key(run, match):
+    with pytest.raises(ValueError, match=match):
+        S.from_dict(_target_run(**run))
+
+
+def test_with_target_error_keeps_the_saved_resolution():
+    scene = S.from_dict(_tee(run={"t1": 1.0, "dt": 0.01, "save_every": 3}))
+    n = int(scene.solve().n_saved)  # t = 0, every 3rd of 100 steps, and t1
+    assert n == 35
+    target = scene.with_target_error(1e-8)
+    assert target.solve_kwargs == {"target_error": 1e-8} and target.n_save == n and target.saveat_every is None
+    assert target.solver is scene.solver and target.problem is scene.problem
+    adaptive = S.from_dict(_target_run(solver="DP54", rtol=1e-6, n_save=7, max_steps=10))
+    # rtol's max_steps bounded steps at that tolerance; it is not carried over.
+    assert adaptive.with_target_error(1e-8).solve_kwargs == {"target_error": 1e-8}
+    assert adaptive.with_target_error(1e-8).n_save == 7
+    for bad in (0.0, -1.0, float("inf"), float("nan")):
+        with pytest.raises(ValueError, match="target_error must be"):
+            scene.with_target_error(bad)

@@ -1,0 +1,518 @@
+"""Work against precision for a scene: which solver and setting reach an error, and at what cost.
+
+`work_precision` runs the scene's problem with each solver over a range of
+settings: steps ``dt`` for the fixed-step solvers (`RKMK4`, `CF4`),
+tolerances ``rtol = atol`` for the adaptive ones (`DP54`, `DOP853`,
+`RKF45`).  For each run it records
+
+- the wall time of one `lierk.solve` call after compilation (a warm-up call
+  first, then the minimum of a few repeats, each ended by
+  `jax.block_until_ready`);
+- the true error ``max_t ||R(t) - R_ref(t)||_F`` over the saved times;
+- the solver's own estimate of it (``estimate_error=True``, the same maximum);
+- the number of steps.
+
+The saved times are ``n_times`` equally spaced times from 0 to ``t1``, the
+same for every run: fixed steps are chosen so that a whole number of them
+fits between two saved times, and adaptive solves hit the times exactly
+(`SaveAt(ts=...)`).
+
+The reference ``R_ref``:
+
+- a torque-free body (``problem.effects == ()``): the closed form
+  `lierk.exact.free_rigid_body`;
+- otherwise a `DOP853` solve two orders of magnitude tighter than the
+  tightest tolerance (and than 1e-12, the smallest decade), but not below
+  1e-13 in float64, cross-checked by a second method, `DP54` at the same
+  tolerance.  Their disagreement, and the reference's own error estimate,
+  set `AccuracyReport.floor`: errors below it cannot be told apart from the
+  reference's, so no decade below it is claimed.
+
+`AccuracyReport.best_per_decade` gives, per decade 1e-2 ... 1e-12, the
+cheapest run whose true error is at most that decade; `figure` draws the
+work-precision diagram and `to_json` serialises the report.
+
+Example:
+    >>> scene = lierk.scene.load("examples/heavy_top.toml")
+    >>> report = lierk.accuracy.work_precision(scene, max_settings=4)
+    >>> row = report.cheapest(1e-6)   # e.g. DOP853 at rtol = 1e-09
+    >>> lierk.accuracy.figure(report).savefig("work_precision.png")
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from ._progress import Progress
+
+__all__ = ["Row", "AccuracyReport", "work_precision", "figure", "to_json", "DECADES", "DEFAULT_SOLVERS"]
+
+DECADES: tuple[float, ...] = tuple(10.0**-k for k in range(2, 13))
+"""The error levels of `AccuracyReport.best_per_decade`: 1e-2 ... 1e-12."""
+
+DEFAULT_SOLVERS: tuple[str, ...] = ("RKMK4", "CF4", "DP54", "DOP853", "RKF45")
+"""Solvers run by default: the order-4 Lie methods with fixed steps and the
+three adaptive pairs.  The first-order methods and the report's order-2 RK4
+are left out: they never reach the small decades within the step budget."""
+
+# Fixed steps start at about this many radians per step (|omega0| dt) and halve from there.
+_FIRST_ANGLE = 0.5
+_DEFAULT_MAX_STEPS = 2**17
+_DEFAULT_MAX_SETTINGS = 10
+_REFERENCE_RTOL_CAP = 1e-13  # float64; float32 uses 100 eps
+_MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "*")
+
+
+@dataclasses.dataclass(frozen=True)
+class Row:
+    """One run of `work_precision`.
+
+    Attributes:
+        solver: the solver's name.
+        setting: ``"dt"`` (fixed step, s) or ``"rtol"`` (adaptive, ``atol = rtol``).
+        value: the step (s) or the tolerance.
+        time: wall time of one `lierk.solve` call after compilation (s),
+            the minimum over repeats; it includes the call's own dispatch
+            (below a millisecond), not the error estimate.
+        error: ``max_t ||R(t) - R_ref(t)||_F`` over the saved times; NaN if
+            the solve failed.
+        error_estimate: ``max_t`` of `Solution.error_estimate` (the solver's
+            Richardson estimate of the same quantity).
+        num_steps: steps attempted (accepted and rejected).
+        num_fevals: field evaluations.
+        result: the `lierk.RESULTS` code; 0 is success.
+    """
+
+    solver: str
+    setting: str
+    value: float
+    time: float
+    error: float
+    error_estimate: float
+    num_steps: int
+    num_fevals: int
+    result: int
+
+    @property
+    def ok(self) -> bool:
+        """The solve succeeded and its error is finite."""
+        return self.result == 0 and math.isfinite(self.error)
+
+    @property
+    def label(self) -> str:
+        """``"dt = 0.00125 s"`` or ``"rtol = 1e-08"``."""
+        return f"dt = {self.value:.3g} s" if self.setting == "dt" else f"rtol = {self.value:.0e}"
+
+
+@dataclasses.dataclass(frozen=True)
+class AccuracyReport:
+    """What `work_precision` measured.
+
+    Attributes:
+        scene: the scene's name.
+        t1: end time (s).
+        ts: ``(n_times,)`` the saved times (s) at which errors are measured.
+        rows: every run, in the order they ran (per solver, coarse to fine).
+        reference: how ``R_ref`` was computed.
+        reference_error: estimate of the reference's own error (max over
+            ``ts``): its Richardson estimate for a numerical reference; for
+            `lierk.exact`, rounding of ``10 eps`` per radian turned,
+            ``10 eps max(1, |omega0| t1)`` (about 1e-12 after 100 periods in
+            float64, as its tests measure).
+        check: the second method that cross-checks a numerical reference,
+            or None for `lierk.exact`.
+        check_disagreement: ``max_t ||R_check - R_ref||_F``, or None.
+        dtype: ``"float64"`` or ``"float32"``.
+    """
+
+    scene: str
+    t1: float
+    ts: np.ndarray
+    rows: tuple[Row, ...]
+    reference: str
+    reference_error: float
+    check: str | None
+    check_disagreement: float | None
+    dtype: str
+
+    @property
+    def floor(self) -> float:
+        """The error below which runs cannot be told apart from the reference:
+        the larger of `reference_error` and `check_disagreement`."""
+        d = self.check_disagreement
+        if self.check is not None and (d is None or not math.isfinite(d)):
+            return math.inf  # the check failed: nothing vouches for the reference
+        return max(self.reference_error, d or 0.0)
+
+    @property
+    def solvers(self) -> list[str]:
+        """Solver names, in the order they ran."""
+        return list(dict.fromkeys(r.solver for r in self.rows))
+
+    def cheapest(self, error: float) -> Row | None:
+        """The fastest successful run whose true error is at most ``error``;
+        None if no run reaches it, or if ``error`` is below `floor` (then the
+        reference cannot confirm it)."""
+        if error < self.floor:
+            return None
+        hits = [r for r in self.rows if r.ok and r.error <= error]
+        return min(hits, key=lambda r: r.time) if hits else None
+
+    def best_per_decade(self, decades: Sequence[float] = DECADES) -> dict[float, Row | None]:
+        """``{decade: cheapest(decade)}`` for each decade (default 1e-2 ... 1e-12)."""
+        return {d: self.cheapest(d) for d in decades}
+
+
+# --------------------------------------------------------------------------
+
+
+def work_precision(
+    scene,
+    solvers: Sequence[Any] | None = None,
+    settings: Mapping[str, Sequence[float]] | None = None,
+    progress: bool = False,
+    *,
+    max_settings: int | None = None,
+    max_steps: int = _DEFAULT_MAX_STEPS,
+    n_times: int = 11,
+    repeats: int = 5,
+) -> AccuracyReport:
+    """Error against wall time for each solver and setting on ``scene``'s problem.
+
+    Runs in the precision of the scene's problem (enable float64 first for
+    the small decades).  See the module docstring for what is measured.
+
+    Args:
+        scene: a `lierk.scene.Scene`; its problem and ``t1`` are used, its
+            own solver and run settings are not.
+        solvers: solver names (as in `lierk.scene.SOLVERS`) or instances;
+            default `DEFAULT_SOLVERS`.
+        settings: per solver name, the values to run: steps ``dt`` (s) for
+            fixed-step solvers, each rounded so a whole number of steps fits
+            between saved times, or tolerances ``rtol`` for adaptive ones.
+            Default: ``dt`` from about 0.5 rad per step (``|omega0| dt``),
+            halved each time; ``rtol`` 1e-3, 1e-4, ..., 1e-12.  Defaults stop
+            early once a run's error is below the smallest decade (or a tenth
+            of the reference's floor), when an adaptive run exceeds
+            ``max_steps``, or when the error stops falling (rounding).
+        progress: draw a progress bar on stderr, one tick per run.
+        max_settings: at most this many settings per solver (default 10);
+            default tolerances are then spread over 1e-3 ... 1e-12.
+        max_steps: bound on the steps of one solve: default fixed steps stay
+            within it, and it is the adaptive solves' ``max_steps``.
+        n_times: number of saved times, ``>= 2``, including 0 and ``t1``.
+        repeats: timed calls per run (fewer once they take over 0.5 s in all).
+
+    Returns:
+        An `AccuracyReport`.
+
+    Raises:
+        ValueError: unknown solver names, settings for solvers not run, or
+            settings that are not finite numbers > 0.
+        RuntimeError: the reference solve failed.
+    """
+    import jax
+    import jax.numpy as jnp
+
+    from . import exact
+    from .scene import SOLVERS
+    from .solution import RESULTS, SaveAt
+    from .solve import solve
+    from .solvers.base import AbstractSolver
+
+    problem, t1 = scene.problem, float(scene.t1)
+    dtype = problem.R0.dtype
+    eps = float(jnp.finfo(dtype).eps)
+    if not (isinstance(n_times, int) and n_times >= 2):
+        raise ValueError(f"n_times must be an int >= 2, got {n_times!r}")
+    if not (isinstance(max_steps, int) and max_steps >= 1):
+        raise ValueError(f"max_steps must be a positive int, got {max_steps!r}")
+    if max_settings is not None and not (isinstance(max_settings, int) and max_settings >= 1):
+        raise ValueError(f"max_settings must be a positive int or None, got {max_settings!r}")
+    n_max = _DEFAULT_MAX_SETTINGS if max_settings is None else max_settings
+
+    chosen = []
+    for s in DEFAULT_SOLVERS if solvers is None else solvers:
+        if isinstance(s, str):
+            names = {n.lower(): n for n in SOLVERS}
+            if s.lower() not in names:
+                raise ValueError(f"unknown solver {s!r}; choose from: {', '.join(SOLVERS)}")
+            s = SOLVERS[names[s.lower()]]()
+        elif not isinstance(s, AbstractSolver):
+            raise ValueError(f"solvers must be names or lierk solvers, got {s!r}")
+        chosen.append(s)
+    if not chosen:
+        raise ValueError("no solvers to run")
+    settings = dict(settings or {})
+    unknown = set(settings) - {s.name for s in chosen}
+    if unknown:
+        raise ValueError(f"settings given for solvers that are not run: {', '.join(sorted(unknown))}")
+    for name, values in settings.items():
+        if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in values):
+            raise ValueError(f"settings[{name!r}] must be a non-empty list of finite numbers > 0, got {values!r}")
+
+    interval = t1 / (n_times - 1)
+    ts_np = np.linspace(0.0, t1, n_times)
+    ts = jnp.asarray(ts_np, dtype)
+
+    # Settings per solver: (values, explicit?).  Defaults stop early.
+    rtol_floor = max(1e-12, 100 * eps)
+    default_rtols = [10.0**-k for k in range(3, 13) if 10.0**-k >= rtol_floor * (1 - 1e-9)]
+    if len(default_rtols) > n_max:
+        keep = np.unique(np.round(np.linspace(0, len(default_rtols) - 1, n_max)).astype(int))
+        default_rtols = [default_rtols[i] for i in keep]
+    omega = float(np.linalg.norm(np.asarray(problem.omega0)))
+    m0 = 2 ** max(0, math.ceil(math.log2(max(1.0, interval * omega / _FIRST_ANGLE))))
+    plan = []
+    for s in chosen:
+        if s.name in settings:
+            values = [float(v) for v in settings[s.name]]
+            if not s.adaptive:
+                # Whole steps between saved times, so every run saves the same times.
+                values = [interval / max(1, round(interval / v)) for v in values]
+            plan.append((s, values, False))
+        elif s.adaptive:
+            plan.append((s, default_rtols, True))
+        else:
+            ms = [m0 * 2**k for k in range(n_max) if (n_times - 1) * m0 * 2**k <= max_steps]
+            plan.append((s, [interval / m for m in ms] or [interval / m0], True))
+
+    rtols = [v for s, values, _ in plan if s.adaptive for v in values]
+    numerical = getattr(problem, "effects", None) != ()
+    bar = Progress("accuracy", sum(len(v) for _, v, _ in plan) + (2 if numerical else 1), " runs", quiet=not progress)
+    done = 0
+    bar.update(done)
+
+    def finish(sol):
+        return jax.block_until_ready(sol)
+
+    # --- the reference --------------------------------------------------------
+    def frob(R, R_ref):
+        return float(np.max(np.linalg.norm(np.asarray(R, dtype=float) - R_ref, axis=(-2, -1))))
+
+    def adaptive_solve(solver, rtol, steps, **kw):
+        return finish(
+            solve(problem, solver, t1, rtol=rtol, saveat=SaveAt(ts=ts), max_steps=steps, throw=False, **kw)
+        )
+
+    if not numerical:
+        R_ref = np.asarray(exact.free_rigid_body(problem.inertia, problem.omega0, ts, problem.R0)[0], dtype=float)
+        # Its rounding grows with the angle turned: ~1e-12 after 100 periods in float64.
+        reference_error = 10 * eps * max(1.0, omega * t1)
+        reference = "lierk.exact.free_rigid_body (closed form)"
+        check, disagreement = None, None
+        done += 1
+        bar.update(done)
+    else:
+        from .solvers import DOP853, DP54
+
+        rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
+        # The rows' max_steps first (same compilation as the DOP853 rows), then more room.
+        for steps in (max_steps, 16 * max_steps):
+            ref = adaptive_solve(DOP853(), rtol_ref, steps, estimate_error=True)
+            if int(ref.result) == RESULTS.successful:
+                break
+        if int(ref.result) != RESULTS.successful:
+            raise RuntimeError(
+                f"the reference solve (DOP853, rtol = {rtol_ref:.0e}) failed: {RESULTS.message(int(ref.result))}"
+            )
+        R_ref = np.asarray(ref.R, dtype=float)
+        reference = f"DOP853, rtol = atol = {rtol_ref:.0e}, {int(ref.stats['num_steps'])} steps"
+        reference_error = float(np.max(np.asarray(ref.error_estimate)))
+        done += 1
+        bar.update(done)
+        for steps in (max_steps, 16 * max_steps):
+            chk = adaptive_solve(DP54(), rtol_ref, steps)
+            if int(chk.result) == RESULTS.successful:
+                break
+        check = f"DP54, rtol = atol = {rtol_ref:.0e}"
+        if int(chk.result) == RESULTS.successful:
+            check += f", {int(chk.stats['num_steps'])} steps"
+            disagreement = frob(chk.R, R_ref)
+        else:
+            check += f": failed ({RESULTS.message(int(chk.result))})"
+            disagreement = None
+        done += 1
+        bar.update(done)
+
+    # Defaults stop once a run is below what the decades (or the reference) can resolve.
+    stop_level = max(min(DECADES) / 10, max(reference_error, disagreement or 0.0) / 10)
+
+    # --- the runs ---------------------------------------------------------------
+    rows: list[Row] = []
+    for solver, values, is_default in plan:
+        previous = None
+        for i, v in enumerate(values):
+            if solver.adaptive:
+                run = lambda est, v=v: adaptive_solve(solver, v, max_steps, estimate_error=est)  # noqa: E731
+            else:
+                m = max(1, round(interval / v))
+                n_steps = (n_times - 1) * m
+                run = lambda est, v=v, m=m, n=n_steps: finish(  # noqa: E731
+                    solve(problem, solver, t1, dt=v, saveat=SaveAt(t0=True, steps=m), max_steps=n,
+                          estimate_error=est, throw=False)
+                )
+            sol = run(True)  # compiles both solves; the plain one is the one timed
+            if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
+                raise AssertionError(f"{solver.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
+            run(False)  # warm-up of the timed call
+            best, spent = math.inf, 0.0
+            for _ in range(max(1, repeats)):
+                start = time.perf_counter()
+                run(False)
+                took = time.perf_counter() - start
+                best, spent = min(best, took), spent + took
+                if spent > 0.5:
+                    break
+            result = int(sol.result)
+            err = frob(sol.R, R_ref) if result == RESULTS.successful else math.nan
+            est = float(np.max(np.asarray(sol.error_estimate))) if result == RESULTS.successful else math.nan
+            row = Row(
+                solver=solver.name,
+                setting="rtol" if solver.adaptive else "dt",
+                value=float(v),
+                time=best,
+                error=err,
+                error_estimate=est,
+                num_steps=int(sol.stats["num_steps"]),
+                num_fevals=int(sol.stats["num_fevals"]),
+                result=result,
+            )
+            rows.append(row)
+            done += 1
+            bar.update(done)
+            if is_default and _stop(row, previous, stop_level):
+                done += len(values) - i - 1
+                bar.update(done)
+                break
+            previous = row if row.ok else previous
+
+    return AccuracyReport(
+        scene=scene.name,
+        t1=t1,
+        ts=ts_np,
+        rows=tuple(rows),
+        reference=reference,
+        reference_error=reference_error,
+        check=check,
+        check_disagreement=disagreement,
+        dtype=str(np.dtype(dtype)),
+    )
+
+
+def _stop(row: Row, previous: Row | None, stop_level: float) -> bool:
+    """Whether a default range of settings can end after ``row``."""
+    if row.setting == "rtol" and row.result == 1:
+        return True  # max_steps reached: tighter tolerances need still more steps
+    if not row.ok:
+        return False  # e.g. a fixed step too coarse to stay finite: finer ones may work
+    if row.error <= stop_level:
+        return True
+    # Rounding: once small, an error that no longer falls will not fall further.
+    return previous is not None and previous.error < 1e-6 and row.error > 0.5 * previous.error
+
+
+# --------------------------------------------------------------------------
+
+
+def figure(report: AccuracyReport, title: str | None = None):
+    """The work-precision diagram: error against wall time, log-log.
+
+    Top: one colour and marker per solver; solid lines with filled markers
+    are the true error, dashed lines with open markers the solver's estimate
+    at the same runs.  The grey band is below `AccuracyReport.floor`, where
+    the reference cannot confirm an error.  Bottom: the estimate divided by
+    the true error for each run above the floor (1 is a perfect estimate).
+
+    Returns:
+        A `matplotlib.figure.Figure`.
+    """
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+
+    fig = Figure(figsize=(8.0, 7.0), layout="constrained")
+    ax, ax_ratio = fig.subplots(2, 1, sharex=True, height_ratios=[3, 1])
+    handles = []
+    tiny = 1e-16
+    floor = report.floor
+    for i, name in enumerate(report.solvers):
+        rows = [r for r in report.rows if r.solver == name and r.ok]
+        if not rows:
+            continue
+        colour, marker = f"C{i % 10}", _MARKERS[i % len(_MARKERS)]
+        t = np.array([r.time for r in rows])
+        e = np.maximum([r.error for r in rows], tiny)
+        est = np.array([r.error_estimate for r in rows], dtype=float)
+        est = np.where(np.isfinite(est), np.maximum(est, tiny), np.nan)
+        (h,) = ax.plot(t, e, color=colour, marker=marker, ls="-", lw=1.4, ms=6, label=f"{name} ({rows[0].setting})")
+        ax.plot(t, est, color=colour, marker=marker, ls="--", lw=1.0, ms=6, mfc="none", alpha=0.8)
+        handles.append(h)
+        above = e > floor
+        ax_ratio.plot(t[above], est[above] / e[above], color=colour, marker=marker, ls="--", lw=1.0, ms=5, mfc="none")
+    for a in (ax, ax_ratio):
+        a.set_xscale("log")
+        a.set_yscale("log")
+        a.grid(True, which="major", alpha=0.3)
+    ok = [r.error for r in report.rows if r.ok and r.error > 0]
+    if math.isfinite(floor) and floor > 0:
+        ax.axhspan(min(ok + [floor]) / 3, floor, color="0.88", zorder=0)
+        handles.append(Line2D([], [], color="0.88", lw=8, label=f"below the reference's accuracy ({floor:.1e})"))
+    handles += [
+        Line2D([], [], color="k", ls="-", marker="o", label="true error"),
+        Line2D([], [], color="k", ls="--", marker="o", mfc="none", label="error estimate"),
+    ]
+    ax.legend(handles=handles, fontsize=8, loc="best")
+    ax.set_ylabel(r"$\max_t \|R(t) - R_{ref}(t)\|_F$")
+    ax_ratio.axhline(1.0, color="k", lw=0.8)
+    ax_ratio.set_ylabel("estimate / error")
+    ax_ratio.set_xlabel("wall time per solve [s] (after compilation)")
+    ax.set_title(
+        title
+        or f"{report.scene}: work against precision, T = {report.t1:g} s, errors at {len(report.ts)} times\n"
+        f"reference: {report.reference}",
+        fontsize=10,
+    )
+    return fig
+
+
+def _num(x):
+    return None if x is None or (isinstance(x, float) and not math.isfinite(x)) else x
+
+
+def to_json(report: AccuracyReport) -> str:
+    """The report as JSON text: the scene, the saved times, the reference and
+    its check, every row and the cheapest row per decade (``null`` where no
+    row reaches it or it is below the floor).  Non-finite numbers are ``null``."""
+    rows = [{k: _num(v) for k, v in dataclasses.asdict(r).items()} for r in report.rows]
+    decades = []
+    for d, r in report.best_per_decade().items():
+        decades.append(
+            {
+                "error_at_most": d,
+                "below_floor": d < report.floor,
+                "cheapest": None if r is None else {"row": report.rows.index(r), **rows[report.rows.index(r)]},
+            }
+        )
+    doc = {
+        "scene": report.scene,
+        "t1": report.t1,
+        "ts": [float(t) for t in report.ts],
+        "dtype": report.dtype,
+        "error": "max over ts of ||R(t) - R_ref(t)||_F",
+        "time": "s, one lierk.solve call after compilation, min over repeats",
+        "reference": report.reference,
+        "reference_error": _num(report.reference_error),
+        "check": report.check,
+        "check_disagreement": _num(report.check_disagreement),
+        "floor": _num(report.floor),
+        "rows": rows,
+        "decades": decades,
+    }
+    return json.dumps(doc, indent=2)

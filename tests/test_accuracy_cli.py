@@ -1,0 +1,253 @@
+"""``lierk accuracy`` and `lierk.accuracy`: the errors it reports are the
+errors against the exact solution, its per-decade table picks runs that
+really reach each decade, and mistakes end in one line."""
+
+import json
+import math
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+import lierk
+import lierk.accuracy as A
+import lierk.exact
+import lierk.scene
+from lierk import cli
+
+TINY_SCENE = """
+name = "tiny"
+[body]
+kind = "tee_handle"
+[initial]
+omega = [1.0, 0.05, 0.3]
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 0.5
+"""
+
+DAMPED_SCENE = """
+name = "damped"
+[body]
+kind = "tensor"
+inertia = [1.0, 2.0, 3.0]
+[initial]
+omega = [0.3, 1.0, 0.2]
+[[effects]]
+kind = "damping"
+c = 0.2
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 0.3
+"""
+
+LIERK = str(Path(sys.executable).parent / "lierk")
+TABLE_LINE = re.compile(r"^\s*(1e-\d\d)\s+(\w+)\s+(dt = \S+ s|rtol = \S+)\s+(\S+)\s+(\S+)\s+(\S+)\s*$")
+
+
+def write(tmp_path, text, name="scene.toml"):
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def run_inprocess(argv, capsys):
+    try:
+        code = cli.main([str(a) for a in argv])
+    except SystemExit as e:
+        code = e.code
+    out, err = capsys.readouterr()
+    return code, out, err
+
+
+def _exact_error(scene, row, ts):
+    """The row's run repeated with lierk.solve, against lierk.exact at ``ts``."""
+    p = scene.problem
+    if row["setting"] == "dt":
+        m = round((ts[1] - ts[0]) / row["value"])
+        sol = lierk.solve(p, lierk.scene.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
+                          saveat=lierk.SaveAt(t0=True, steps=m))
+    else:
+        sol = lierk.solve(p, lierk.scene.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
+                          saveat=lierk.SaveAt(ts=np.asarray(ts)), max_steps=2**17)
+    np.testing.assert_allclose(sol.ts, ts, rtol=0, atol=1e-12)
+    R_exact = np.asarray(lierk.exact.free_rigid_body(p.inertia, p.omega0, np.asarray(ts), p.R0)[0])
+    return float(np.max(np.linalg.norm(np.asarray(sol.R) - R_exact, axis=(-2, -1))))
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """``lierk accuracy`` on a 0.5 s torque-free scene with two solvers and
+    three settings each, run once for the tests below."""
+    tmp = tmp_path_factory.mktemp("accuracy")
+    scene_path = write(tmp, TINY_SCENE)
+    out = tmp / "out"
+    import io
+    from contextlib import redirect_stderr, redirect_stdout
+
+    so, se = io.StringIO(), io.StringIO()
+    with redirect_stdout(so), redirect_stderr(se):
+        code = cli.main(["accuracy", str(scene_path), "--out", str(out), "--solvers", "RKMK4,DOP853",
+                         "--max-settings", "3"])
+    return code, so.getvalue(), se.getvalue(), out, lierk.scene.load(scene_path)
+
+
+def test_accuracy_writes_png_and_json(tiny_run):
+    code, stdout, stderr, out, scene = tiny_run
+    assert code == 0, stderr
+    assert "100.0%" in stderr and "Traceback" not in stderr  # the progress bar
+    with Image.open(out / "work_precision.png") as im:
+        assert im.format == "PNG" and im.size == (800, 700)
+    doc = json.loads((out / "work_precision.json").read_text(), parse_constant=lambda c: pytest.fail(f"JSON has {c}"))
+    assert doc["scene"] == "tiny" and doc["t1"] == 0.5 and doc["dtype"] == "float64"
+    np.testing.assert_allclose(doc["ts"], np.linspace(0.0, 0.5, 11))
+    assert doc["reference"].startswith("lierk.exact") and doc["check"] is None
+    assert {r["solver"] for r in doc["rows"]} == {"RKMK4", "DOP853"}
+    assert all(1 <= sum(r["solver"] == s for r in doc["rows"]) <= 3 for s in ("RKMK4", "DOP853"))
+    assert str(out / "work_precision.png") in stdout and str(out / "work_precision.json") in stdout
+
+
+def test_reported_errors_are_the_errors_against_the_exact_solution(tiny_run):
+    code, stdout, stderr, out, scene = tiny_run
+    doc = json.loads((out / "work_precision.json").read_text())
+    for row in doc["rows"]:
+        assert row["result"] == 0 and row["time"] > 0 and row["num_steps"] > 0
+        err = _exact_error(scene, row, doc["ts"])
+        assert row["error"] == pytest.approx(err, rel=1e-6, abs=1e-15), row
+        # The solver's own estimate is of the same quantity (measured within 10% here).
+        if err > 1e-12:
+            assert 0.5 < row["error_estimate"] / err < 2.0, row
+
+
+def test_table_picks_the_cheapest_run_really_below_each_decade(tiny_run):
+    code, stdout, stderr, out, scene = tiny_run
+    doc = json.loads((out / "work_precision.json").read_text())
+    rows = doc["rows"]
+    label = {(r["solver"], A.Row(**r).label): r for r in rows}
+    picked = {}
+    for line in stdout.splitlines():
+        m = TABLE_LINE.match(line)
+        if m:
+            decade, solver, setting = float(m[1]), m[2], m[3]
+            row = label[(solver, setting)]
+            assert float(m[4]) == pytest.approx(row["time"], rel=0.01)
+            assert float(m[5]) == pytest.approx(row["error"], rel=0.06)
+            assert float(m[6]) == pytest.approx(row["error_estimate"], rel=0.06)
+            picked[decade] = row
+    assert len(picked) >= 4, stdout
+    for decade in A.DECADES:
+        reaching = [r for r in rows if r["error"] is not None and r["error"] <= decade]
+        if decade in picked:
+            row = picked[decade]
+            assert _exact_error(scene, row, doc["ts"]) <= decade
+            assert row["time"] == min(r["time"] for r in reaching)
+        else:
+            assert not reaching
+            assert re.search(rf"^\s*{decade:.0e}\s+\(no run reached it\)", stdout, re.M), stdout
+    # The JSON names the same rows.
+    for entry in doc["decades"]:
+        row = picked.get(entry["error_at_most"])
+        assert (entry["cheapest"] is None) == (row is None)
+        if row is not None:
+            assert rows[entry["cheapest"]["row"]] == row
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["accuracy", "{bad}", "--out", "{out}"], "initial.omega must be a list of 3 numbers"),
+        (["accuracy", "{missing}", "--out", "{out}"], "scene file not found"),
+        (["accuracy", "{scene}", "--out", "{out}", "--solvers", "RKMK4,RK45"], "unknown solver 'RK45'"),
+        (["accuracy", "{scene}", "--out", "{out}", "--max-settings", "0"], "--max-settings must be a positive integer"),
+        (["accuracy", "{scene}"], "required: --out"),
+    ],
+)
+def test_mistakes_end_in_one_line(tmp_path, capsys, argv, message):
+    files = {
+        "bad": write(tmp_path, TINY_SCENE.replace("[1.0, 0.05, 0.3]", "[1.0, 0.05]"), "bad.toml"),
+        "missing": tmp_path / "missing.toml",
+        "scene": write(tmp_path, TINY_SCENE),
+        "out": tmp_path / "out",
+    }
+    code, out, err = run_inprocess([a.format(**files) for a in argv], capsys)
+    assert code == 2
+    assert len(err.strip().splitlines()) == 1 and message in err, err
+    assert "Traceback" not in err and not (tmp_path / "out").exists()
+
+
+def test_console_script_bad_scene_without_traceback(tmp_path):
+    bad = write(tmp_path, TINY_SCENE.replace('kind = "tee_handle"', 'kind = "cube"'))
+    p = subprocess.run([LIERK, "accuracy", bad, "--out", tmp_path / "out"], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 2
+    assert p.stderr.count("\n") == 1 and "body.kind = 'cube' is not allowed" in p.stderr, p.stderr
+    assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------
+# The library
+
+
+def _row(solver, value, time, error, result=0):
+    return A.Row(solver, "rtol", value, time, error, error, 10, 100, result)
+
+
+def _report(rows, floor_parts=(1e-13, None), check=None):
+    return A.AccuracyReport("hand", 1.0, np.linspace(0, 1, 3), tuple(rows), "made up", floor_parts[0], check,
+                            floor_parts[1], "float64")
+
+
+def test_cheapest_per_decade_and_the_floor():
+    rows = [
+        _row("A", 1e-4, 0.01, 3e-3),
+        _row("A", 1e-8, 0.05, 2e-7),
+        _row("B", 1e-6, 0.02, 5e-4),
+        _row("B", 1e-9, 0.03, 4e-8),
+        _row("B", 1e-12, 0.01, math.nan, result=1),  # failed: never picked
+    ]
+    rep = _report(rows)
+    best = rep.best_per_decade()
+    assert best[1e-2] is rows[0]  # A is cheapest at 1e-2
+    assert best[1e-3] is rows[2]  # only B's 5e-4 and the slower ones reach 1e-3
+    assert best[1e-7] is rows[3]  # B (0.03 s) beats A (0.05 s)
+    assert best[1e-8] is None
+    assert rep.floor == 1e-13
+    # A numerical reference whose check disagrees by 1e-7: nothing below it is claimed.
+    checked = _report(rows, (1e-9, 1e-7), check="DP54")
+    assert checked.floor == 1e-7 and checked.cheapest(1e-7) is rows[3] and checked.cheapest(1e-8) is None
+    # A check that failed vouches for nothing.
+    assert _report(rows, (1e-9, None), check="DP54: failed").cheapest(1e-2) is None
+
+
+def test_to_json_is_strict_json():
+    rows = [_row("A", 1e-4, 0.01, 3e-3), _row("A", 1e-12, 0.01, math.nan, result=1)]
+    doc = json.loads(A.to_json(_report(rows)), parse_constant=lambda c: pytest.fail(f"JSON has {c}"))
+    assert doc["rows"][1]["error"] is None and doc["rows"][1]["result"] == 1
+    assert [d["cheapest"] is not None for d in doc["decades"]][:2] == [True, False]
+
+
+def test_numerical_reference_is_cross_checked_with_effects():
+    import jax
+
+    with jax.enable_x64(True):
+        scene = lierk.scene.from_dict(__import__("tomllib").loads(DAMPED_SCENE))
+        assert scene.problem.effects != ()
+        rep = A.work_precision(scene, solvers=["RKMK4"], settings={"RKMK4": [0.03, 0.015]})
+        assert rep.reference.startswith("DOP853, rtol = atol = 1e-13") and rep.check.startswith("DP54")
+        # Two tight solves of different orders agree to about their tolerance.
+        assert 0 < rep.check_disagreement < 1e-10
+        assert rep.floor == max(rep.reference_error, rep.check_disagreement)
+        assert [r.value for r in rep.rows] == pytest.approx([0.03, 0.015])
+        # The rows' errors against an independent reference: CF4 at a 100x finer step.
+        fine = lierk.solve(scene.problem, lierk.CF4(), 0.3, dt=0.0003, saveat=lierk.SaveAt(t0=True, steps=100))
+        np.testing.assert_allclose(fine.ts, rep.ts, atol=1e-14)
+        for row in rep.rows:
+            sol = lierk.solve(scene.problem, lierk.RKMK4(), 0.3, dt=row.value,
+                              saveat=lierk.SaveAt(t0=True, steps=round(0.03 / row.value)))
+            err = float(np.max(np.linalg.norm(np.asarray(sol.R) - np.asarray(fine.R), axis=(-2, -1))))
+            assert row.error == pytest.approx(err, rel=1e-3)
