@@ -133,8 +133,8 @@ class SpatialFreeRigidBody(AbstractProblem):
     It conserves ``L``, and so ``|m|``, to rounding, which `FreeRigidBody`
     does only to the solver's accuracy.  It is not the default because the
     body momentum ``R^T L`` inherits every attitude error: near the
-    intermediate axis that shifts the flip, and the error at a given cost was
-    20 to 1000 times larger than `FreeRigidBody`'s in every case measured
+    intermediate axis that shifts the flip, and its error at the same setting
+    was 28 to 5000 times larger than `FreeRigidBody`'s in every case measured
     (``benchmarks/results/formulation.md``).  Pick it when exact conservation
     of ``L`` matters more than the attitude, or to reproduce the report.
 
