@@ -22,10 +22,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
-import sys
-import time
-from pathlib import Path
 
 import jax
 
@@ -36,9 +32,9 @@ import numpy as np  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
+from common import cli, cpu_model, near_axis, timed  # noqa: E402
 
-QUICK = "--quick" in sys.argv
-OUT = Path(__file__).resolve().parent / "results"
+QUICK, OUT = cli(__doc__, "tiny run (40 bodies) to check the script works", __name__ == "__main__")
 N = 40 if QUICK else 1000
 T = 10.0
 REPEATS = 1 if QUICK else 3
@@ -47,24 +43,6 @@ ESTIMATE_RUNS = [(lierk.RKMK4(), "dt", 0.01), (lierk.CF4(), "dt", 0.01), (lierk.
 TARGETS = [1e-4, 1e-6, 1e-8, 1e-10]
 # Settings scanned for the cheapest one that reaches each target.
 SCAN = {"RKMK4": ("dt", [0.2 / 2 ** (k / 2) for k in range(16)]), "DOP853": ("rtol", [10.0 ** (-k / 2) for k in range(6, 28)])}
-
-
-def near_axis(I, n, seed=0):
-    mid = int(np.argsort(I)[1])
-    rng = np.random.default_rng(seed)
-    d = rng.uniform(-0.2, 0.2, (n, 3))
-    d[:, mid] = 1.0
-    return rng.uniform(1.0, 3.0, n)[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def timed(f, *args):
-    out = jax.block_until_ready(f(*args))
-    times = []
-    for _ in range(REPEATS):
-        t = time.perf_counter()
-        out = jax.block_until_ready(f(*args))
-        times.append(time.perf_counter() - t)
-    return out, float(np.median(times))
 
 
 def batch_solver(solver, key, **extra):
@@ -94,7 +72,7 @@ def batch_solver(solver, key, **extra):
 def main():
     rows_est, rows_target = [], []
     for body, I in BODIES.items():
-        W = near_axis(I, N)
+        W, _ = near_axis(I, N)
         Rex = jax.jit(jax.vmap(lambda w: lierk.exact.free_rigid_body(jnp.diag(I), w, T)[0]))(W)
 
         def errors(R):
@@ -103,8 +81,8 @@ def main():
         for solver, key, value in ESTIMATE_RUNS:
             plain = batch_solver(solver, key)
             with_est = batch_solver(solver, key, estimate_error=True)
-            (R, _, _), t_plain = timed(plain, I, W, value)
-            (R2, est, _), t_est = timed(with_est, I, W, value)
+            (R, _, _), t_plain, _ = timed(plain, I, W, value, repeats=REPEATS)
+            (R2, est, _), t_est, _ = timed(with_est, I, W, value, repeats=REPEATS)
             err = errors(R2)
             big = err > 1e-12
             ratio = np.asarray(est)[big] / err[big]
@@ -120,11 +98,11 @@ def main():
             plain = batch_solver(solver, key)
             scanned = []
             for value in grid:
-                (R, _, res), t = timed(plain, I, W, value)
+                (R, _, res), t, _ = timed(plain, I, W, value, repeats=REPEATS)
                 scanned.append((value, t, np.quantile(errors(R), 0.95)))
             target = batch_solver(solver, "target_error")
             for eps in TARGETS:
-                (R, est, res), t = timed(target, I, W, eps)
+                (R, est, res), t, _ = timed(target, I, W, eps, repeats=REPEATS)
                 err = errors(R)
                 ok = [(v, tt) for v, tt, e95 in scanned if e95 <= eps]
                 cheapest = min(ok, key=lambda x: x[1]) if ok else (None, float("nan"))
@@ -134,9 +112,9 @@ def main():
                 )
                 print(rows_target[-1], flush=True)
 
-    info = {"cores": os.cpu_count(), "processor": platform.processor() or platform.machine(), "jax": jax.__version__,
+    info = {"cores": os.cpu_count(), "processor": cpu_model(), "jax": jax.__version__,
             "platform": "CPU", "N": N, "T": T, "quick": QUICK}
-    out = OUT if not QUICK else Path(os.environ.get("TMPDIR", "/tmp")) / "lierk_quick"
+    out = OUT
     out.mkdir(parents=True, exist_ok=True)
     (out / "error_estimate.json").write_text(json.dumps({"machine": info, "estimate": rows_est, "target": rows_target}, indent=2) + "\n")
     md = [f"# Global error estimate and accuracy on request\n\nMachine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "

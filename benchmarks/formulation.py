@@ -36,11 +36,9 @@ directory unless ``--out`` is given.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -53,19 +51,9 @@ import numpy as np  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
+from common import cli, cpu_model, max_err, near_axis, timed  # noqa: E402
 
-_parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-_parser.add_argument("--quick", action="store_true", help="tiny run (20 bodies, T = 2 s) to check the script works")
-_parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
-QUICK = ARGS.quick
-
-if ARGS.out:
-    OUT = Path(ARGS.out)
-elif QUICK:
-    OUT = Path(tempfile.gettempdir()) / "lierk-bench-quick"
-else:
-    OUT = Path(__file__).resolve().parent / "results"
+QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
 N = 20 if QUICK else 1000
 T = 2.0 if QUICK else 10.0
@@ -101,44 +89,7 @@ def num_steps(t1: float, dt: float) -> int:
 
 
 def initial_velocities(inertia) -> tuple[np.ndarray, int]:
-    """``(N, 3)`` body angular velocities (rad/s) within ~11 degrees of the
-    intermediate principal axis, and that axis' index (the inertias here are
-    diagonal)."""
-    moments = np.diag(np.asarray(inertia))
-    axis = int(np.argsort(moments)[1])
-    rng = np.random.default_rng(SEED)
-    mag = rng.uniform(1.0, 3.0, N)
-    d = rng.uniform(-0.2, 0.2, (N, 3))
-    d[:, axis] = 1.0
-    return mag[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True), axis
-
-
-def timed(f, *args, repeats=REPEATS):
-    """``(output, median wall time, time of the first call)``: the first call
-    compiles and warms up and is not part of the median."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(f(*args))
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = jax.block_until_ready(f(*args))
-        times.append(time.perf_counter() - t)
-    return out, float(np.median(times)), first
-
-
-def max_err(R, R_ref) -> float:
-    return float(jnp.max(jnp.linalg.norm(R - R_ref, axis=(-2, -1))))
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
+    return near_axis(np.diag(np.asarray(inertia)), N, SEED)
 
 
 def fixed_fn(problem, solver, dt, t1):
@@ -199,14 +150,14 @@ def main():
         for fname in FORMULATIONS:
             res = {}
             for key, _, dt in FIXED:
-                R, s, first = timed(fns[(fname, key)], inertia, omegas)
+                R, s, first = timed(fns[(fname, key)], inertia, omegas, repeats=REPEATS)
                 res[key] = {
                     "error": max_err(R, R_ref),
                     "time_s": s,
                     "first_call_s": first,
                     "body_steps_per_s": N * num_steps(T, dt) / s,
                 }
-            (R, steps, result), s, first = timed(fns[(fname, ADAPTIVE_KEY)], inertia, omegas, DOP853_TOL)
+            (R, steps, result), s, first = timed(fns[(fname, ADAPTIVE_KEY)], inertia, omegas, DOP853_TOL, repeats=REPEATS)
             res[ADAPTIVE_KEY] = {
                 "error": max_err(R, R_ref),
                 "time_s": s,
@@ -233,7 +184,7 @@ def main():
     R_ref = exact_final(inertia, w0, LONG_T)
     long = {"omega0": LONG_OMEGA0, "T": LONG_T, "dt": LONG_DT, "steps": num_steps(LONG_T, LONG_DT), "formulations": {}}
     for fname, problem in FORMULATIONS.items():
-        R, s, first = timed(fixed_fn(problem, lierk.RKMK4(), LONG_DT, LONG_T), inertia, w0)
+        R, s, first = timed(fixed_fn(problem, lierk.RKMK4(), LONG_DT, LONG_T), inertia, w0, repeats=REPEATS)
         long["formulations"][fname] = {"error": max_err(R, R_ref), "time_s": s, "first_call_s": first}
         print(f"long horizon {fname:21s} error at t = {LONG_T:g}: {long['formulations'][fname]['error']:.2e}  "
               f"time {s:.3f} s", flush=True)

@@ -37,11 +37,9 @@ directory unless ``--out`` is given.
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -59,19 +57,9 @@ from scipy.integrate import solve_ivp  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
+from common import cli, cpu_model, max_err, timed  # noqa: E402
 
-_parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-_parser.add_argument("--quick", action="store_true", help="tiny run (20 bodies, T = 2 s) to check the script works")
-_parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
-QUICK = ARGS.quick
-
-if ARGS.out:
-    OUT = Path(ARGS.out)
-elif QUICK:
-    OUT = Path(tempfile.gettempdir()) / "lierk-bench-quick"
-else:
-    OUT = Path(__file__).resolve().parent / "results"
+QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
 N = 20 if QUICK else 1000
 T = 2.0 if QUICK else 10.0
@@ -110,36 +98,8 @@ def initial_velocities() -> np.ndarray:
     return mag[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def timed(f, *args, repeats=REPEATS):
-    """``(output, median wall time, time of the first call)``: the first call
-    compiles and warms up and is not part of the median."""
-    t = time.perf_counter()
-    out = jax.block_until_ready(f(*args))
-    first = time.perf_counter() - t
-    times = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        out = jax.block_until_ready(f(*args))
-        times.append(time.perf_counter() - t)
-    return out, float(np.median(times)), first
-
-
-def max_err(R, R_ref) -> float:
-    return float(jnp.max(jnp.linalg.norm(jnp.asarray(R) - R_ref, axis=(-2, -1))))
-
-
 def max_orth(R) -> float:
     return float(jnp.max(lierk.so3.orthogonality_error(jnp.asarray(R))))
-
-
-def cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or platform.machine()
 
 
 # --- peers -------------------------------------------------------------------
@@ -327,7 +287,7 @@ def mujoco_batch(omegas_np, dt):
         mujoco.rollout.rollout(model, datas, init, nstep=n, state=state, persistent_pool=True)
         return state
 
-    state, seconds, first = timed(go)
+    state, seconds, first = timed(go, repeats=REPEATS)
     R, w, t = mujoco_final(model, state[:, -1])
     assert np.all(np.abs(t - T) <= 1e-9 * T), f"MuJoCo ended at t = {t.min()}..{t.max()}, not T = {T}"
     return R, w, t, seconds, first
@@ -388,7 +348,7 @@ def main():
     t = time.perf_counter()
     exact_batch = exact_batch.lower(omegas).compile()
     exact_compile_s = time.perf_counter() - t
-    R_ref, exact_s, _ = timed(exact_batch, omegas)
+    R_ref, exact_s, _ = timed(exact_batch, omegas, repeats=REPEATS)
     flips = np.asarray(jax.vmap(lambda w: lierk.exact.flip_interval(INERTIA, w))(omegas))
     # From near the x axis the first sign change of omega_x comes half a flip interval in.
     frac_flip = float(np.mean(flips / 2 < T))
@@ -432,18 +392,18 @@ def main():
     for solver in (lierk.RKF45(), lierk.DP54(), lierk.DOP853()):
         run = lierk_adaptive_fn(solver)
         for tol in LIERK_TOLS:
-            (R, steps, res), s, first = timed(run, omegas, tol)
+            (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS)
             add(f"lierk {solver.name}", "lierk", tol, R, s, steps, kind="tol", first=first,
                 note=f"results {np.bincount(np.asarray(res)).tolist()}")
     # The loop kind of the adjoint, measured without differentiating.
     for solver in (lierk.DOP853(),):
         run = lierk_adaptive_fn(solver, lierk.ForwardMode())
         for tol in LIERK_TOLS:
-            (R, steps, _), s, first = timed(run, omegas, tol)
+            (R, steps, _), s, first = timed(run, omegas, tol, repeats=REPEATS)
             add(f"lierk {solver.name} (lax loop)", "lierk-lax", tol, R, s, steps, kind="tol", first=first)
     for solver in (lierk.RKMK4(), lierk.CF4()):
         for dt in DTS:
-            (R, steps), s, first = timed(lierk_fixed_fn(solver, dt), omegas)
+            (R, steps), s, first = timed(lierk_fixed_fn(solver, dt), omegas, repeats=REPEATS)
             add(f"lierk {solver.name} fixed", "lierk", dt, R, s, steps, kind="dt", first=first)
     # High-order tableaux with fixed steps.  Near the separatrix the error that
     # matters is the energy error made during the slow phases, where a Lie
@@ -452,23 +412,23 @@ def main():
     # uniform steps spend the work where the global error is made.
     for tableau, dts in ((lierk.tableaux.DOPRI54, HIGH_DTS[:4]), (lierk.tableaux.DOP853, HIGH_DTS)):
         for dt in dts:
-            (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas)
+            (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas, repeats=REPEATS)
             add(f"lierk RKMK({tableau.name}) fixed", "lierk", dt, R, s, steps, kind="dt", first=first)
 
     # The report's formulation (spatial L fixed, m = R^T L), same solvers.
     for dt in SPATIAL_DTS:
-        (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas)
+        (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas, repeats=REPEATS)
         add("lierk RKMK4 fixed (Spatial)", "lierk-spatial", dt, R, s, steps, kind="dt", first=first)
     run = lierk_adaptive_fn(lierk.DOP853(), problem=lierk.SpatialFreeRigidBody)
     for tol in SPATIAL_TOLS:
-        (R, steps, res), s, first = timed(run, omegas, tol)
+        (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS)
         add("lierk DOP853 (Spatial)", "lierk-spatial", tol, R, s, steps, kind="tol", first=first,
             note=f"results {np.bincount(np.asarray(res)).tolist()}")
 
     for solver in (diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()):
         run = diffrax_fn(solver)
         for tol in TOLS:
-            (R, steps), s, first = timed(run, omegas, tol)
+            (R, steps), s, first = timed(run, omegas, tol, repeats=REPEATS)
             add(f"diffrax {type(solver).__name__}", "diffrax", tol, R, s, steps, kind="tol", first=first)
 
     frame_check = mujoco_frame_check(omegas_np[0])

@@ -16,19 +16,27 @@ import jax.numpy as jnp
 import numpy as np
 
 
-def asarray(x, dtype=None):
+def asarray(x, dtype=None, name: str = "value"):
     """``x`` as a NumPy array when its value is known now, so that `check` can
     raise while tracing; as a JAX array when it is traced.  (Inside `jax.jit`,
     even ``jnp.asarray(0.1)`` is a tracer, so NumPy is the only way to keep a
-    constant inspectable.)  Integers become the default float type."""
+    constant inspectable.)  Integers become the default float type and half
+    precision becomes float32; booleans, complex numbers and strings raise
+    `ValueError` naming ``name`` (a complex value would lose its imaginary
+    part without a word)."""
     if is_traced(x):
         x = jnp.asarray(x)
-        if dtype is None and not jnp.issubdtype(x.dtype, jnp.floating):
-            dtype = jnp.result_type(float)
+    else:
+        try:
+            x = np.asarray(x)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name} must be real numbers, got {x!r} ({e})") from None
+    if x.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be real numbers, got {_show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}")
+    if dtype is None and (x.dtype.kind != "f" or x.dtype.itemsize < 4):
+        dtype = jnp.result_type(float) if x.dtype.kind != "f" else np.float32
+    if is_traced(x):
         return x if dtype is None else x.astype(dtype)
-    x = np.asarray(x)
-    if dtype is None and not np.issubdtype(x.dtype, np.floating):
-        dtype = jnp.result_type(float)
     return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 

@@ -75,21 +75,29 @@ class Controller(eqx.Module):
         dtmin: ArrayLike = 0.0,
         dtmax: ArrayLike = float("inf"),
     ):
-        def positive(name, x, allow_zero=False):
-            x = _checks.asarray(x)
+        # Checks run on NumPy values while they are known (see `lierk._checks`);
+        # everything becomes a JAX array only at the end.
+        def bounded(name, x, ok, what):
+            x = _checks.asarray(x, name=name)
             if x.ndim != 0:
                 raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}")
-            ok = (lambda v: v >= 0) if allow_zero else (lambda v: v > 0)
-            return jnp.asarray(_checks.check(x, ok, f"{name} must be {'>= 0' if allow_zero else '> 0'}, got {{value}}"))
+            return _checks.check(x, ok, f"{name} must be {what}, got {{value}}")
 
-        self.rtol = positive("rtol", rtol, allow_zero=True)
-        self.atol = positive("atol", atol, allow_zero=True)
-        _checks.check(self.rtol + self.atol, lambda v: v > 0, "rtol + atol must be > 0, got {value}")
-        self.safety = positive("safety", safety)
-        self.facmin = positive("facmin", facmin)
-        self.facmax = positive("facmax", facmax)
-        self.dtmin = positive("dtmin", dtmin, allow_zero=True)
-        self.dtmax = positive("dtmax", dtmax)
+        inf = float("inf")
+        rtol = bounded("rtol", rtol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
+        atol = bounded("atol", atol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
+        # Keep every checked value: a traced check whose result is dropped is dead code to XLA.
+        rtol = _checks.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0")
+        # Outside these bounds the step-size update cannot converge: a solve
+        # would spin until max_steps.
+        safety = bounded("safety", safety, lambda v: (v > 0) & (v <= 1), "in (0, 1]")
+        facmin = bounded("facmin", facmin, lambda v: (v > 0) & (v < 1), "in (0, 1)")
+        facmax = bounded("facmax", facmax, lambda v: (v > 1) & (v < inf), "> 1 and finite")
+        dtmin = bounded("dtmin", dtmin, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
+        dtmax = bounded("dtmax", dtmax, lambda v: (v > 0) & (v >= dtmin), "> 0 and >= dtmin")
+        self.rtol, self.atol, self.safety, self.facmin, self.facmax, self.dtmin, self.dtmax = (
+            jnp.asarray(x) for x in (rtol, atol, safety, facmin, facmax, dtmin, dtmax)
+        )
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:

@@ -40,7 +40,7 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
     if R0 is None:
         return jnp.eye(3, dtype=dtype)
-    R0 = _checks.asarray(R0, dtype)
+    R0 = _checks.asarray(R0, dtype, "R0")
     _checks.check_shape(R0, (3, 3), "R0")
     tol = 1e-6
     xp = np if isinstance(R0, np.ndarray) else jnp
@@ -54,7 +54,7 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
 
 
 def check_vector(x: ArrayLike, name: str, dtype) -> Array:
-    x = _checks.asarray(x, dtype)
+    x = _checks.asarray(x, dtype, name)
     _checks.check_shape(x, (3,), name)
     x = _checks.check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
     return jnp.asarray(x)
@@ -66,7 +66,7 @@ def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None
     Returns ``(inertia (3, 3), inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``.
     """
     inertia = _inertia.tensor(inertia)
-    dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0).dtype, float)
+    dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0, name="omega0").dtype, float)
     inertia = inertia.astype(dtype)
     omega0 = check_vector(omega0, "omega0", dtype)
     return inertia, jnp.linalg.inv(inertia), omega0, check_attitude(R0, dtype)

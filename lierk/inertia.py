@@ -8,6 +8,7 @@ theorem, which is how the report builds its T-handle.
 from __future__ import annotations
 
 import math
+import warnings
 from typing import NamedTuple, Sequence
 
 import jax.numpy as jnp
@@ -43,7 +44,7 @@ def tensor(inertia: ArrayLike) -> Array:
         ValueError: wrong shape, NaN/inf, not symmetric, or not positive
             definite (checked at run time with `eqx.error_if` when traced).
     """
-    inertia = _checks.asarray(inertia)
+    inertia = _checks.asarray(inertia, name="inertia")
     xp = np if isinstance(inertia, np.ndarray) else jnp
     if inertia.shape == (3,):
         inertia = xp.diag(inertia)
@@ -71,6 +72,16 @@ def tensor(inertia: ArrayLike) -> Array:
         ),
         "inertia must be positive definite, got {value}",
     )
+    if isinstance(inertia, np.ndarray):
+        moments = np.linalg.eigvalsh(inertia)
+        if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
+            # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
+            # break it too, so this warns rather than refuses.
+            warnings.warn(
+                f"inertia {_checks._show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
+                "no rigid body has these principal moments; the equations are solved as given",
+                stacklevel=3,
+            )
     return jnp.asarray(inertia)
 
 

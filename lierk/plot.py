@@ -50,10 +50,11 @@ def _figure(figsize, title: str | None) -> Figure:
     return fig
 
 
-def components(sol, title: str | None = None, *, figsize=(9.0, 7.0)) -> Figure:
+def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None) -> Figure:
     """3x3 grid of the entries ``R_ij(t)`` of the attitude (the report's figures
     14-16): row ``i`` is the space-frame axis, column ``j`` the body axis, so
-    column ``j`` is body axis ``j`` seen in space.  All panels share ``[-1, 1]``."""
+    column ``j`` is body axis ``j`` seen in space.  All panels share ``[-1, 1]``.
+    ``flips``: times (s) of intermediate-axis flips, marked with dashed lines."""
     ts, R, _ = trajectory(sol)
     fig = _figure(figsize, title)
     axs = fig.subplots(3, 3, sharex=True, sharey=True)
@@ -64,7 +65,11 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0)) -> Figure:
             ax.plot(ts, R[:, i, j], color=colours[j], lw=0.9)
             ax.set_title(f"$R_{{{i + 1}{j + 1}}}$", fontsize=10)
             ax.axhline(0.0, color="0.8", lw=0.5, zorder=0)
+            for k, tf in enumerate(() if flips is None else np.ravel(flips)):
+                ax.axvline(tf, color="0.35", ls="--", lw=0.8, zorder=0, label="flip" if (i, j, k) == (0, 2, 0) else None)
             ax.grid(True, alpha=0.3)
+    if flips is not None and np.size(flips):
+        axs[0, 2].legend(loc="upper right", fontsize=8)
     axs[0, 0].set_ylim(-1.08, 1.08)
     axs[0, 0].set_yticks([-1.0, -0.5, 0.0, 0.5, 1.0])
     if len(ts):
@@ -76,20 +81,28 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0)) -> Figure:
     return fig
 
 
-def euler_angles(sol, title: str | None = None, *, degrees: bool = False, figsize=(8.0, 6.5)) -> Figure:
-    """Euler angles of ``R = Rz(phi) Ry(theta) Rx(psi)`` (`lierk.so3.to_euler`)
-    against time, one panel each.  ``phi`` and ``psi`` are unwrapped so a steady
-    spin shows as a ramp rather than a saw-tooth; ``theta`` lies in
-    ``[-pi/2, pi/2]``."""
+def euler_angles(
+    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5)
+) -> Figure:
+    """Euler angles (`lierk.so3.to_euler`) against time, one panel each.
+
+    ``convention="zyx"`` (the report's ``R = Rz(phi) Ry(theta) Rx(psi)``) or
+    ``"zxz"``, the classical angles of a top ``R = Rz(phi) Rx(theta) Rz(psi)``:
+    precession, nutation and spin, so a top's precession and nutation show
+    apart from its spin.  ``phi`` and ``psi`` are unwrapped so a steady spin
+    shows as a ramp rather than a saw-tooth."""
     ts, R, _ = trajectory(sol)
-    angles = np.asarray(so3.to_euler(R)).reshape(-1, 3)
+    angles = np.asarray(so3.to_euler(R, convention)).reshape(-1, 3)
     angles = np.unwrap(angles, axis=0)
     unit = "deg" if degrees else "rad"
     if degrees:
         angles = np.degrees(angles)
     fig = _figure(figsize, title)
     axs = fig.subplots(3, 1, sharex=True)
-    names = [r"$\phi$ (about space $z$)", r"$\theta$ (about $y$)", r"$\psi$ (about body $x$)"]
+    names = {
+        "zyx": [r"$\phi$ (about space $z$)", r"$\theta$ (about $y$)", r"$\psi$ (about body $x$)"],
+        "zxz": [r"precession $\phi$", r"nutation $\theta$", r"spin $\psi$"],
+    }[convention]
     for k, ax in enumerate(axs):
         ax.plot(ts, angles[:, k], color=f"C{k}", lw=1.0)
         ax.set_ylabel(f"{names[k]} [{unit}]")

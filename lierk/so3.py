@@ -334,22 +334,48 @@ def _axis_rotation(angle: Array, axis: int) -> Array:
     return exp(angle[..., None] * e)
 
 
-def from_euler(phi: ArrayLike, theta: ArrayLike, psi: ArrayLike) -> Array:
-    """Rotation ``R = Rz(phi) @ Ry(theta) @ Rx(psi)`` (the report's convention;
-    angles in rad).  Scalars or broadcastable arrays ``(...) -> (..., 3, 3)``."""
+def from_euler(phi: ArrayLike, theta: ArrayLike, psi: ArrayLike, convention: str = "zyx") -> Array:
+    """Rotation from Euler angles (rad); scalars or broadcastable arrays
+    ``(...) -> (..., 3, 3)``.
+
+    - ``"zyx"`` (default, the report's): ``R = Rz(phi) Ry(theta) Rx(psi)``.
+    - ``"zxz"`` (the classical angles of a top): ``R = Rz(phi) Rx(theta) Rz(psi)``,
+      with ``phi`` the precession, ``theta`` the nutation (tilt of the body z
+      axis from space z) and ``psi`` the spin.
+    """
     phi, theta, psi = jnp.broadcast_arrays(_float(phi), _float(theta), _float(psi))
-    return _axis_rotation(phi, 2) @ _axis_rotation(theta, 1) @ _axis_rotation(psi, 0)
+    middle = {"zyx": (1, 0), "zxz": (0, 2)}[_convention(convention)]
+    return _axis_rotation(phi, 2) @ _axis_rotation(theta, middle[0]) @ _axis_rotation(psi, middle[1])
 
 
-def to_euler(R: ArrayLike) -> Array:
-    """Angles ``(phi, theta, psi)`` (rad) with ``R = Rz(phi) Ry(theta) Rx(psi)``:
-    ``(..., 3, 3) -> (..., 3)``.  ``theta`` lies in ``[-pi/2, pi/2]``; at the
-    gimbal lock ``|theta| = pi/2`` only ``phi - psi`` (or ``phi + psi``) is
-    determined, and ``psi`` is set to 0."""
+def _convention(convention: str) -> str:
+    if convention not in ("zyx", "zxz"):
+        raise ValueError(f"convention must be 'zyx' or 'zxz', got {convention!r}")
+    return convention
+
+
+def to_euler(R: ArrayLike, convention: str = "zyx") -> Array:
+    """Euler angles ``(phi, theta, psi)`` (rad) of ``R`` (see `from_euler`):
+    ``(..., 3, 3) -> (..., 3)``.
+
+    - ``"zyx"``: ``theta`` lies in ``[-pi/2, pi/2]``; at the gimbal lock
+      ``|theta| = pi/2`` only ``phi - psi`` (or ``phi + psi``) is determined,
+      and ``psi`` is set to 0.
+    - ``"zxz"``: ``theta`` lies in ``[0, pi]``; at ``theta = 0`` or ``pi`` only
+      ``phi + psi`` (or ``phi - psi``) is determined, and ``psi`` is set to 0.
+    """
     R = _float(R)
+    tiny = 10 * jnp.finfo(R.dtype).eps
+    if _convention(convention) == "zxz":
+        c = jnp.clip(R[..., 2, 2], -1.0, 1.0)
+        theta = jnp.arccos(c)
+        lock = jnp.abs(c) > 1.0 - tiny
+        phi = jnp.where(lock, jnp.arctan2(R[..., 1, 0], R[..., 0, 0]), jnp.arctan2(R[..., 0, 2], -R[..., 1, 2]))
+        psi = jnp.where(lock, jnp.zeros_like(theta), jnp.arctan2(R[..., 2, 0], R[..., 2, 1]))
+        return jnp.stack([phi, theta, psi], axis=-1)
     s = jnp.clip(-R[..., 2, 0], -1.0, 1.0)
     theta = jnp.arcsin(s)
-    lock = jnp.abs(s) > 1.0 - 10 * jnp.finfo(R.dtype).eps
+    lock = jnp.abs(s) > 1.0 - tiny
     phi = jnp.where(lock, jnp.arctan2(-R[..., 0, 1], R[..., 1, 1]), jnp.arctan2(R[..., 1, 0], R[..., 0, 0]))
     psi = jnp.where(lock, jnp.zeros_like(theta), jnp.arctan2(R[..., 2, 1], R[..., 2, 2]))
     return jnp.stack([phi, theta, psi], axis=-1)

@@ -67,7 +67,7 @@ def solve(
     estimate: it needs only that the finer solve is the more accurate one, so
     it holds near the intermediate axis, with effects, and in float32.  It
     costs about 2.5x a fixed-step solve (3x with an odd save interval) and
-    2.3 to 2.6x an adaptive one (``benchmarks/results/error_estimate.md``).
+    2.2 to 2.6x an adaptive one (``benchmarks/results/error_estimate.md``).
     It is not differentiated.
 
     Accuracy on request (``target_error=eps``, instead of ``dt``/``rtol``):
@@ -122,16 +122,26 @@ def solve(
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
     dtype = problem.R0.dtype
+    t0_given, t1_given = t0, t1
     t0 = _scalar(t0, "t0", dtype)
     t1 = _scalar(t1, "t1", dtype)
+    if not _checks.is_traced(t0_given, t1_given) and float(t1_given) > float(t0_given) and float(t1) <= float(t0):
+        raise ValueError(
+            f"t1 = {float(t1_given)!r} rounds to t0 = {float(t0)!r} in {np.dtype(dtype).name}: the interval is below "
+            "the resolution of the time axis; shift t0 towards 0 or use float64"
+        )
     t1 = _checks.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not _checks.is_traced(t0) else 't0'}, got t1 = {{value}}")
     if saveat.ts is not None:
-        ts = _checks.asarray(saveat.ts, dtype)
-        _checks.check(
+        ts = _checks.asarray(saveat.ts, dtype, "SaveAt(ts=...)")
+        if np.shape(ts)[0] == 0:
+            raise ValueError("SaveAt(ts=...) is empty: give at least one time, or save t0/t1 instead")
+        ts = _checks.check(
             ts,
             lambda x: (x >= t0).all() & (x <= t1).all() & (x[1:] >= x[:-1]).all(),
             "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1], got {value}",
         )
+        # The solve must use the checked array, or a traced check is dead code.
+        saveat = eqx.tree_at(lambda s: s.ts, saveat, jnp.asarray(ts))
 
     if target_error is not None:
         given = [n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None]
@@ -154,6 +164,11 @@ def solve(
         dt = _scalar(dt, "dt", dtype)
         dt = _checks.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
         n = num_steps(t0, t1, dt, max_steps)
+        if saveat.steps and not (saveat.t0 or saveat.t1) and n // saveat.every == 0:
+            raise ValueError(
+                f"SaveAt(steps={saveat.steps}) saves nothing: this run takes {n} steps; "
+                "save t1 too (SaveAt(steps=..., t1=True)) or save more often"
+            )
         sol = _solve_fixed(problem, solver, t0, t1, dt, saveat, n)
         if estimate_error:
             # The finer solve takes 3 steps for every 2 (cost 1.5x), or 2 for
@@ -189,13 +204,28 @@ def solve(
         )
     # Tolerances given as Python floats become float64 under x64; compute in the problem's dtype.
     controller = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype), controller)
+    eps = float(jnp.finfo(dtype).eps)
+    if not _checks.is_traced(controller.rtol, controller.atol) and float(controller.rtol + controller.atol) < eps:
+        raise ValueError(
+            f"rtol + atol = {float(controller.rtol + controller.atol):g} is below the rounding of "
+            f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
+        )
     adjoint = RecursiveCheckpointAdjoint() if adjoint is None else adjoint
     if not isinstance(adjoint, AbstractAdjoint):
         raise ValueError(f"adjoint must be a lierk.adjoint object, got {adjoint!r}")
     if dt0 is not None:
         dt0 = _checks.check(_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
     max_steps = max_steps or _DEFAULT_ADAPTIVE_MAX_STEPS
-    sol = _solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
+    try:
+        sol = _solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
+    except TypeError as e:
+        if "custom_vjp" not in str(e):
+            raise
+        raise ValueError(
+            f"forward-mode autodiff (jax.jvp, jax.jacfwd) cannot go through an adaptive solve with "
+            f"{type(adjoint).__name__}, which supports reverse mode only: pass adjoint=lierk.ForwardMode() "
+            "(forward only) or adjoint=lierk.DirectAdjoint() (both)"
+        ) from None
     if estimate_error:
         fine = _solve_adaptive(
             _frozen(problem), solver, t0, t1, None, saveat, 2 * max_steps, _finer(controller), adjoint
@@ -249,8 +279,11 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
         ratio, power = _TOLERANCE_RATIO, 1.0
         if adjoint is None:
             adjoint = ForwardModeAdjoint()
-        # The calibrated tolerances give errors near tol, so the first try is eps.
-        s0 = eps
+        # The calibrated tolerances give errors of 1 to 10 tol, and the finer
+        # solve of the pair is 10x better: eps/2 is enough for nearly every
+        # member.  Under vmap one member that needs a second round makes the
+        # whole batch pay for it, so the first try leans to the safe side.
+        s0 = eps / 2
     else:
         ratio, power = 2.0**solver.order, float(solver.order)
         # A coarse first try, cheap next to the rounds that follow: at most
@@ -288,8 +321,9 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
 
     def body(c):
         k, s, sol, worst, est = c
-        # Aim at a third of eps; from a failed or saturated solve, tighten 100x.
-        ratio_s = jnp.where(jnp.isfinite(worst) & (worst > 0), (eps / 3 / worst) ** (1.0 / power), 0.01)
+        # Aim at a fifth of eps (a round missed by one member costs the whole
+        # batch under vmap); from a failed or saturated solve, tighten 100x.
+        ratio_s = jnp.where(jnp.isfinite(worst) & (worst > 0), (eps / 5 / worst) ** (1.0 / power), 0.01)
         s_new = s * jnp.clip(ratio_s, 1e-3, 1.0)
         if not adaptive:
             # Stay within max_steps: the finer solve takes twice the steps.
@@ -318,7 +352,7 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
 def _scalar(x, name, dtype) -> Array:
     if np.ndim(x) != 0:
         raise ValueError(f"{name} must be a scalar, got shape {np.shape(x)}")
-    x = _checks.asarray(x, dtype)
+    x = _checks.asarray(x, dtype, name)
     return _checks.check(x, lambda v: (v == v) & (abs(v) < float("inf")), f"{name} must be finite, got {{value}}")
 
 
@@ -335,9 +369,13 @@ def num_steps(t0, t1, dt, max_steps=None) -> int:
         )
     x = float((t1 - t0) / dt)
     # A t1 that is a multiple of dt up to rounding gets exactly that many steps,
-    # not one more of length ~1e-16.
-    n = round(x) if abs(x - round(x)) <= 1e-9 * max(1.0, x) else math.ceil(x)
-    return max(int(n), 0)
+    # not one more of length ~1e-16.  "Up to rounding" is `_solve_fixed`'s
+    # snap, in steps, so both agree on where the run ends.
+    eps = float(np.finfo(np.asarray(dt).dtype).eps)
+    tol = max(1e-9 * min(1.0, x), 64 * eps * max(abs(float(t0)), abs(float(t1))) / float(dt))
+    n = round(x) if abs(x - round(x)) <= tol else math.ceil(x)
+    # A step longer than the interval is one step, shortened to end at t1.
+    return max(int(n), 1 if float(t1) > float(t0) else 0)
 
 
 def _stack(parts: list) -> Any:
@@ -355,7 +393,8 @@ def _finite(tree) -> Array:
 def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
     # Times within rounding of t1 count as t1.  1e-9 dt alone is below float32
     # resolution: there n * dt can miss t1 by a few ulps of t1.
-    snap = jnp.maximum(1e-9 * dt, 64 * jnp.finfo(dt.dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
+    # A step longer than the interval must not snap t0 itself onto t1.
+    snap = jnp.maximum(1e-9 * jnp.minimum(dt, t1 - t0), 64 * jnp.finfo(dt.dtype).eps * jnp.maximum(jnp.abs(t0), jnp.abs(t1)))
 
     def time(k):
         tk = t0 + k.astype(dt.dtype) * dt
@@ -505,16 +544,18 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         remaining = stop - c.t
         clipped = c.h >= remaining
         last = clipped & (stop >= t1)
-        h = jax.lax.stop_gradient(jnp.where(clipped, remaining, c.h))
+        t_new = jnp.where(clipped, stop, c.t + c.h)
+        # Step by exactly the time the clock advances: far from t = 0, c.t + h
+        # rounds, and a state advanced by h would drift from its time stamp.
+        h = jax.lax.stop_gradient(t_new - c.t)
         st = solver.step(problem, c.t, h, c.R, c.y, c.f)
-        t_new = jnp.where(clipped, stop, c.t + h)
         if fixed:
             f_new = None
             finite = _finite((st.R, st.y))
             # Every fixed step is taken; a non-finite one ends the loop and is reported.
             accept = jnp.asarray(True)
             h_next = c.h
-            stuck = jnp.asarray(False)
+            stuck = h <= 0
         else:
             tol_y = problem.error_tolerance(c.y, st.y, controller.rtol, controller.atol)
             err = controller.norm(st.error[0], st.error[1], tol_y)
@@ -532,7 +573,8 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             # Keep the proposed step when only a save time or t1 shortened it.
             h_next = jnp.where(accept & clipped, jnp.maximum(h_next, c.h), h_next)
             h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
-            stuck = ~accept & (h_next < h_floor)
+            # A step that does not move the clock (below its resolution) is stuck too.
+            stuck = (~accept & (h_next < h_floor)) | (h <= 0)
 
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, z: jnp.where(accept, x, z), a, b)

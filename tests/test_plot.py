@@ -144,3 +144,19 @@ def test_demo_writes_one_grid_per_case_and_the_flip_interval(tmp_path, capsys):
     # The exact flip interval of case a (Landau-Lifshitz 2K/lambda) for the report's T-handle.
     assert "flip every 23.63 s" in out
     assert all(str(p) in out for p in paths.values())
+
+
+def test_top_angles_are_precession_nutation_spin(flip):
+    _, sol = flip
+    fig = plot.euler_angles(sol, "t", convention="zxz")
+    assert [ax.get_ylabel().split(" [")[0] for ax in fig.axes] == [r"precession $\phi$", r"nutation $\theta$", r"spin $\psi$"]
+    angles = np.stack([ax.get_lines()[0].get_ydata() for ax in fig.axes], axis=-1)
+    np.testing.assert_allclose(so3.from_euler(angles[:, 0], angles[:, 1], angles[:, 2], "zxz"), sol.R, atol=1e-12)
+
+
+def test_flips_are_marked_on_every_component_panel(flip):
+    _, sol = flip
+    fig = plot.components(sol, flips=[0.5, 2.0])
+    for ax in fig.axes:
+        marks = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
+        assert sorted(float(ln.get_xdata()[0]) for ln in marks) == [0.5, 2.0]

@@ -366,3 +366,19 @@ def test_truncated_dexpinv_is_the_series(terms):
 def test_truncated_dexpinv_rejects_unknown_truncation():
     with pytest.raises(ValueError, match="terms"):
         _so3.dexpinv(np.zeros(3), np.ones(3), 3)
+
+
+def test_classical_zxz_angles_round_trip_and_name_the_tilt():
+    so3 = _so3
+    rng = np.random.default_rng(7)
+    phi, psi = rng.uniform(-3.1, 3.1, (2, 50))
+    theta = rng.uniform(0.01, 3.13, 50)
+    R = so3.from_euler(phi, theta, psi, "zxz")
+    np.testing.assert_allclose(np.asarray(so3.to_euler(R, "zxz")), np.stack([phi, theta, psi], -1), atol=1e-12)
+    # Nutation is the tilt of the body z axis from space z.
+    np.testing.assert_allclose(np.arccos(np.asarray(R)[:, 2, 2]), theta, atol=1e-12)
+    # At theta = 0 only phi + psi is determined; the round trip still gives R.
+    R0 = so3.from_euler(0.4, 0.0, 0.3, "zxz")
+    np.testing.assert_allclose(so3.from_euler(*so3.to_euler(R0, "zxz"), "zxz"), R0, atol=1e-15)
+    with pytest.raises(ValueError, match="convention"):
+        so3.to_euler(R0, "xyz")

@@ -1,0 +1,136 @@
+"""Regression tests from the adversarial pass (the reliability issue): each
+input here once gave a wrong answer reported as success, or a raw traceback."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import OMEGA_GENERIC, TEE, reference_R
+
+import lierk
+
+BODY = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+
+
+def test_traced_save_times_are_checked_under_jit():
+    # The check's result used to be dropped, so XLA deleted it: NaN rows, result 0.
+    run = jax.jit(lambda ts: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(ts=ts)).R)
+    with pytest.raises(Exception, match="SaveAt\\(ts=...\\) must be non-decreasing and lie in"):
+        jax.block_until_ready(run(jnp.array([0.5, 2.0])))
+    ok = run(jnp.array([0.5, 1.0]))
+    np.testing.assert_allclose(ok[-1], reference_R(TEE, OMEGA_GENERIC, 1.0), atol=1e-6)
+
+
+def test_traced_tolerances_are_checked_under_jit():
+    run = jax.jit(lambda r, a: lierk.solve(BODY, lierk.DP54(), 1.0, controller=lierk.Controller(r, a)).R)
+    with pytest.raises(Exception, match="rtol \\+ atol must be > 0"):
+        jax.block_until_ready(run(0.0, 0.0))
+
+
+def test_a_step_longer_than_the_interval_is_one_shortened_step():
+    # dt = 1e10 used to take zero steps and return R0 with success.
+    sol = lierk.solve(lierk.FreeRigidBody(TEE, [0.0, 0.0, 0.1]), lierk.RKMK4(), 1.0, dt=1e10)
+    assert int(sol.stats["num_steps"]) == 1 and float(sol.ts[-1]) == 1.0
+    # A rotation about a principal axis: RKMK4 is exact for it.
+    np.testing.assert_allclose(sol.R[-1], reference_R(TEE, [0.0, 0.0, 0.1], 1.0), atol=1e-14)
+
+
+def test_t1_a_hair_past_a_multiple_of_dt_ends_at_t1():
+    # Used to fail with "max_steps was reached" though no max_steps was given.
+    t1 = 1.0000000001
+    sol = lierk.solve(BODY, lierk.RKMK4(), t1, dt=0.01)
+    assert int(sol.result) == 0 and float(sol.ts[-1]) == t1
+    np.testing.assert_allclose(sol.R[-1], reference_R(TEE, OMEGA_GENERIC, t1), atol=1e-9)
+
+
+@pytest.mark.parametrize("t1, steps", [(0.03, 5), (0.0, True)])
+def test_saveat_steps_that_save_nothing_is_a_clear_error(t1, steps):
+    with pytest.raises(ValueError, match="saves nothing"):
+        lierk.solve(BODY, lierk.RKMK4(), t1, dt=0.01, saveat=lierk.SaveAt(steps=steps))
+    # With t1 saved too it is fine.
+    sol = lierk.solve(BODY, lierk.RKMK4(), t1, dt=0.01, saveat=lierk.SaveAt(steps=steps, t1=True))
+    assert float(sol.ts[-1]) == t1
+
+
+def test_empty_save_times_are_a_clear_error():
+    with pytest.raises(ValueError, match="SaveAt\\(ts=...\\) is empty"):
+        lierk.solve(BODY, lierk.DP54(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(ts=np.zeros(0)))
+
+
+def test_adaptive_time_stays_exact_far_from_zero():
+    # The state used to advance by h while the clock advanced by fl(t + h) - t:
+    # from t0 = 1e13 the error over 10 s was 15x that from t0 = 0.
+    def final(t0):
+        return lierk.solve(BODY, lierk.DP54(), t0 + 10.0, t0=t0, rtol=1e-6).R[-1]
+
+    ref = reference_R(TEE, OMEGA_GENERIC, 10.0)
+    e0 = float(jnp.linalg.norm(final(0.0) - ref))
+    e13 = float(jnp.linalg.norm(final(1e13) - ref))
+    assert e13 < 3 * e0, (e13, e0)
+
+
+def test_float32_interval_below_time_resolution_is_refused():
+    b32 = lierk.FreeRigidBody(TEE.astype(np.float32), OMEGA_GENERIC.astype(np.float32))
+    with pytest.raises(ValueError, match="rounds to t0"):
+        lierk.solve(b32, lierk.RKMK4(), 1e8 + 1, t0=1e8, dt=0.01)
+
+
+def test_jacfwd_with_the_default_adjoint_points_to_forward_mode():
+    def final(w):
+        return lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.DP54(), 1.0, rtol=1e-8).R[-1]
+
+    with pytest.raises(ValueError, match="adjoint=lierk.ForwardMode\\(\\)"):
+        jax.jacfwd(final)(jnp.asarray(OMEGA_GENERIC))
+
+
+def test_traced_bad_rtol_is_named_as_rtol_and_readable_under_filter_jit():
+    import equinox as eqx
+
+    run = eqx.filter_jit(lambda r: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=1e-8).R)
+    with pytest.raises(eqx.EquinoxRuntimeError, match="rtol must be >= 0 and finite"):
+        jax.block_until_ready(run(jnp.asarray(-1.0)))
+
+
+@pytest.mark.parametrize(
+    "kw, key",
+    [
+        (dict(rtol=float("inf")), "rtol"),
+        (dict(safety=10.0), "safety"),
+        (dict(facmin=2.0), "facmin"),
+        (dict(facmax=0.5), "facmax"),
+        (dict(dtmin=1.0, dtmax=0.1), "dtmax"),
+    ],
+)
+def test_controller_settings_that_cannot_converge_are_refused(kw, key):
+    with pytest.raises(ValueError, match=key):
+        lierk.Controller(**{"rtol": 1e-6, "atol": 1e-9, **kw})
+
+
+def test_tolerance_below_rounding_is_refused():
+    with pytest.raises(ValueError, match="below the rounding of float64"):
+        lierk.solve(BODY, lierk.DP54(), 1.0, rtol=1e-17, atol=1e-17)
+
+
+@pytest.mark.parametrize("bad", [[1.0 + 1e-3j, 0.0, 0.0], [True, False, True], "abc", ["1", "2", "3"]])
+def test_non_real_omega0_names_omega0(bad):
+    with pytest.raises(ValueError, match="omega0 must be real numbers"):
+        lierk.FreeRigidBody(TEE, bad)
+
+
+def test_half_precision_inertia_is_computed_in_float32():
+    p = lierk.FreeRigidBody(np.array([1.0, 2.0, 2.5], np.float16), np.array([1.0, 0.1, 0.0], np.float32))
+    assert p.inertia.dtype == np.float32
+
+
+def test_physically_impossible_inertia_warns():
+    with pytest.warns(UserWarning, match="triangle inequality"):
+        lierk.FreeRigidBody([0.5, 0.6, 1.5], [1.0, 0.0, 0.0])
+
+
+def test_a_single_effect_need_not_be_a_tuple():
+    a = lierk.RigidBodyWithEffects(TEE, OMEGA_GENERIC, effects=lierk.Damping(1e-6))
+    b = lierk.RigidBodyWithEffects(TEE, OMEGA_GENERIC, effects=(lierk.Damping(1e-6),))
+    assert len(a.effects) == 1
+    np.testing.assert_array_equal(lierk.solve(a, lierk.RKMK4(), 1.0, dt=0.1).R, lierk.solve(b, lierk.RKMK4(), 1.0, dt=0.1).R)
