@@ -109,6 +109,13 @@ class AbstractProblem(eqx.Module):
         leading axes ``(..., 3, 3)``."""
         return {}
 
+    def angular_velocity(self, R: Array, y: Any) -> Array:
+        """Body angular velocity ``omega`` (rad/s) at attitudes ``R``
+        ``(..., 3, 3)`` and states ``y`` (leading axes alike): ``(..., 3)``."""
+        return jax.vmap(lambda R, y: self.field(jnp.zeros((), R.dtype), R, y)[0])(
+            R.reshape(-1, 3, 3), jax.tree_util.tree_map(lambda x: x.reshape((-1,) + x.shape[R.ndim - 2 :]), y)
+        ).reshape(R.shape[:-1])
+
     def error_tolerance(self, y0: Any, y1: Any, rtol: Array, atol: Array) -> Any:
         """What an adaptive step's error in ``y`` is measured against: a pytree
         like ``y`` of positive scales, for a step from ``y0`` to ``y1``.  The

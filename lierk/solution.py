@@ -107,6 +107,17 @@ class Solution(eqx.Module):
         """The problem's conserved quantities at each saved point."""
         return problem.invariants(self.R, self.y)
 
+    def omega(self, problem) -> Array:
+        """Body angular velocity (rad/s) at each saved point: ``(..., n_save, 3)``."""
+        return problem.angular_velocity(self.R, self.y)
+
+    def euler_angles(self, convention: str = "zyx") -> Array:
+        """Euler angles (rad) at each saved point, ``(..., n_save, 3)``: see
+        `lierk.so3.to_euler` (``"zyx"``, the report's, or ``"zxz"`` for tops)."""
+        from .so3 import to_euler
+
+        return to_euler(self.R, convention)
+
     @property
     def orthogonality_error(self) -> Array:
         """``||R^T R - I||`` at each saved point: ``(..., n_save)``."""

@@ -494,6 +494,14 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
     # differ per batch member (a traced step size needs no static step count).
     fixed = controller is None
     tab_q = None if fixed else solver.error_order
+    if not fixed:
+        # The estimate is held to tol * tolerance_calibration, but never below
+        # 50 eps: under that, rounding noise decides acceptance.  Such steps
+        # only add rounding error, and a reverse-mode pass that recomputes them
+        # from checkpoints could decide differently from the forward pass, so
+        # the gradient would depend on max_steps.
+        floor = 50 * jnp.finfo(problem.R0.dtype).eps / (controller.rtol + controller.atol)
+        calibration = jax.lax.stop_gradient(jnp.maximum(solver.tableau.tolerance_calibration, floor))
     R0, y0 = problem.R0, problem.y0
     f0 = None if fixed else _field_at(problem, t0, R0, y0)
     h0 = _initial_step(problem, controller, tab_q, t0, t1, R0, y0, f0) if dt0 is None else dt0
@@ -565,7 +573,7 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
                 e3 = controller.norm(st.error[2][0], st.error[2][1], tol_y)
                 denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
                 err = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
-            err = jax.lax.stop_gradient(err / solver.tableau.tolerance_calibration)
+            err = jax.lax.stop_gradient(err / calibration)
             f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
             finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)
             accept = finite & (err <= 1.0)
