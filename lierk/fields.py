@@ -20,6 +20,7 @@ so its stages need no 3x3 products.  The rigid body with momentum as state
 
 from __future__ import annotations
 
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -68,6 +69,16 @@ def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None
     inertia = _inertia.tensor(inertia)
     dtype = jnp.result_type(inertia.dtype, _checks.asarray(omega0, name="omega0").dtype, float)
     inertia = inertia.astype(dtype)
+    if not _checks.is_traced(inertia):
+        moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
+        limit = 1e-10 if dtype == jnp.float64 else 1e-5
+        if moments.min() < limit * moments.max():
+            warnings.warn(
+                f"inertia is nearly singular (I_min/I_max = {moments.min() / moments.max():.1e}): omega = I^-1 m "
+                "turns tiny momentum errors into huge spins, so expect a stiff, inaccurate run; "
+                "check the units, or drop the rotation about that axis",
+                stacklevel=3,
+            )
     omega0 = check_vector(omega0, "omega0", dtype)
     return inertia, jnp.linalg.inv(inertia), omega0, check_attitude(R0, dtype)
 
@@ -108,6 +119,17 @@ class AbstractProblem(eqx.Module):
         """Quantities the exact flow conserves, for diagnostics.  ``R`` may carry
         leading axes ``(..., 3, 3)``."""
         return {}
+
+    def conserved(self) -> tuple[str, ...]:
+        """Keys of `invariants` that the exact flow conserves; `solve` reports
+        `RESULTS.invariant_drift` when one of them drifts too far."""
+        return ()
+
+    def invariant_scales(self) -> dict[str, Array]:
+        """A positive size for each of `conserved`, against which a drift is
+        measured (an energy that starts near 0 still has a scale)."""
+        q = self.invariants(self.R0, self.y0)
+        return {k: jnp.abs(q[k]) for k in self.conserved()}
 
     def angular_velocity(self, R: Array, y: Any) -> Array:
         """Body angular velocity ``omega`` (rad/s) at attitudes ``R``
@@ -188,3 +210,6 @@ class SpatialFreeRigidBody(AbstractProblem):
         m = jnp.einsum("...ji,j->...i", R, self.L)
         omega = jnp.einsum("ij,...j->...i", self.inertia_inv, m)
         return {"energy": kinetic_energy(self.inertia, omega), "|L|": jnp.linalg.norm(m, axis=-1)}
+
+    def conserved(self):
+        return ("energy", "|L|")

@@ -155,6 +155,14 @@ class RigidBodyWithEffects(AbstractProblem):
             out.update(e.invariants(R, y))
         return {"energy": energy, "|L|": jnp.linalg.norm(y, axis=-1), **out}
 
+    def invariant_scales(self):
+        """Energies against the kinetic energy plus what the effects' potentials
+        can give; momenta against `momentum_scale`."""
+        energy = kinetic_energy(self.inertia, self.omega0) + sum(
+            (e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype)
+        )
+        return {k: (energy if k == "energy" else self.momentum_scale) for k in self.conserved()}
+
     def conserved(self) -> tuple[str, ...]:
         """Keys of `invariants` that the exact flow conserves for this set of effects.
 

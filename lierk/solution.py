@@ -20,6 +20,7 @@ class RESULTS:
     dt_min_reached = 2
     nonfinite = 3
     target_error_not_reached = 4
+    invariant_drift = 5
 
     messages = {
         0: "successful",
@@ -29,6 +30,9 @@ class RESULTS:
         3: "the solution became non-finite (NaN or inf)",
         4: "target_error was not reached: the estimated error stayed above it (below rounding, "
         "or more steps than max_steps allow); see Solution.error_estimate",
+        5: "a quantity the exact flow conserves (energy, |L|, ...) drifted by more than 10%: the run is "
+        "under-resolved (steps too long for the spin) or stiff; take smaller steps or an adaptive solver, "
+        "or pass estimate_error=True to see the error",
     }
 
     @classmethod

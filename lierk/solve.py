@@ -153,7 +153,7 @@ def solve(
             _scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
         )
         sol = _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps or _DEFAULT_TARGET_MAX_STEPS, adjoint)
-        return raise_if_failed(sol, throw)
+        return raise_if_failed(_flag_drift(problem, sol), throw)
 
     if dt is not None:
         given = [n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None]
@@ -178,7 +178,7 @@ def solve(
             fine_dt = jax.lax.stop_gradient(dt) * den / num
             fine = _solve_fixed(_frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
             sol = _with_estimate(sol, fine, (num / den) ** solver.order)
-        return raise_if_failed(sol, throw)
+        return raise_if_failed(_flag_drift(problem, sol), throw)
 
     if not solver.adaptive:
         raise ValueError(
@@ -231,7 +231,7 @@ def solve(
             _frozen(problem), solver, t0, t1, None, saveat, 2 * max_steps, _finer(controller), adjoint
         )
         sol = _with_estimate(sol, fine, _TOLERANCE_RATIO)
-    return raise_if_failed(sol, throw)
+    return raise_if_failed(_flag_drift(problem, sol), throw)
 
 
 # The finer solve of an adaptive error estimate divides both tolerances by
@@ -347,6 +347,28 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
     return eqx.tree_at(
         lambda x: (x.result, x.stats, x.error_estimate), sol, (result, stats, est), is_leaf=lambda x: x is None
     )
+
+
+# A conserved quantity that moves by more than this (relative to its scale)
+# marks a run as under-resolved or unstable: RESULTS.invariant_drift.
+_DRIFT_LIMIT = 0.1
+
+
+def _flag_drift(problem, sol: Solution) -> Solution:
+    keys = problem.conserved()
+    if not keys:
+        return sol
+    q0 = problem.invariants(problem.R0, problem.y0)
+    q = problem.invariants(sol.R, sol.y)
+    scales = problem.invariant_scales()
+    worst = jnp.zeros(())
+    for k in keys:
+        d = jnp.abs(q[k] - q0[k]) / jnp.where(scales[k] > 0, scales[k], 1.0)
+        # Padding rows are NaN; a non-finite run has its own code.
+        worst = jnp.maximum(worst, jnp.max(jnp.where(jnp.isfinite(d), d, 0.0)))
+    drifted = (sol.result == RESULTS.successful) & (worst > _DRIFT_LIMIT)
+    result = jnp.where(drifted, RESULTS.invariant_drift, sol.result).astype(sol.result.dtype)
+    return eqx.tree_at(lambda s: s.result, sol, result)
 
 
 def _scalar(x, name, dtype) -> Array:

@@ -160,3 +160,33 @@ def test_solution_gives_omega_and_euler_angles(cls):
     np.testing.assert_allclose(np.linalg.norm(w @ TEE, axis=1), np.linalg.norm(TEE @ OMEGA_GENERIC), rtol=1e-9)
     angles = sol.euler_angles("zxz")
     np.testing.assert_allclose(lierk.so3.from_euler(*np.moveaxis(np.asarray(angles), -1, 0), "zxz"), sol.R, atol=1e-12)
+
+
+def test_under_resolved_run_is_reported_by_its_invariants():
+    # RKMK4 at 2 rad per step: energy -57% over 1000 steps, once reported as success.
+    w = OMEGA_GENERIC / np.linalg.norm(OMEGA_GENERIC)
+    p = lierk.FreeRigidBody(TEE, w)
+    sol = lierk.solve(p, lierk.RKMK4(), 2000.0, dt=2.0, throw=False)
+    assert int(sol.result) == lierk.RESULTS.invariant_drift
+    with pytest.raises(Exception, match="drifted by more than 10%"):
+        jax.block_until_ready(lierk.solve(p, lierk.RKMK4(), 2000.0, dt=2.0).R)
+    # Resolved, the same run is a success.
+    assert int(lierk.solve(p, lierk.RKMK4(), 200.0, dt=0.1, throw=False).result) == 0
+    # Under vmap each member gets its own code.
+    codes = jax.vmap(lambda s: lierk.solve(lierk.FreeRigidBody(TEE, s * w), lierk.RKMK4(), 2000.0, dt=2.0, throw=False).result)(
+        jnp.array([0.01, 1.0])
+    )
+    assert list(np.asarray(codes)) == [0, lierk.RESULTS.invariant_drift]
+
+
+def test_stiff_needle_is_solved_to_its_tolerance():
+    # RKF45 on I = (1e-6, 1, 1) at rtol 1e-6 once reached an error of 2.8 with success.
+    I = np.array([1e-6, 1.0, 1.0])
+    sol = lierk.solve(lierk.FreeRigidBody(I, OMEGA_GENERIC), lierk.RKF45(), 10.0, rtol=1e-6, max_steps=100000, throw=False)
+    assert int(sol.result) == 0
+    assert float(jnp.linalg.norm(sol.R[-1] - reference_R(np.diag(I), OMEGA_GENERIC, 10.0))) < 30 * 1e-6
+
+
+def test_nearly_singular_inertia_warns():
+    with pytest.warns(UserWarning, match="nearly singular"):
+        lierk.FreeRigidBody([1e-18, 1e-3, 1e-3], [0.3, 1.0, 0.5])
