@@ -361,7 +361,7 @@ def _flag_drift(problem, sol: Solution) -> Solution:
     q0 = problem.invariants(problem.R0, problem.y0)
     q = problem.invariants(sol.R, sol.y)
     scales = problem.invariant_scales()
-    worst = jnp.zeros(())
+    worst = jnp.zeros((), sol.R.dtype)
     for k in keys:
         d = jnp.abs(q[k] - q0[k]) / jnp.where(scales[k] > 0, scales[k], 1.0)
         # Padding rows are NaN; a non-finite run has its own code.

@@ -161,7 +161,8 @@ def test_fast_spin_fixed_steps_stay_on_so3(solver):
     a finite rotation.  The momentum-state default integrates Euler's
     equations far outside any explicit method's stability region, and must
     say so rather than return a number."""
-    sol = lierk.solve(lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20))
+    sol = lierk.solve(lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20), throw=False)
+    assert int(sol.result) in (lierk.RESULTS.successful, lierk.RESULTS.invariant_drift)
     R = np.asarray(sol.R)
     orth = float(np.asarray(sol.orthogonality_error).max())
     print(f"{solver.name}: max orth {orth:.2e}")

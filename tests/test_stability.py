@@ -18,8 +18,14 @@ R0_GENERIC = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
 @pytest.mark.parametrize("solver", [lierk.RKMK4(), lierk.LieEuler()], ids=lambda s: s.name)
 def test_lie_solvers_stay_on_so3_for_1e5_steps(solver):
     """10^5 steps of 0.01 s on the T-handle; the attitude is checked every 10^4 steps."""
-    sol = lierk.solve(lierk.FreeRigidBody(TEE, OMEGA_GENERIC), solver, 1000.0, dt=0.01, saveat=lierk.SaveAt(steps=10_000))
+    sol = lierk.solve(
+        lierk.FreeRigidBody(TEE, OMEGA_GENERIC), solver, 1000.0, dt=0.01, saveat=lierk.SaveAt(steps=10_000), throw=False
+    )
     assert sol.R.shape == (10, 3, 3) and int(sol.stats["num_steps"]) == 100_000
+    # First-order LieEuler lets |m| grow (explicit Euler on Euler's equations):
+    # over 1000 s that is reported; the attitude must stay a rotation regardless.
+    expected = lierk.RESULTS.invariant_drift if solver.order == 1 else lierk.RESULTS.successful
+    assert int(sol.result) == expected
     err = np.asarray(sol.orthogonality_error)
     print(f"{solver.name}: max ||R^T R - I|| over 1e5 steps = {err.max():.2e}")
     assert err.max() < 1e-12, err
@@ -88,9 +94,12 @@ def test_rotation_over_2pi_in_one_step(solver):
     """|omega| h = 8 rad (more than a turn) in one step: finite, on SO(3), and on a
     sphere still exact."""
     w = 8.0 * np.array([0.36, 0.48, 0.8])
-    sol = lierk.solve(lierk.FreeRigidBody(TEE, w), solver, 1.0, dt=1.0)
+    sol = lierk.solve(lierk.FreeRigidBody(TEE, w), solver, 1.0, dt=1.0, throw=False)
     R = np.asarray(sol.R[-1])
     assert np.all(np.isfinite(R)) and so3.orthogonality_error(R) < 1e-14 and np.linalg.det(R) > 0
+    # No accuracy at 8 rad per step on an asymmetric body, and the solve says so
+    # when its invariants show it.
+    assert int(sol.result) in (lierk.RESULTS.successful, lierk.RESULTS.invariant_drift)
     sol = lierk.solve(lierk.FreeRigidBody(np.eye(3), 2.5 * w), solver, 1.0, dt=1.0)  # 20 rad
     np.testing.assert_allclose(sol.R[-1], Rotation.from_rotvec(2.5 * w).as_matrix(), atol=1e-13)
 
@@ -146,8 +155,10 @@ def test_float32_stays_on_so3_for_1e4_steps(solver):
     on SO(3) to 1e-5 over 10^4 steps; RKMK4 also stays close to the float64 answer."""
     p = lierk.FreeRigidBody(TEE.astype(np.float32), OMEGA_GENERIC.astype(np.float32))
     assert p.R0.dtype == np.float32 and p.L.dtype == np.float32
-    sol = lierk.solve(p, solver, 100.0, dt=0.01, saveat=lierk.SaveAt(steps=1000))
+    sol = lierk.solve(p, solver, 100.0, dt=0.01, saveat=lierk.SaveAt(steps=1000), throw=False)
     assert sol.R.dtype == np.float32 and sol.ts.dtype == np.float32
+    # LieEuler's |m| grows by ~65% here (explicit Euler on Euler's equations): reported.
+    assert int(sol.result) == (lierk.RESULTS.invariant_drift if solver.order == 1 else lierk.RESULTS.successful)
     err = np.asarray(sol.orthogonality_error)
     print(f"{solver.name} float32: max ||R^T R - I|| = {err.max():.2e}")
     assert np.all(np.isfinite(err)) and err.max() < 1e-5, err
