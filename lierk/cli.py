@@ -9,21 +9,31 @@ is an application and picks its precision itself (the library never touches
 JAX's global configuration).  ``--devices N`` splits the CPU into N XLA
 devices (``--xla_force_host_platform_device_count``) for sharded sweeps; it
 must be set before JAX starts its backend, which is why only the command line
-may do it.
+may do it.  These options (and ``--quiet``) may come before or after the
+command: ``lierk --devices 2 sweep ...`` and ``lierk sweep ... --devices 2``.
 
 Mistakes in arguments or scene files end with one line on stderr and exit
-status 2; a failed integration exits with status 1.
+status 2; a failed integration exits with status 1.  No command prints a
+traceback.
+
+Outputs are all or nothing: ``--out`` is checked before anything runs, the
+files are written into a temporary directory beside it and moved into it only
+when all of them are complete, so a failed run leaves earlier outputs as
+they were.
 """
 
 from __future__ import annotations
 
 import argparse
-import dataclasses
+import contextlib
 import math
 import os
 import re
+import shutil
 import sys
+import tempfile
 import time
+import warnings
 from pathlib import Path
 
 from ._progress import Progress
@@ -31,6 +41,7 @@ from ._progress import Progress
 __all__ = ["main"]
 
 N_CHUNKS = 20
+_OUT_HELP = "output directory (created if missing); the files are moved into it only when all are written"
 
 
 class CLIError(Exception):
@@ -91,18 +102,26 @@ def parse_range(s: str) -> tuple[float, float, int]:
     return lo, hi, n
 
 
-def build_parser() -> argparse.ArgumentParser:
-    common = argparse.ArgumentParser(add_help=False)
-    g = common.add_argument_group("precision and devices")
-    g.add_argument("--float32", action="store_true", help="single precision (default: double)")
+def _add_common(parser: argparse.ArgumentParser, default) -> None:
+    """The options every command takes.  The top-level parser gives them their
+    defaults; the commands' copies default to ``argparse.SUPPRESS``, so an
+    option given before the command is not reset by the command's parser."""
+    g = parser.add_argument_group("precision and devices (before or after the command)")
+    g.add_argument("--float32", action="store_true", default=default(False), help="single precision (default: double)")
     g.add_argument(
         "--devices",
         type=_positive("--devices", int),
+        default=default(None),
         metavar="N",
         help="split the CPU into N XLA devices (sets XLA_FLAGS=--xla_force_host_platform_device_count=N); "
         "sweeps are sharded across devices",
     )
-    g.add_argument("--quiet", action="store_true", help="no progress bar on stderr")
+    g.add_argument("--quiet", action="store_true", default=default(False), help="no progress bar on stderr")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    common = argparse.ArgumentParser(add_help=False)
+    _add_common(common, lambda value: argparse.SUPPRESS)
 
     parser = _Parser(
         prog="lierk",
@@ -110,6 +129,7 @@ def build_parser() -> argparse.ArgumentParser:
         "Scenes are TOML files (see examples/ and lierk.scene for the format).",
         epilog="Run 'lierk COMMAND --help' for the options of one command.",
     )
+    _add_common(parser, lambda value: value)
     parser.add_argument("--version", action="version", version=f"lierk {_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
 
@@ -118,14 +138,17 @@ def build_parser() -> argparse.ArgumentParser:
         parents=[common],
         help="integrate a scene; write the trajectory, figures and an animation",
         description="Integrate SCENE.toml with the solver and step given in its [run] table, in chunks with a "
-        "progress bar, then write to DIR: <name>.npz (ts, R, y, omega, L, invariants), "
+        "progress bar, then write to DIR: <name>.npz (ts; R, the attitude, body -> space; y, the state besides "
+        "R, which for every scene, with or without effects, is the body angular momentum m = I omega in "
+        "kg m^2/s; omega, the body angular velocity; L = R m, the angular momentum in space; the invariants; "
+        "the inertia, omega0, R0 and t1), "
         "<name>_components.png (3x3 grid of R(t)), <name>_euler.png (Euler angles), "
         "<name>_invariants.png (relative drift of the conserved quantities) and "
         "<name>.gif (the body turning, with its axes and the angular momentum).",
         epilog="example: lierk simulate examples/tee_handle_a.toml --out out/a",
     )
     sim.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
-    sim.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    sim.add_argument("--out", type=Path, required=True, metavar="DIR", help=_OUT_HELP)
     sim.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
     sim.add_argument(
         "--target-error",
@@ -164,7 +187,7 @@ def build_parser() -> argparse.ArgumentParser:
         "example: lierk sweep examples/tee_handle_a.toml --omega-y -0.2:0.2:41 --omega-z -0.2:0.2:41 --out out",
     )
     sw.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
-    sw.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    sw.add_argument("--out", type=Path, required=True, metavar="DIR", help=_OUT_HELP)
     for c in "xyz":
         sw.add_argument(
             f"--omega-{c}",
@@ -207,7 +230,7 @@ def build_parser() -> argparse.ArgumentParser:
         epilog="example: lierk accuracy examples/heavy_top.toml --out out/accuracy",
     )
     acc.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
-    acc.add_argument("--out", type=Path, required=True, metavar="DIR", help="output directory (created if missing)")
+    acc.add_argument("--out", type=Path, required=True, metavar="DIR", help=_OUT_HELP)
     acc.add_argument("--t1", type=_positive("--t1"), metavar="T", help="end time in s (overrides [run] t1)")
     acc.add_argument(
         "--solvers",
@@ -265,15 +288,83 @@ def _configure(args) -> None:
 def _load(args):
     from . import scene as _scene
 
+    if args.scene.is_dir():
+        raise CLIError(f"scene file is a directory: {args.scene}")
     if not args.scene.is_file():
         raise CLIError(f"scene file not found: {args.scene}")
     try:
         scene = _scene.load(args.scene)
+        if args.t1 is not None:
+            scene = scene.with_t1(args.t1)
     except ValueError as e:
         raise CLIError(_one_line(e)) from None
-    if args.t1 is not None:
-        scene = dataclasses.replace(scene, t1=float(args.t1))
+    except OSError as e:
+        raise CLIError(f"cannot read the scene file {args.scene}: {e.strerror or e}") from None
+    if args.float32:
+        _check_single_precision(scene)
     return scene
+
+
+def _check_single_precision(scene) -> None:
+    """Times and tolerances must survive the cast to float32 (1e300 would become inf)."""
+    import numpy as np
+
+    info = np.finfo(np.float32)
+    tiny, big = float(info.tiny), float(info.max)
+    values = {"t1": scene.t1, **{k: v for k, v in scene.solve_kwargs.items() if k in ("dt", "rtol", "atol", "target_error")}}
+    for k, v in values.items():
+        if not tiny <= v <= big:
+            raise CLIError(
+                f"{'t1' if k == 't1' else 'run.' + k} = {v:g} is outside single precision's range "
+                f"({tiny:.2g} to {big:.2g}); drop --float32"
+            )
+
+
+def _check_out(out: Path) -> None:
+    """Fail before anything runs if ``--out`` cannot become a directory."""
+    if out.exists() and not out.is_dir():
+        raise CLIError(f"--out {out} exists and is not a directory")
+    p = out
+    while not p.exists() and p != p.parent:
+        p = p.parent
+    if not p.is_dir():
+        raise CLIError(f"--out {out}: {p} is not a directory")
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise CLIError(f"--out {out}: cannot write in {p}")
+
+
+@contextlib.contextmanager
+def _staged_output(out: Path):
+    """Yield a temporary directory to write the outputs into.  When the block
+    completes, its files are moved into ``out`` (created if missing),
+    replacing files of the same names; if it fails, ``out`` is left as it was
+    and the temporary directory is removed.
+
+    The temporary directory is on the same file system as ``out``, so the
+    moves are renames: inside ``out`` (a hidden ``.lierk-*.partial``) if it
+    exists, which `_check_out` found writable, else beside it."""
+    out = Path(os.path.realpath(out))
+    created = None  # the first directory this call creates, removed on failure
+    if out.exists():
+        where = out
+    else:
+        where = out.parent
+        p = where
+        while not p.exists():
+            created, p = p, p.parent
+        where.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=".lierk-", suffix=".partial", dir=where))
+    try:
+        yield tmp
+        out.mkdir(exist_ok=True)
+        for f in sorted(tmp.iterdir()):
+            os.replace(f, out / f.name)
+    except BaseException:
+        if created is not None:
+            shutil.rmtree(created, ignore_errors=True)
+        raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
 
 
 def _one_line(e: BaseException) -> str:
@@ -447,8 +538,6 @@ def simulate(args) -> int:
     drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
     orth = float(np.max(np.asarray(sol.orthogonality_error)))
 
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     stem = _key(scene.name) or "scene"
     data = {
         "ts": ts,
@@ -467,34 +556,43 @@ def simulate(args) -> int:
         data["y"] = y
     if sol.error_estimate is not None:
         data["error_estimate"] = np.asarray(sol.error_estimate)[: len(ts)]
-    npz = out / f"{stem}.npz"
-    np.savez(npz, **data)
 
     settings = f"{solver.name}, {_run_settings(scene, sol)}"
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
-    figures = {
-        "components": plot.components(sol, title),
-        "euler": plot.euler_angles(sol, title, degrees=args.degrees),
-        "invariants": plot.invariants(sol, problem, title),
-    }
-    paths = [npz]
-    for what, fig in figures.items():
-        path = out / f"{stem}_{what}.png"
-        fig.savefig(path, dpi=100)
-        paths.append(path)
-    if not args.no_gif:
-        gif = plot.animate(
-            sol,
-            scene.body_parts,
-            out / f"{stem}.gif",
-            L=L,
-            frames=args.frames,
-            fps=args.fps,
-            title=f"{scene.name} — {settings}",
-            inertia=problem.inertia,
-            origin=scene.fixed_point,
-        )
-        paths.append(gif)
+    with _staged_output(args.out) as tmp:
+        npz = tmp / f"{stem}.npz"
+        np.savez(npz, **data)
+        # Tops precess and nutate: their classical Z-X-Z angles show that apart
+        # from the spin, where Z-Y-X angles ramp with it.
+        from .effects import Gravity
+
+        convention = "zxz" if any(isinstance(e, Gravity) for e in getattr(problem, "effects", ())) else "zyx"
+        flip = _flip_interval(problem)
+        flips = np.arange(flip, float(scene.t1), flip) if flip is not None and np.isfinite(flip) else None
+        figures = {
+            "components": plot.components(sol, title, flips=flips),
+            "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=convention),
+            "invariants": plot.invariants(sol, problem, title),
+        }
+        paths = [npz]
+        for what, fig in figures.items():
+            path = tmp / f"{stem}_{what}.png"
+            fig.savefig(path, dpi=100)
+            paths.append(path)
+        if not args.no_gif:
+            gif = plot.animate(
+                sol,
+                scene.body_parts,
+                tmp / f"{stem}.gif",
+                L=L,
+                frames=args.frames,
+                fps=args.fps,
+                title=f"{scene.name} — {settings}",
+                inertia=problem.inertia,
+                origin=scene.fixed_point,
+            )
+            paths.append(Path(gif))
+    paths = [args.out / p.name for p in paths]
 
     st = sol.stats
     print(f"scene {scene.name}" + (f": {scene.description}" if scene.description else ""))
@@ -516,8 +614,11 @@ def simulate(args) -> int:
         print(f"  max relative change of {k}: {v:.2e}{note}")
     print(f"  max ||R^T R - I||: {orth:.2e}")
     flip = _flip_interval(problem)
-    if flip is not None and math.isfinite(flip):
-        print(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
+    if flip is not None:
+        if math.isfinite(flip):
+            print(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
+        else:
+            print("  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
     print("wrote:")
     for p in paths:
         print(f"  {p}")
@@ -525,6 +626,8 @@ def simulate(args) -> int:
 
 
 def _flip_interval(problem):
+    """`lierk.exact.flip_interval` of a torque-free body (``inf``: it never
+    flips), else None."""
     from .rigid_body import FreeRigidBody
 
     if not isinstance(problem, FreeRigidBody):
@@ -629,16 +732,15 @@ def sweep(args) -> int:
     for k in res:
         res[k] = np.where(failed, np.nan, res[k]) if k != "flip_interval" else res[k]
 
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
     stem = _key(scene.name) or "scene"
     names = [f"omega0_{'xyz'[k]}" for k in varied]
-    npz = out / f"{stem}_sweep.npz"
-    np.savez(npz, **{n: axes[k] for n, k in zip(names, varied)}, omega0=grid.reshape(*shape, 3), t1=t1, **res)
     title = f"{scene.name}: sweep of $\\omega_0$, T = {t1:g} s\n{solver.name}, {_run_settings(scene)}"
-    fig = _sweep_figure(res, [axes[k] for k in varied], varied, omega0, title)
-    png = out / f"{stem}_sweep.png"
-    fig.savefig(png, dpi=100)
+    with _staged_output(args.out) as tmp:
+        np.savez(tmp / f"{stem}_sweep.npz", **{n: axes[k] for n, k in zip(names, varied)},
+                 omega0=grid.reshape(*shape, 3), t1=t1, **res)
+        fig = _sweep_figure(res, [axes[k] for k in varied], varied, omega0, title)
+        fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
+    npz, png = args.out / f"{stem}_sweep.npz", args.out / f"{stem}_sweep.png"
 
     print(f"scene {scene.name}: {len(grid)} initial angular velocities ({' x '.join(map(str, shape))}), "
           f"{solver.name}, {_run_settings(scene)}, T = {t1:g} s, {wall:.2f} s wall (incl. compilation)")
@@ -689,18 +791,34 @@ def _sweep_figure(res, axes, varied, omega0, title):
     for ax, (key, label, log) in zip(axs, panels):
         v = np.asarray(res[key], dtype=float)
         finite = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
-        norm = LogNorm(finite.min(), finite.max()) if log and finite.size and finite.min() < finite.max() else None
+        # Robust colour limits: one extreme cell (the sensitivity is ~1e16 at an
+        # exact equilibrium) must not turn the rest of the map one colour.
+        # Cells beyond the 1st/99th percentiles are clipped and outlined.
+        lo, hi = (
+            (np.percentile(finite, 1, method="higher"), np.percentile(finite, 99, method="lower"))
+            if finite.size
+            else (None, None)
+        )
+        norm = LogNorm(lo, hi) if log and finite.size and lo < hi else None
         masked = np.ma.masked_invalid(np.where(v > 0, v, np.nan) if log else v)
         cmap = "viridis" if key != "sensitivity" else "magma"
-        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap)
+        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap,
+                           **({} if log or lo is None or not lo < hi else dict(vmin=lo, vmax=hi)))
         im.cmap = im.cmap.with_extremes(bad="0.75")
+        if lo is not None and lo < hi:
+            clipped = np.isfinite(v) & ((v > hi) | (v < lo))
+            if clipped.any():
+                xx, yy = np.meshgrid(x, y, indexing="ij")
+                ax.plot(xx[clipped], yy[clipped], "s", ms=5, mfc="none", mec="c", mew=0.8,
+                        label=f"clipped ({int(clipped.sum())} cells)")
+                ax.legend(loc="upper right", fontsize=6)
         ax.plot([omega0[varied[0]]], [omega0[varied[1]]], "w+", ms=10, mew=2, label="scene's $\\omega_0$")
         ax.set_xlabel(labels[0])
         ax.set_ylabel(labels[1])
         ax.set_aspect("equal" if np.ptp(x) and 0.33 < np.ptp(y) / np.ptp(x) < 3 else "auto")
         fig.colorbar(im, ax=ax, label=label, shrink=0.85)
         if key == "flip_interval" and not np.isfinite(v).all():
-            ax.text(0.02, 0.98, "grey: no flip (permanent rotation or separatrix)", transform=ax.transAxes,
+            ax.text(0.02, 0.98, "grey: no flip (lierk.exact.flip_interval)", transform=ax.transAxes,
                     fontsize=7, va="top", color="k", bbox=dict(fc="w", alpha=0.7, lw=0))
     axs[0].legend(loc="lower right", fontsize=7)
     return fig
@@ -721,11 +839,10 @@ def accuracy(args) -> int:
     )
     wall = time.perf_counter() - start
 
-    out = args.out
-    out.mkdir(parents=True, exist_ok=True)
-    png, js = out / "work_precision.png", out / "work_precision.json"
-    _accuracy.figure(report).savefig(png, dpi=100)
-    js.write_text(_accuracy.to_json(report) + "\n")
+    with _staged_output(args.out) as tmp:
+        _accuracy.figure(report).savefig(tmp / "work_precision.png", dpi=100)
+        (tmp / "work_precision.json").write_text(_accuracy.to_json(report) + "\n")
+    png, js = args.out / "work_precision.png", args.out / "work_precision.json"
 
     print(
         f"scene {report.scene}: {len(report.rows)} runs of {', '.join(report.solvers)}, T = {report.t1:g} s, "
@@ -779,7 +896,16 @@ def main(argv=None) -> int:
         print("lierk: error: a command is required: simulate, sweep or accuracy (see lierk --help)", file=sys.stderr)
         return 2
     prog = f"lierk {args.command}"
+    with warnings.catch_warnings():
+        warnings.showwarning = lambda message, *a, **k: print(
+            f"{prog}: warning: {' '.join(str(message).split())}", file=sys.stderr
+        )
+        return _dispatch(args, prog)
+
+
+def _dispatch(args, prog: str) -> int:
     try:
+        _check_out(args.out)
         _configure(args)
         import jax
 
@@ -799,6 +925,9 @@ def main(argv=None) -> int:
     except (ValueError, OSError, RuntimeError) as e:
         # eqx.error_if messages carry a long explanation after the first line.
         print(f"{prog}: error: {_one_line(e)}", file=sys.stderr)
+        return 1
+    except Exception as e:  # a bug: still one line, naming the exception
+        print(f"{prog}: error: {type(e).__name__}: {_one_line(e)} (unexpected; please report it)", file=sys.stderr)
         return 1
 
 

@@ -42,6 +42,13 @@ integral has no pole.  All elliptic functions and integrals are evaluated by
 :mod:`lierk._elliptic` with ``1 - k^2`` computed directly from the momentum
 (no cancellation near the separatrix).
 
+Inputs are validated as `lierk.FreeRigidBody` validates them
+(`lierk.fields.rigid_body_state`): the inertia is ``(3, 3)`` symmetric
+positive definite or ``(3,)`` principal moments, ``omega0`` is a finite
+``(3,)`` vector and ``R0`` a rotation matrix.  Concrete values raise
+`ValueError` naming the value; traced values (under ``jit``/``vmap``/``grad``)
+are checked when the program runs, with `eqx.error_if`.
+
 Branches use ``jnp.where`` with sanitised inputs on both sides ("double
 where"), so everything jits, vmaps and differentiates with respect to
 ``omega0``, ``t`` and ``R0``.  Known limitations of the derivatives: at exact
@@ -66,7 +73,8 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from lierk import so3
-from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, elliprf
+from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
+from lierk.fields import rigid_body_state
 
 __all__ = ["free_rigid_body", "flip_interval", "sphere", "principal_frame"]
 
@@ -100,19 +108,28 @@ def principal_frame(inertia: ArrayLike) -> tuple[Array, Array]:
     return evals, V
 
 
-def _working_constants(inertia: ArrayLike, omega0: ArrayLike):
-    """Everything about the motion that does not depend on time.
+def _validated(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
+    """``(inertia (3, 3), omega0 (3,), R0 (3, 3))`` checked and in one float
+    dtype, as `lierk.FreeRigidBody` checks them.  Traced values come back
+    wrapped in their run-time checks, so callers must compute with the
+    returned arrays (XLA drops a check whose result is unused)."""
+    inertia, _, omega0, R0 = rigid_body_state(inertia, omega0, R0)
+    return inertia, omega0, R0
+
+
+def _working_constants(inertia: Array, omega0: Array):
+    """Everything about the motion that does not depend on time, from an
+    inertia ``(3, 3)`` and ``omega0`` that `_validated` has checked.
 
     Returns a dict with the working-frame rotation ``W`` (body = W working),
     inertias ``J``, initial momentum ``x, y, z`` (working frame), amplitudes
     ``A1, A2, A3``, ``lam``, ``k2 = k^2``, ``k2c = 1 - k^2``, the ratio
-    ``r = (J3 - J2)/(J3 - J1)`` in ``[0, 1]``, ``Qv = (G^2 - 2T J1)/(J3 - J1)``,
+    ``r = (J3 - J2)/(J3 - J1)`` in ``[0, 1]``, ``P = (2T J3 - G^2)/(J3 - J1)``,
+    ``Qv = (G^2 - 2T J1)/(J3 - J1)``, ``d = (G^2 - 2T J2)/(J3 - J1)``,
     ``G``, ``2T`` and the masks ``sep`` (separatrix) and ``stat`` (permanent
     rotation, ``m`` constant).
     """
-    dtype = _dtype(inertia, omega0)
-    inertia = jnp.asarray(inertia, dtype=dtype)
-    omega0 = jnp.asarray(omega0, dtype=dtype)
+    dtype = inertia.dtype
     Ip, V = principal_frame(inertia)
     mp = V.T @ (inertia @ omega0)
 
@@ -167,7 +184,7 @@ def _working_constants(inertia: ArrayLike, omega0: ArrayLike):
     lam = sgn * jnp.abs(J3 - J1) * _safe_sqrt(rQ / (J1 * J2 * J3))
     return dict(
         W=Wt.T, J=J, x=x, y=y, z=z, A1=A1, A2=A2, A3=A3, lam=lam, k2=k2, k2c=k2c,
-        r=r, Qv=Qv, G=_safe_sqrt(G2), twoT=twoT, sep=sep, stat=stat, dtype=dtype,
+        r=r, P=P, Qv=Qv, d=d, G=_safe_sqrt(G2), twoT=twoT, sep=sep, stat=stat, dtype=dtype,
     )
 
 
@@ -196,9 +213,9 @@ def free_rigid_body(
 
     Args:
         inertia: symmetric positive-definite inertia tensor in body coordinates,
-            ``(3, 3)`` (kg m^2); need not be diagonal.  Symmetric bodies and the
-            sphere are allowed.
-        omega0: initial body angular velocity, ``(3,)`` (rad/s).
+            ``(3, 3)`` (kg m^2), need not be diagonal; or ``(3,)`` principal
+            moments.  Symmetric bodies and the sphere are allowed.
+        omega0: initial body angular velocity, ``(3,)`` (rad/s), finite.
         t: time(s) (s), scalar or any shape ``S``.
         R0: initial attitude, ``(3, 3)`` rotation (body -> space); identity if
             ``None``.
@@ -217,14 +234,19 @@ def free_rigid_body(
         for the non-smooth exceptional sets).  float64 accuracy is ~1e-12 over
         100 periods of ``m`` (limited by the rounding of the phase ``lambda t``).
 
+    Raises:
+        ValueError: a wrong shape, NaN/inf, a non-symmetric or indefinite
+            inertia, or an ``R0`` off SO(3) (checked at run time with
+            `eqx.error_if` when traced).
+
     References:
         Celledoni, Fasso, Safstrom, Zanna, SIAM J. Sci. Comput. 30 (2008);
         Landau & Lifshitz, "Mechanics", section 37.
     """
+    inertia, omega0, R0 = _validated(inertia, omega0, R0)
     c = _working_constants(inertia, omega0)
     dtype = c["dtype"]
     t = jnp.asarray(t, dtype=dtype)
-    R0 = jnp.eye(3, dtype=dtype) if R0 is None else jnp.asarray(R0, dtype=dtype)
     J, W = c["J"], c["W"]
     J1, J2, J3 = J[0], J[1], J[2]
     x, y, z = c["x"], c["y"], c["z"]
@@ -295,30 +317,61 @@ def free_rigid_body(
 
 
 def flip_interval(inertia: ArrayLike, omega0: ArrayLike) -> Array:
-    """Time between successive sign changes of the intermediate-axis component
-    of the body angular velocity: ``2 K(k) / |lambda|``, half the period of
-    ``m(t)`` (s).
+    """Time between successive Dzhanibekov flips (s), or ``inf`` if the body
+    never flips.
+
+    What a flip is.  Let ``I1 < I2 < I3`` be the principal moments and ``m``
+    the body angular momentum; the body axis closest to the fixed spatial
+    momentum ``L`` is the signed principal axis ``+-e_i`` with the largest
+    ``|m_i|``.  A flip is a reversal of the intermediate axis ``e2`` with
+    respect to ``L``: ``e2`` is the axis closest to ``L`` (``|m2| > |m1|``
+    and ``|m2| > |m3|``), and later ``-e2`` is.  Between the two, ``m2``
+    changes sign once.
+
+    Whether a body flips is a property of its orbit on the momentum sphere.
+    Every orbit circulates around the smallest or the largest axis, and on
+    every one ``m2`` oscillates; the orbit flips if and only if at the peak of
+    that oscillation, where ``|m2|`` is largest and the other oscillating
+    component is zero, ``|m2|`` exceeds the circulation axis's component:
+    ``max_t m2^2 > |m|^2/2``, the orbit comes within 45 degrees of the
+    intermediate axis.  Then flips recur every half period of ``m(t)``,
+    ``2 K(k)/|lambda|``, which is also the time between successive sign
+    changes of ``m2``.  Orbits near the smallest or the largest axis, on
+    which ``e2`` never gets closest to ``L``, do not flip (``inf``), although
+    ``m2`` still oscillates about zero.  Also ``inf``: a steady rotation
+    about any principal axis, the separatrix (its one reversal takes
+    infinitely long), a body with two equal moments (no distinct
+    intermediate axis; the sphere too) and ``omega0 = 0``.
 
     Args:
-        inertia: inertia tensor ``(3, 3)`` (kg m^2), symmetric positive definite.
-        omega0: initial body angular velocity ``(3,)`` (rad/s).
+        inertia: ``(3, 3)`` symmetric positive definite, or ``(3,)`` principal
+            moments (kg m^2).
+        omega0: initial body angular velocity ``(3,)`` (rad/s), finite.
 
     Returns:
-        Scalar: the flip interval (s); ``inf`` on the separatrix and for
-        permanent rotations (no flip).  Note that away from the intermediate
-        axis the intermediate component still changes sign every
-        ``2K/|lambda|`` (it oscillates), which is what this returns.
+        Scalar: the flip interval (s), or ``inf``.
+
+    Raises:
+        ValueError: invalid inertia or ``omega0``, as for `free_rigid_body`.
+
+    Example:
+        >>> flip_interval(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])  # about 23.63 s
+        >>> flip_interval(lierk.inertia.tee_handle(), [0.05, 0.0, 1.0])  # inf: near the largest axis
 
     References:
         Landau & Lifshitz, "Mechanics", section 37 (period ``4K/lambda``).
     """
+    inertia, omega0, _ = _validated(inertia, omega0)
     c = _working_constants(inertia, omega0)
-    from lierk._elliptic import ellipk
-
+    J = c["J"]
     regular = ~(c["stat"] | c["sep"])
-    K = ellipk(jnp.where(regular, c["k2"], 0.5), jnp.where(regular, c["k2c"], 0.5))
-    lam = jnp.where(regular, jnp.abs(c["lam"]), 1.0)
-    return jnp.where(regular, 2.0 * K / lam, jnp.inf)
+    # In the working frame (circulation about e3, J2 the intermediate moment)
+    # m2^2 peaks at A2^2 = J2 P/r, where m1 = 0 and m3^2 = A3^2 k'^2 = J3 d/r:
+    # e2 is ever closest to L iff J2 P > J3 d.
+    flips = regular & (J[0] != J[1]) & (J[1] != J[2]) & (J[1] * c["P"] > J[2] * c["d"])
+    K = ellipk(jnp.where(flips, c["k2"], 0.5), jnp.where(flips, c["k2c"], 0.5))
+    lam = jnp.where(flips, jnp.abs(c["lam"]), 1.0)
+    return jnp.where(flips, 2.0 * K / lam, jnp.inf)
 
 
 def sphere(omega0: ArrayLike, t: ArrayLike, R0: ArrayLike | None = None) -> tuple[Array, Array]:

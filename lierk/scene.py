@@ -67,7 +67,10 @@ centre of mass.  `Scene.fixed_point` is that point in the body frame, which is
 where a drawing of `Scene.body_parts` is pinned.
 
 Every mistake raises `ValueError` before anything runs, naming the key (as a
-path such as ``effects[1].kind``), the value and what is allowed.
+path such as ``effects[1].kind``), the value and what is allowed.  That
+includes runs too large to attempt (more than `MAX_STEPS` fixed steps, more
+than `MAX_SAVED` saved states) and a body whose initial momentum, energy or
+inverse inertia overflows.
 
 Example:
     >>> scene = lierk.scene.load("examples/heavy_top.toml")
@@ -114,6 +117,14 @@ SOLVERS: dict[str, type] = {
 """Solver names a scene may use, to their classes."""
 
 _DEFAULT_N_SAVE = 1001
+
+MAX_STEPS = 2**31 - 1
+"""The most steps a scene may ask for: fixed steps ``t1/dt``, and
+``run.max_steps``.  Solvers count steps in 32-bit integers."""
+
+MAX_SAVED = 10**7
+"""The most states a scene may save (``run.n_save``, or ``t1/dt`` over
+``run.save_every``): 10^7 states are about 1 GB in memory and on disk."""
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -201,6 +212,18 @@ class Scene:
             n_save = max(2, 1 + n // self.saveat_every + (1 if n % self.saveat_every else 0))
         return dataclasses.replace(self, solve_kwargs=kw, saveat_every=None, n_save=n_save)
 
+    def with_t1(self, t1: float) -> "Scene":
+        """This scene run to end time ``t1`` (s) instead, checked as ``run.t1`` is.
+
+        Raises:
+            ValueError: ``t1`` is not a finite number > 0, or the run would
+                take more than `MAX_STEPS` fixed steps or save more than
+                `MAX_SAVED` states.
+        """
+        t1 = _number(t1, "t1", positive=True)
+        _check_run_size(t1, self.solve_kwargs, self.saveat_every, "t1")
+        return dataclasses.replace(self, t1=t1)
+
     def solve(self, **overrides) -> Solution:
         """``lierk.solve(problem, solver, t1, saveat=self.saveat(), **solve_kwargs)``;
         keyword ``overrides`` replace entries (e.g. ``throw=False``)."""
@@ -210,23 +233,35 @@ class Scene:
 
 def load(path: str | os.PathLike) -> Scene:
     """Read a scene from a TOML file.  Raises `ValueError` if it is not valid
-    TOML or not a valid scene (the message names the file)."""
+    TOML (or not UTF-8) or not a valid scene (the message names the file),
+    and `OSError` if it cannot be read."""
     path = os.fspath(path)
     with open(path, "rb") as f:
         try:
             d = tomllib.load(f)
         except tomllib.TOMLDecodeError as e:
             raise ValueError(f"{path}: not valid TOML: {e}") from None
+        except UnicodeDecodeError as e:
+            raise ValueError(
+                f"{path}: not valid TOML: not UTF-8 text (byte {e.object[e.start:e.start + 1].hex()} at offset {e.start})"
+            ) from None
     stem = os.path.splitext(os.path.basename(path))[0]
     try:
         return from_dict(d, name=stem)
     except ValueError as e:
-        raise ValueError(f"{path}: {e}") from None
+        # One line: arrays in messages (np.array2string) span several.
+        raise ValueError(f"{path}: {' '.join(str(e).split())}") from None
 
 
 def from_dict(d: dict, name: str = "scene") -> Scene:
     """Build a scene from a parsed TOML document (a dict); ``d["name"]``, if
     present, overrides ``name``."""
+    # Overflows are reported as errors below, not as NumPy warnings.
+    with np.errstate(all="ignore"):
+        return _from_dict(d, name)
+
+
+def _from_dict(d: dict, name: str) -> Scene:
     _table(d, "scene", {"name", "description", "body", "initial", "effects", "run"}, required={"body", "initial", "run"})
     name = _string(d.get("name", name), "name")
     description = _string(d.get("description", ""), "description")
@@ -239,16 +274,24 @@ def from_dict(d: dict, name: str = "scene") -> Scene:
     solver, t1, solve_kwargs, every, n_save = _run(d["run"])
 
     if not effects:
-        problem = FreeRigidBody(body.inertia, omega0, R0)
+        inertia = body.inertia
         fixed_point = body.com
     elif pivot_to_com is not None:
         mass = body.mass if body.mass is not None else float(next(e for e in effects if isinstance(e, Gravity)).mass)
-        inertia = _inertia.parallel_axis(body.inertia, mass, pivot_to_com)
-        problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
+        inertia = np.asarray(_inertia.parallel_axis(body.inertia, mass, pivot_to_com), dtype=float)
         fixed_point = body.com - pivot_to_com
     else:
-        problem = RigidBodyWithEffects(body.inertia, omega0, R0, effects)
+        inertia = body.inertia
         fixed_point = body.com
+    _check_state(inertia, omega0, "body" if pivot_to_com is None else "body about the gravity pivot")
+    # In JAX's default float type (float32 unless x64 is on), so that building
+    # the problem does not ask JAX for float64 it would truncate, with a warning.
+    dtype = jnp.result_type(float)
+    inertia, omega0, R0 = (np.asarray(a, dtype=dtype) for a in (inertia, omega0, R0))
+    if not effects:
+        problem = FreeRigidBody(inertia, omega0, R0)
+    else:
+        problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
     return Scene(
         name=name,
         problem=problem,
@@ -301,10 +344,40 @@ def _number(x, path: str, *, positive: bool = False, nonnegative: bool = False) 
     return float(x)
 
 
-def _int(x, path: str) -> int:
+def _int(x, path: str, *, most: int = MAX_STEPS) -> int:
     if isinstance(x, bool) or not isinstance(x, int) or x < 1:
         raise ValueError(f"{path} must be a positive integer, got {x!r}")
+    if x > most:
+        raise ValueError(f"{path} must be at most {most}, got {x!r}")
     return x
+
+
+def _check_state(inertia: np.ndarray, omega0: np.ndarray, what: str) -> None:
+    """The body's inverse inertia, initial momentum and energy must be finite
+    (a body of 1e-320 kg m^2, or 1e200 kg m^2 spinning at 1e200 rad/s, is not)."""
+    inertia = np.asarray(inertia, dtype=float)
+    with np.errstate(all="ignore"):
+        finite = np.isfinite(inertia).all()
+        try:
+            inv = np.linalg.inv(inertia)
+        except np.linalg.LinAlgError:
+            inv = np.full((3, 3), np.inf)
+        m = inertia @ omega0
+        energy = 0.5 * float(omega0 @ m)
+    if not finite:
+        raise ValueError(f"{what}: the inertia is not finite (too large, or a mass or size too small): {_show(inertia)}")
+    if not np.isfinite(inv).all():
+        raise ValueError(f"{what}: the inertia {_show(inertia)} kg m^2 is singular or too small to invert")
+    if not (np.isfinite(m).all() and math.isfinite(energy)):
+        raise ValueError(
+            f"{what}: the initial momentum I omega overflows (inertia {_show(inertia)} kg m^2, "
+            f"omega {_show(omega0)} rad/s)"
+        )
+
+
+def _show(x) -> str:
+    """An array on one line."""
+    return " ".join(np.array2string(np.asarray(x), precision=4, separator=", ").split())
 
 
 def _vec(x, path: str, n: int = 3) -> np.ndarray:
@@ -521,6 +594,7 @@ def _run(t):
                 raise ValueError(f"run.{k} applies to adaptive runs (rtol=), not to a fixed step dt = {t['dt']!r}")
         dt = _number(t["dt"], "run.dt", positive=True)
         every = _int(t.get("save_every", 1), "run.save_every")
+        _check_run_size(t1, {"dt": dt}, every, "run.t1")
         return solver, t1, {"dt": dt}, every, None
     if "target_error" in t:
         if "atol" in t:
@@ -532,7 +606,8 @@ def _run(t):
         kw = {"target_error": _number(t["target_error"], "run.target_error", positive=True)}
     else:
         if not solver.adaptive:
-            adaptive = [n for n, c in SOLVERS.items() if c.adaptive]
+            # `adaptive` is a property on RKMK-family classes: ask instances.
+            adaptive = [n for n, c in SOLVERS.items() if c().adaptive]
             raise ValueError(
                 f"run.solver = {s!r} has no error estimate, so it needs run.dt (or run.target_error); "
                 f"adaptive solvers (for rtol): {', '.join(adaptive)}"
@@ -543,7 +618,26 @@ def _run(t):
         kw = {"rtol": rtol, "atol": _number(t.get("atol", rtol), "run.atol", positive=True)}
     if "max_steps" in t:
         kw["max_steps"] = _int(t["max_steps"], "run.max_steps")
-    n_save = _int(t.get("n_save", _DEFAULT_N_SAVE), "run.n_save")
+    n_save = _int(t.get("n_save", _DEFAULT_N_SAVE), "run.n_save", most=MAX_SAVED)
     if n_save < 2:
         raise ValueError(f"run.n_save must be >= 2 (it includes t = 0 and t1), got {n_save}")
     return solver, t1, kw, None, n_save
+
+
+def _check_run_size(t1: float, kw: dict, every: int | None, t1_name: str) -> None:
+    """A fixed-step run may take at most `MAX_STEPS` steps and save at most
+    `MAX_SAVED` states (adaptive runs: ``n_save`` is bounded where it is read)."""
+    if "dt" not in kw:
+        return
+    dt = kw["dt"]
+    steps = t1 / dt  # inf when it overflows (dt = 1e-320)
+    if not steps <= MAX_STEPS:
+        raise ValueError(
+            f"{t1_name} / run.dt = {t1!r} s / {dt!r} s is {steps:.3g} steps, more than a run may take "
+            f"({MAX_STEPS}): raise run.dt or lower {t1_name}"
+        )
+    if steps / every > MAX_SAVED:
+        raise ValueError(
+            f"saving every {every} of {steps:.3g} steps keeps {steps / every:.3g} states, more than a run may save "
+            f"({MAX_SAVED:g}): raise run.save_every"
+        )

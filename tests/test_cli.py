@@ -76,6 +76,7 @@ n_save = 5
 """
 
 LIERK = str(Path(sys.executable).parent / "lierk")
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
 
 def write(tmp_path, text, name="scene.toml"):
@@ -154,6 +155,15 @@ def test_progress_reports_quarters_off_a_terminal():
          "target_error = 1e-30 was not reached"),
         (["sweep", "{target}", "--out", "{out}", "--omega-y", "0:0.1:2"], 2,
          "sweep needs a scene with run.dt or run.rtol"),
+        # These used to end in tracebacks (OverflowError) or run for ever.
+        (["simulate", "{tiny_dt}", "--out", "{out}"], 2, "is inf steps, more than a run may take"),
+        (["simulate", "{huge_t1}", "--out", "{out}"], 2, "is 1e+302 steps, more than a run may take"),
+        (["simulate", "{scene}", "--out", "{out}", "--t1", "1e300"], 2, "is 1e+302 steps, more than a run may take"),
+        (["sweep", "{scene}", "--out", "{out}", "--t1", "1e300", "--omega-y", "0:0.1:2"], 2, "more than a run may take"),
+        (["simulate", "{huge_t1_adaptive}", "--out", "{out}", "--float32"], 2, "outside single precision's range"),
+        (["simulate", "{scene}", "--out", "{a_file}"], 2, "exists and is not a directory"),
+        (["simulate", "{scene}", "--out", "{below_a_file}"], 2, "is not a directory"),
+        (["simulate", "{scene_dir}", "--out", "{out}"], 2, "scene file is a directory"),
     ],
 )
 def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
@@ -170,6 +180,12 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
                         "target.toml"),
         "unreachable": write(tmp_path, SMALL_TARGET_SCENE.replace("target_error = 1e-10", "target_error = 1e-30"),
                              "unreachable.toml"),
+        "tiny_dt": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "dt = 1e-320"), "tiny_dt.toml"),
+        "huge_t1": write(tmp_path, TEE_SCENE.replace("t1 = 100.0", "t1 = 1e300"), "huge_t1.toml"),
+        "huge_t1_adaptive": write(tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300"), "huge_adaptive.toml"),
+        "a_file": write(tmp_path, "", "a_file"),
+        "below_a_file": tmp_path / "a_file" / "out",
+        "scene_dir": tmp_path,
         "out": tmp_path / "out",
     }
     argv = [a.format(**files) for a in argv]
@@ -178,6 +194,80 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
     assert len(err.strip().splitlines()) == 1, err
     assert message in err
     assert "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+    assert not list(tmp_path.glob(".*partial"))
+
+
+def test_out_that_is_a_file_fails_before_anything_runs(tmp_path, capsys, monkeypatch):
+    # It used to be found only when writing, after the whole integration.
+    monkeypatch.setattr(cli, "integrate", lambda *a, **k: pytest.fail("integrated before checking --out"))
+    monkeypatch.setattr(lierk.scene, "load", lambda *a, **k: pytest.fail("loaded before checking --out"))
+    target = write(tmp_path, "old contents", "results")
+    code, out, err = run_inprocess(["simulate", write(tmp_path, TEE_SCENE), "--out", target], capsys)
+    assert code == 2 and err == f"lierk simulate: error: --out {target} exists and is not a directory\n"
+    assert target.read_text() == "old contents"
+
+
+def test_a_run_that_fails_while_writing_leaves_the_old_outputs(tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    out.mkdir()
+    names = ["tee_test.npz", "tee_test_components.png", "tee_test_euler.png", "tee_test_invariants.png"]
+    for n in names:
+        (out / n).write_bytes(b"old " + n.encode())
+    (out / "unrelated.txt").write_text("kept")
+
+    def disk_full(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    # The .npz and the first figure are written by then: they used to replace the old ones.
+    monkeypatch.setattr(plot, "euler_angles", disk_full)
+    argv = ["simulate", write(tmp_path, TEE_SCENE), "--out", out, "--t1", "0.05", "--no-gif", "--quiet"]
+    code, stdout, err = run_inprocess(argv, capsys)
+    assert code == 1 and err.strip().splitlines() == ["lierk simulate: error: [Errno 28] No space left on device"]
+    for n in names:
+        assert (out / n).read_bytes() == b"old " + n.encode()
+    assert sorted(p.name for p in out.iterdir()) == sorted([*names, "unrelated.txt"])
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []  # nor beside it
+
+    # A failure under a --out that did not exist leaves nothing behind either.
+    fresh = tmp_path / "new" / "deeper"
+    code, stdout, err = run_inprocess([*argv[:3], fresh, *argv[4:]], capsys)
+    assert code == 1 and not (tmp_path / "new").exists()
+
+
+def test_unexpected_exceptions_are_one_line(tmp_path, capsys, monkeypatch):
+    def bug(*args, **kwargs):
+        raise ZeroDivisionError("float division by zero")
+
+    monkeypatch.setattr(cli, "integrate", bug)
+    code, out, err = run_inprocess(["simulate", write(tmp_path, TEE_SCENE), "--out", tmp_path / "out"], capsys)
+    assert code == 1
+    assert err.splitlines() == [
+        "lierk simulate: error: ZeroDivisionError: float division by zero (unexpected; please report it)"
+    ]
+
+
+def test_a_step_longer_than_the_run_is_one_step(tmp_path, capsys):
+    # dt = 1e12 > t1 used to end in an AttributeError traceback.
+    text = TEE_SCENE.replace("dt = 0.01", "dt = 1e12").replace("t1 = 100.0", "t1 = 0.5")
+    out = tmp_path / "out"
+    code, stdout, err = run_inprocess(["simulate", write(tmp_path, text), "--out", out, "--no-gif", "--quiet"], capsys)
+    assert code == 0, err
+    data = _npz(out / "tee_test.npz")
+    np.testing.assert_array_equal(data["ts"], [0.0, 0.5])
+    assert "1 steps" in stdout
+
+
+@pytest.mark.parametrize("letter, flips", [("a", True), ("b", False), ("c", False)])
+def test_flip_interval_only_for_scenes_that_flip(tmp_path, capsys, letter, flips):
+    # tee_handle_b and _c spin near the smallest and largest axes ("stable"):
+    # they used to print a finite flip interval.
+    argv = ["simulate", EXAMPLES / f"tee_handle_{letter}.toml", "--out", tmp_path, "--t1", "0.02", "--chunks", "1",
+            "--no-gif", "--quiet"]
+    code, out, err = run_inprocess(argv, capsys)
+    assert code == 0, err
+    assert ("intermediate-axis flip interval (exact): 23.631 s" in out) == flips
+    assert ("no flip of the intermediate axis" in out) == (not flips)
 
 
 def test_console_script_errors_without_traceback(tmp_path):
@@ -192,7 +282,8 @@ def test_console_script_errors_without_traceback(tmp_path):
     "argv, words",
     [
         ([], ["simulate", "sweep", "accuracy"]),
-        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif", "--target-error"]),
+        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif", "--target-error",
+                        "body angular momentum m = I omega", "with or without effects"]),
         (["accuracy"], ["SCENE.toml", "--out", "--solvers", "--max-settings", "--quick", "work_precision.png"]),
         (["sweep"], ["--omega-x", "START:STOP:N", "--grid", "--span", "flip interval", "--chunk-size"]),
     ],
@@ -200,8 +291,33 @@ def test_console_script_errors_without_traceback(tmp_path):
 def test_help(capsys, argv, words):
     code, out, err = run_inprocess([*argv, "--help"], capsys)
     assert code == 0
+    out = " ".join(out.split())  # argparse wraps lines
     for w in words:
         assert w in out
+
+
+@pytest.mark.parametrize("before", [True, False])
+def test_common_options_before_or_after_the_command(tmp_path, before):
+    # The README's "lierk --devices 2 ..." used to be rejected.
+    common = ["--devices", "2", "--float32", "--quiet"]
+    cmd = ["simulate", "s.toml", "--out", "o"]
+    args = cli.build_parser().parse_args(common + cmd if before else cmd + common)
+    assert (args.devices, args.float32, args.quiet) == (2, True, True)
+    args = cli.build_parser().parse_args(cmd)
+    assert (args.devices, args.float32, args.quiet) == (None, False, False)
+
+
+def test_devices_before_the_command_takes_effect(tmp_path):
+    scene = write(tmp_path, TEE_SCENE)
+    code = (
+        "import sys; from lierk import cli; "
+        f"status = cli.main(['--devices', '2', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, "
+        "'--t1', '0.02', '--no-gif', '--quiet']); "
+        "import jax; print('devices', jax.device_count()); sys.exit(status)"
+    )
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    assert "devices 2" in p.stdout
 
 
 # ---------------------------------------------------------------------------
@@ -246,6 +362,7 @@ def test_simulate_matches_a_direct_solve(tmp_path):
     with Image.open(out / "tee_test.gif") as im:
         assert im.n_frames == 4 and im.size == tuple(int(s * plot.GIF_DPI) for s in plot.GIF_SIZE)
     assert "max relative change of energy" in stdout and "flip interval" in stdout
+    assert not [p for d in (tmp_path, out) for p in d.iterdir() if p.name.startswith(".")]  # no staging left
 
 
 @pytest.mark.parametrize("text, atol", [(DAMPED_SCENE, 1e-13), (ADAPTIVE_SCENE, 1e-8)])
@@ -265,6 +382,8 @@ def test_simulate_with_state_and_adaptive_steps(tmp_path, capsys, text, atol):
     np.testing.assert_allclose(data["R"], direct.R, rtol=0, atol=atol)
     if direct.y is not None:
         np.testing.assert_allclose(data["y"], direct.y, rtol=0, atol=atol * 1e-3)
+    # y is the body momentum, as simulate --help says.
+    np.testing.assert_allclose(data["y"], data["omega"] @ data["inertia"].T, rtol=1e-12, atol=0)
     assert not list(out.glob("*.gif"))
 
 
@@ -383,3 +502,42 @@ def test_sweep_along_one_component_and_default_grid(tmp_path, capsys):
     np.testing.assert_allclose(data["omega0_y"], [-0.05, 0.05, 0.15], atol=1e-14)
     np.testing.assert_allclose(data["omega0_z"], [0.2, 0.3, 0.4], atol=1e-14)
 
+
+
+def test_sweep_heatmap_colour_limits_ignore_one_extreme_cell():
+    # A grid through an exact equilibrium has one sensitivity of ~1e16; with
+    # min/max limits every other cell was the same colour.
+    x, y = np.linspace(-1, 1, 9), np.linspace(-1, 1, 7)
+    sens = np.outer(1.0 + x**2, 1.0 + y**2)
+    sens[4, 3] = 1.78e16
+    res = {"angle": np.outer(np.cos(x), np.sin(y)), "sensitivity": sens}
+    fig = cli._sweep_figure(res, (x, y), [0, 1], np.zeros(3), "t")
+    mesh = fig.axes[1].collections[0]
+    assert mesh.norm.vmax < 10 and mesh.norm.vmin >= 1.0
+    marks = [ln for ln in fig.axes[1].get_lines() if ln.get_label().startswith("clipped")]
+    assert marks and (4 * 0.25 - 1.0, 3 / 3 - 1.0) in set(zip(marks[0].get_xdata(), marks[0].get_ydata()))
+
+
+def test_simulate_shows_top_angles_and_flips(tmp_path, capsys, monkeypatch):
+    seen = {}
+    real_euler, real_components = plot.euler_angles, plot.components
+
+    def euler(sol, title=None, **kw):
+        seen.setdefault("convention", []).append(kw.get("convention"))
+        return real_euler(sol, title, **kw)
+
+    def components(sol, title=None, **kw):
+        seen.setdefault("flips", []).append(kw.get("flips"))
+        return real_components(sol, title, **kw)
+
+    monkeypatch.setattr(plot, "euler_angles", euler)
+    monkeypatch.setattr(plot, "components", components)
+    for name, t1 in (("heavy_top", "0.05"), ("tee_handle_a", "50")):
+        code, _, stderr = run_inprocess(
+            ["simulate", EXAMPLES / f"{name}.toml", "--out", tmp_path / name, "--t1", t1, "--no-gif", "--quiet"], capsys
+        )
+        assert code == 0, stderr
+    assert seen["convention"] == ["zxz", "zyx"]
+    flip = float(lierk.exact.flip_interval(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0]))
+    assert seen["flips"][0] is None
+    np.testing.assert_allclose(seen["flips"][1], [flip, 2 * flip])

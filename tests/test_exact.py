@@ -62,7 +62,10 @@ def reference(inertia, omega0, ts, R0=np.eye(3)):
 
 
 def period(inertia, omega0):
-    return 2.0 * float(flip(inertia, omega0))
+    """Period of the body momentum m(t), 4K(k)/|lambda| (s), from the exact
+    solution's constants (flip_interval is half of it only on flipping orbits)."""
+    c = exact._working_constants(*exact._validated(inertia, omega0)[:2])
+    return 4.0 * sp.ellipkm1(float(c["k2c"])) / abs(float(c["lam"]))
 
 
 # ------------------------------------------------------------------ elliptic
@@ -350,3 +353,151 @@ def test_float32():
         R64, w64 = frb(inertia, omega0, ts)
         assert np.abs(np.asarray(R32) - np.asarray(R64)).max() < 2e-4
         assert np.abs(np.asarray(w32) - np.asarray(w64)).max() < 2e-4 * np.abs(omega0).max()
+
+
+# ------------------------------------------------------------------ validation
+
+
+DIAG = np.diag([1.0, 2.0, 3.0])
+BAD_INPUTS = [
+    # (inertia, omega0, R0, message)
+    (DIAG, [np.nan, 0.2, 1.0], None, "omega0 has NaN or inf entries"),
+    (DIAG, [np.inf, 0.2, 1.0], None, "omega0 has NaN or inf entries"),
+    (DIAG, [0.3, 1.0], None, r"omega0 must have shape \(3,\)"),
+    (np.diag([1.0, -2.0, 3.0]), [0.3, 0.2, 1.0], None, "inertia must be positive definite"),
+    (np.diag([1.0, 0.0, 3.0]), [0.3, 0.2, 1.0], None, "inertia must be positive definite"),
+    ([1.0, np.nan, 3.0], [0.3, 0.2, 1.0], None, "inertia has NaN or inf entries"),
+    (np.array([[1.0, 0.5, 0.0], [0.0, 2.0, 0.0], [0.0, 0.0, 3.0]]), [0.3, 0.2, 1.0], None, "inertia must be symmetric"),
+    (np.ones((2, 2)), [0.3, 0.2, 1.0], None, r"inertia must have shape \(3, 3\) or \(3,\)"),
+    (DIAG, [0.3, 0.2, 1.0], np.diag([1.0, 1.0, -1.0]), "R0 must be a rotation matrix"),
+    (DIAG, [0.3, 0.2, 1.0], 2.0 * np.eye(3), "R0 must be a rotation matrix"),
+    (DIAG, [0.3, 0.2, 1.0], np.full((3, 3), np.nan), "R0 has NaN or inf entries"),
+    (DIAG, [0.3, 0.2, 1.0], np.eye(2), r"R0 must have shape \(3, 3\)"),
+]
+
+
+@pytest.mark.parametrize("inertia, omega0, R0, match", BAD_INPUTS)
+def test_bad_inputs_raise_naming_the_value(inertia, omega0, R0, match):
+    # These used to return NaN attitudes, accept R0 off SO(3), or raise IndexError.
+    with pytest.raises(ValueError, match=match):
+        exact.free_rigid_body(inertia, omega0, 1.0, R0)
+    if R0 is None:
+        with pytest.raises(ValueError, match=match):
+            exact.flip_interval(inertia, omega0)
+
+
+def test_traced_bad_inputs_raise_at_run_time():
+    # Under jit the checks must survive: their results feed the computation.
+    with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
+        jax.block_until_ready(frb(DIAG, jnp.array([jnp.nan, 0.2, 1.0]), 1.0))
+    with pytest.raises(Exception, match="inertia must be positive definite"):
+        jax.block_until_ready(frb(np.diag([1.0, -2.0, 3.0]), jnp.array([0.3, 0.2, 1.0]), 1.0))
+    with pytest.raises(Exception, match="R0 must be a rotation matrix"):
+        jax.block_until_ready(frb(DIAG, jnp.array([0.3, 0.2, 1.0]), 1.0, np.diag([1.0, 1.0, -1.0])))
+    with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
+        jax.block_until_ready(flip(DIAG, jnp.array([0.3, jnp.nan, 1.0])))
+    # One bad member of a vmapped batch is caught too.
+    batch = jnp.array([[0.3, 0.2, 1.0], [jnp.nan, 0.0, 0.0]])
+    with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
+        jax.block_until_ready(jax.jit(jax.vmap(exact.flip_interval, in_axes=(None, 0)))(DIAG, batch))
+    # Good inputs through the same compiled functions are unaffected.
+    assert np.isfinite(np.asarray(frb(DIAG, jnp.array([0.3, 0.2, 1.0]), 1.0)[0])).all()
+
+
+def test_principal_moments_are_accepted():
+    # A (3,) inertia, as lierk.FreeRigidBody accepts, used to raise IndexError.
+    w = np.array([0.4, 1.0, -0.3])
+    R, om = exact.free_rigid_body(np.array([1.3, 0.9, 2.0]), w, 2.0)
+    Rd, omd = frb(np.diag([1.3, 0.9, 2.0]), w, 2.0)
+    np.testing.assert_allclose(R, Rd, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(om, omd, rtol=0, atol=1e-13)
+    assert float(exact.flip_interval([1.3, 0.9, 2.0], w)) == float(flip(np.diag([1.3, 0.9, 2.0]), w))
+
+
+# ------------------------------------------------------------------ what a flip is
+
+
+def _box():
+    return np.asarray(__import__("lierk").inertia.box(1.0, 1.0, 2.0, 3.0))
+
+
+FLIP_CASES = {
+    # name: (inertia, omega0, flips?)
+    "tee_a_intermediate": (T_HANDLE, [1.0, 0.05, 0.0], True),
+    "tee_b_smallest": (T_HANDLE, [0.0, 1.0, 0.05], False),
+    "tee_c_largest": (T_HANDLE, [0.05, 0.0, 1.0], False),
+    # diag(1, 2, 3): m = (0, a, b) circulates about e3 and starts at the peak
+    # of |m2|, so it flips iff |m2| > |m3| there; likewise about e1.
+    "about_e3_just_flips": (DIAG, [0.0, 1.02 / 2, 1.0 / 3], True),
+    "about_e3_just_does_not": (DIAG, [0.0, 1.0 / 2, 1.02 / 3], False),
+    "about_e1_just_flips": (DIAG, [1.0, 1.02 / 2, 0.0], True),
+    "about_e1_just_does_not": (DIAG, [1.02, 1.0 / 2, 0.0], False),
+    "non_diagonal": (_rot(3) @ np.diag([0.7, 1.9, 2.3]) @ _rot(3).T, [0.3, -0.7, 0.5], None),
+    "box_steady_largest": (_box(), [1.0, 0.0, 0.0], False),
+    "box_steady_intermediate": (_box(), [0.0, 1.0, 0.0], False),
+    "box_steady_smallest": (_box(), [0.0, 0.0, 1.0], False),
+}
+
+
+def _closest_axis_reversals(inertia, omega0, horizon):
+    """Integrate Euler's equations (SciPy) in the principal frame; return the
+    times of the sign changes of m2 and the number of reversals of the
+    intermediate axis as the signed principal axis closest to L."""
+    I, V = np.linalg.eigh(inertia)
+    m0 = V.T @ inertia @ np.asarray(omega0, float)
+
+    def euler(t, m):
+        return np.cross(m, m / I)
+
+    sol = solve_ivp(euler, (0, horizon), m0, method="DOP853", rtol=1e-12, atol=1e-14 * np.linalg.norm(m0),
+                    dense_output=True)
+    grid = np.linspace(0, horizon, 40001)
+    m = sol.sol(grid)
+    closest = np.argmax(np.abs(m), axis=0)
+    s2 = np.sign(m[1][closest == 1])
+    reversals = int(np.count_nonzero(s2[1:] != s2[:-1]))
+    idx = np.nonzero(np.sign(m[1][:-1]) * np.sign(m[1][1:]) < 0)[0]
+    zeros = np.array([brentq(lambda s: sol.sol(s)[1], grid[i], grid[i + 1], xtol=1e-13) for i in idx])
+    return zeros, reversals
+
+
+@pytest.mark.parametrize("name", list(FLIP_CASES))
+def test_flip_interval_matches_the_closest_axis_of_a_numerical_solution(name):
+    inertia, omega0, expected = FLIP_CASES[name]
+    tau = float(flip(inertia, np.asarray(omega0)))
+    if expected is not None:
+        assert np.isfinite(tau) == expected, tau
+    # Three periods of m(t) (10 s for permanent rotations).
+    T = period(inertia, omega0)
+    horizon = 3 * T if np.isfinite(T) and T > 0 else 10.0
+    zeros, reversals = _closest_axis_reversals(inertia, omega0, horizon)
+    if np.isfinite(tau):
+        # Six half-periods: a reversal in each (the first may fall before t = 0).
+        assert reversals in (5, 6), reversals
+        # ... and m2 changes sign once per flip interval.
+        assert len(zeros) >= 5
+        assert np.abs(np.diff(zeros) / tau - 1).max() < 1e-8
+    else:
+        assert reversals == 0
+
+
+def test_no_flip_for_symmetric_bodies_spheres_and_rest():
+    for inertia, omega0 in [
+        (np.diag([1.0, 1.0, 3.0]), [0.3, 0.2, 1.0]),  # oblate: m1, m2 rotate, no distinct e2
+        (np.diag([1.0, 3.0, 3.0]), [1.0, 0.9, 0.3]),  # prolate
+        (2.5 * np.eye(3), [0.3, -0.2, 1.0]),  # sphere
+        (DIAG, [0.0, 0.0, 0.0]),  # at rest
+    ]:
+        assert float(flip(inertia, np.asarray(omega0))) == np.inf, (inertia, omega0)
+
+
+def test_flip_interval_vmaps_and_differentiates():
+    omegas = jnp.array([FLIP_CASES[n][1] for n in ("about_e3_just_flips", "about_e3_just_does_not")])
+    taus = jax.jit(jax.vmap(exact.flip_interval, in_axes=(None, 0)))(DIAG, omegas)
+    assert np.isfinite(taus[0]) and taus[0] == float(flip(DIAG, omegas[0])) and taus[1] == np.inf
+    # d tau / d omega0 by central differences.
+    w = np.array([1.0, 0.05, 0.0])
+    g = np.asarray(jax.jit(jax.grad(exact.flip_interval, argnums=1))(T_HANDLE, w))
+    h = 1e-6
+    fd = [(float(flip(T_HANDLE, w + h * e)) - float(flip(T_HANDLE, w - h * e))) / (2 * h) for e in np.eye(3)]
+    np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())

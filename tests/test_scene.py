@@ -219,7 +219,8 @@ def test_bad_run_combinations():
         d["run"] = run
         return d
 
-    with pytest.raises(ValueError, match="run.solver = 'RKMK4' has no error estimate.*RKF45, DP54, DOP853"):
+    # The list of adaptive solvers used to include NaiveLieRK4 and RKMK4.
+    with pytest.raises(ValueError, match="run.solver = 'RKMK4' has no error estimate.*: RKF45, DP54, DOP853$"):
         S.from_dict(with_run({"solver": "RKMK4", "rtol": 1e-6, "t1": 1.0}))
     with pytest.raises(ValueError, match="run.save_every applies to fixed-step runs"):
         S.from_dict(with_run({"solver": "DP54", "rtol": 1e-6, "t1": 1.0, "save_every": 2}))
@@ -304,3 +305,74 @@ def test_with_target_error_keeps_the_saved_resolution():
     for bad in (0.0, -1.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="target_error must be"):
             scene.with_target_error(bad)
+
+
+# --- runs too large to attempt, and bodies that overflow --------------------------
+
+
+@pytest.mark.parametrize(
+    "run, match",
+    [
+        # t1/dt used to overflow inside the solve (OverflowError traceback).
+        ({"dt": 1e-320}, r"run.t1 / run.dt = 1.0 s / 1e-320 s is inf steps, more than a run may take \(2147483647\)"),
+        ({"t1": 1e300}, r"is 1e\+302 steps, more than a run may take"),
+        ({"t1": 1e9, "dt": 0.1}, r"is 1e\+10 steps"),
+        ({"t1": 1e6, "dt": 0.01}, r"keeps 1e\+08 states, more than a run may save \(1e\+07\): raise run.save_every"),
+        ({"save_every": 2**40}, r"run.save_every must be at most 2147483647"),
+        ({"dt": None, "solver": "DP54", "rtol": 1e-8, "n_save": 10**12}, r"run.n_save must be at most 10000000"),
+        ({"dt": None, "solver": "DP54", "rtol": 1e-8, "max_steps": 2**63}, r"run.max_steps must be at most 2147483647"),
+    ],
+)
+def test_runs_too_large_to_attempt_are_rejected_on_loading(run, match):
+    d = _tee(run=run)
+    d["run"] = {k: v for k, v in d["run"].items() if v is not None}
+    with pytest.raises(ValueError, match=match):
+        S.from_dict(d)
+
+
+def test_the_largest_runs_allowed_load():
+    S.from_dict(_tee(run={"t1": 2147483647.0, "dt": 1.0, "save_every": 1000}))
+    S.from_dict(_tee(run={"t1": 1e5, "dt": 0.01}))  # 10^7 saved states
+    # A step longer than the run: one shortened step.
+    scene = S.from_dict(_tee(run={"t1": 0.5, "dt": 1e12}))
+    sol = scene.solve()
+    np.testing.assert_array_equal(sol.ts, [0.0, 0.5])
+    np.testing.assert_allclose(sol.R[-1], reference_R(TEE, [1.0, 0.05, 0.0], 0.5), atol=1e-2)
+
+
+def test_with_t1_is_checked_like_run_t1():
+    scene = S.from_dict(_tee())
+    assert scene.with_t1(2.5).t1 == 2.5 and scene.t1 == 1.0
+    with pytest.raises(ValueError, match=r"t1 / run.dt = 1e\+300 s / 0.01 s is 1e\+302 steps"):
+        scene.with_t1(1e300)
+    for bad in (0.0, -1.0, float("nan"), float("inf"), "2"):
+        with pytest.raises(ValueError, match="t1 must be"):
+            scene.with_t1(bad)
+    # target_error and rtol runs have no step count to bound.
+    assert scene.with_target_error(1e-6).with_t1(1e300).t1 == 1e300
+
+
+@pytest.mark.parametrize(
+    "changes, match",
+    [
+        ({"body": {"kind": "box", "mass": 1e-300, "lx": 1e-5, "ly": 1e-5, "lz": 1e-5}},
+         "body: the inertia .* is singular or too small to invert"),
+        ({"body": {"kind": "box", "mass": 1e-310, "lx": 1.0, "ly": 1.0, "lz": 1.0}}, "body: the inertia is not finite"),
+        ({"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}, "initial": {"omega": [1e300, 0.0, 0.0]}},
+         "body: the initial momentum I omega overflows"),
+        ({"body": {"kind": "box", "mass": 1e300, "lx": 1e200, "ly": 1.0, "lz": 1.0}}, "the inertia is not finite|NaN or inf"),
+        ({"body": {"kind": "sphere", "mass": 1.0, "radius": 0.1}, "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e300]}]},
+         "body about the gravity pivot: the inertia is not finite"),
+    ],
+)
+def test_bodies_whose_state_overflows_are_rejected(changes, match):
+    with pytest.raises(ValueError, match=match):
+        S.from_dict(_tee(**changes))
+
+
+def test_load_reports_bytes_that_are_not_utf8(tmp_path):
+    bad = tmp_path / "latin1.toml"
+    bad.write_bytes("name = 'caf\u00e9'\n".encode("latin-1"))
+    # This used to be a bare UnicodeDecodeError, without the file's name.
+    with pytest.raises(ValueError, match=r"latin1.toml: not valid TOML: not UTF-8 text \(byte e9 at offset 11\)"):
+        S.load(bad)
