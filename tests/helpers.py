@@ -57,3 +57,22 @@ def scipy_reference_R(inertia, omega0, t1, R0=None, rtol=1e-13):
 def order_fit(hs, errs) -> float:
     """Slope of log(error) against log(h)."""
     return float(np.polyfit(np.log(hs), np.log(errs), 1)[0])
+
+
+def write(tmp_path, text, name="scene.toml"):
+    """Write a scene's TOML ``text`` to ``tmp_path/name`` and return the path."""
+    path = tmp_path / name
+    path.write_text(text)
+    return path
+
+
+def run_inprocess(argv, capsys):
+    """``lierk ARGV`` in this process: (exit status, stdout, stderr)."""
+    from lierk import cli
+
+    try:
+        code = cli.main([str(a) for a in argv])
+    except SystemExit as e:  # argparse's own exits (--help, bad syntax)
+        code = e.code
+    out, err = capsys.readouterr()
+    return code, out, err

@@ -13,6 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from helpers import run_inprocess, write
+
 import lierk
 import lierk.accuracy as A
 import lierk.exact
@@ -49,21 +51,6 @@ t1 = 0.3
 
 LIERK = str(Path(sys.executable).parent / "lierk")
 TABLE_LINE = re.compile(r"^\s*(1e-\d\d)\s+(\w+)\s+(dt = \S+ s|rtol = \S+)\s+(\S+)\s+(\S+)\s+(\S+)\s*$")
-
-
-def write(tmp_path, text, name="scene.toml"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
-
-
-def run_inprocess(argv, capsys):
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as e:
-        code = e.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def _exact_error(scene, row, ts):

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from helpers import run_inprocess, write
+
 import lierk
 import lierk.exact
 import lierk.scene
@@ -77,22 +79,6 @@ n_save = 5
 
 LIERK = str(Path(sys.executable).parent / "lierk")
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-
-
-def write(tmp_path, text, name="scene.toml"):
-    path = tmp_path / name
-    path.write_text(text)
-    return path
-
-
-def run_inprocess(argv, capsys):
-    """``lierk ARGV`` in this process: (exit status, stdout, stderr)."""
-    try:
-        code = cli.main([str(a) for a in argv])
-    except SystemExit as e:  # argparse's own exits (--help, bad syntax)
-        code = e.code
-    out, err = capsys.readouterr()
-    return code, out, err
 
 
 def run_subprocess(argv):
