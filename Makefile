@@ -1,12 +1,13 @@
 # Two commands do all the set-up on a fresh machine with Python 3.11 and pip:
 #   make demo   create .venv, install, simulate the T-handle scene (figures and GIF in out/)
 #   make test   create .venv if missing, install, run the test suite
+#   make docs   install the docs extra, build the API site into site/ (warnings fail)
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench clean
+.PHONY: demo test bench docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -21,6 +22,12 @@ BENCH_STAMP := $(VENV)/.bench-installed
 $(BENCH_STAMP): $(STAMP)
 	$(BIN)/python -m pip install --quiet -e ".[bench]"
 	touch $(BENCH_STAMP)
+
+# mkdocs-material and mkdocstrings only for the API site.
+DOCS_STAMP := $(VENV)/.docs-installed
+$(DOCS_STAMP): $(STAMP)
+	$(BIN)/python -m pip install --quiet -e ".[docs]"
+	touch $(DOCS_STAMP)
 
 demo: $(STAMP)
 	$(BIN)/lierk simulate examples/tee_handle_a.toml --out out/
@@ -38,5 +45,8 @@ bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/long_horizon.py
 	$(BIN)/python benchmarks/scene_overhead.py
 
+docs: $(DOCS_STAMP)
+	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site
+
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) out site

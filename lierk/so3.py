@@ -226,7 +226,8 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None) -> Array:
     and ``D = (1 - (theta/2) cot(theta/2))/theta^2 = 1/12 + theta^2/720 + ...``.
 
     Args:
-        u, v: ``(..., 3)``.
+        u: ``(..., 3)``, the point in the algebra.
+        v: ``(..., 3)``, the vector dexpinv is applied to.
         terms: None for the exact closed form (singular at ``|u| = 2 pi k``,
             k >= 1, as dexpinv is).  An int keeps the series up to
             ``ad_u^terms``: 0 gives ``v``, 1 adds ``-u x v/2``, 2 adds

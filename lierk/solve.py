@@ -90,9 +90,10 @@ def solve(
         dt: fixed step size (s), ``> 0``.
         saveat: what to return; default `SaveAt(t1=True)`.
         max_steps: static bound on the number of steps.
-        rtol, atol: tolerances of the default `Controller` (``atol`` defaults
-            to ``rtol``).  Dimensionless: the attitude in radians, the
-            momentum relative to its size.
+        rtol: relative tolerance of the default `Controller`.  Dimensionless:
+            the attitude in radians, the momentum relative to its size.
+        atol: absolute tolerance (defaults to ``rtol``); the momentum's is
+            scaled by the problem's reference momentum.
         dt0: initial step of an adaptive solve (s).
         controller: full control of step-size selection.
         throw: raise on failure (default).  With ``throw=False`` the partial
