@@ -567,8 +567,7 @@ def simulate(args) -> int:
         from .effects import Gravity
 
         convention = "zxz" if any(isinstance(e, Gravity) for e in getattr(problem, "effects", ())) else "zyx"
-        flip = _flip_interval(problem)
-        flips = np.arange(flip, float(scene.t1), flip) if flip is not None and np.isfinite(flip) else None
+        flips = _flip_times(problem, sol)
         figures = {
             "components": plot.components(sol, title, flips=flips),
             "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=convention),
@@ -623,6 +622,21 @@ def simulate(args) -> int:
     for p in paths:
         print(f"  {p}")
     return 0
+
+
+def _flip_times(problem, sol):
+    """Times (s) at which a flipping torque-free body's momentum crosses the
+    plane normal to its intermediate axis (the middle of each flip, by
+    interpolation between saved points), or None when it does not flip."""
+    import numpy as np
+
+    flip = _flip_interval(problem)
+    if flip is None or not np.isfinite(flip) or sol.y is None:
+        return None
+    e2 = np.linalg.eigh(np.asarray(problem.inertia, float))[1][:, 1]
+    ts, m2 = np.asarray(sol.ts, float), np.asarray(sol.y, float) @ e2
+    k = np.nonzero(np.signbit(m2[1:]) != np.signbit(m2[:-1]))[0]
+    return ts[k] - m2[k] * (ts[k + 1] - ts[k]) / (m2[k + 1] - m2[k])
 
 
 def _flip_interval(problem):
