@@ -532,7 +532,7 @@ def simulate(args) -> int:
     sol, wall = integrate(scene, args.chunks, progress)
 
     ts, R, y = plot.trajectory(sol)
-    omega = np.asarray(jax.vmap(lambda t, R, y: problem.field(t, R, y)[0])(sol.ts, sol.R, sol.y))
+    omega = np.asarray(sol.omega(problem))
     L = np.asarray(angular_momentum(problem.inertia, omega, R))
     inv = {k: np.asarray(v) for k, v in problem.invariants(sol.R, sol.y).items()}
     drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}

@@ -137,9 +137,8 @@ class RigidBodyWithEffects(AbstractProblem):
         the momentum that the effects' potential energy can give the body,
         ``sqrt(I_max * sum(effect.energy_scale()))``; for a body at rest without
         potential, ``I_max * 1 rad/s``."""
-        energy = sum((e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype))
         i_max = jnp.max(jnp.abs(self.inertia))
-        scale = jnp.linalg.norm(self.y0) + jnp.sqrt(i_max * energy)
+        scale = jnp.linalg.norm(self.y0) + jnp.sqrt(i_max * self._effects_energy())
         # A body at rest without potential: I_max times 1 rad/s.
         return jnp.where(scale > 0, scale, i_max)
 
@@ -158,10 +157,12 @@ class RigidBodyWithEffects(AbstractProblem):
     def invariant_scales(self):
         """Energies against the kinetic energy plus what the effects' potentials
         can give; momenta against `momentum_scale`."""
-        energy = kinetic_energy(self.inertia, self.omega0) + sum(
-            (e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype)
-        )
+        energy = kinetic_energy(self.inertia, self.omega0) + self._effects_energy()
         return {k: (energy if k == "energy" else self.momentum_scale) for k in self.conserved()}
+
+    def _effects_energy(self) -> Array:
+        """The energy (J) the effects can give the body: sum of `energy_scale`."""
+        return sum((e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype))
 
     def conserved(self) -> tuple[str, ...]:
         """Keys of `invariants` that the exact flow conserves for this set of effects.

@@ -154,7 +154,7 @@ def solve(
             _scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
         )
         sol = _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps or _DEFAULT_TARGET_MAX_STEPS, adjoint)
-        return raise_if_failed(_flag_drift(problem, sol), throw)
+        return _finish(problem, sol, throw)
 
     if dt is not None:
         given = [n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None]
@@ -179,7 +179,7 @@ def solve(
             fine_dt = jax.lax.stop_gradient(dt) * den / num
             fine = _solve_fixed(_frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
             sol = _with_estimate(sol, fine, (num / den) ** solver.order)
-        return raise_if_failed(_flag_drift(problem, sol), throw)
+        return _finish(problem, sol, throw)
 
     if not solver.adaptive:
         raise ValueError(
@@ -232,7 +232,7 @@ def solve(
             _frozen(problem), solver, t0, t1, None, saveat, 2 * max_steps, _finer(controller), adjoint
         )
         sol = _with_estimate(sol, fine, _TOLERANCE_RATIO)
-    return raise_if_failed(_flag_drift(problem, sol), throw)
+    return _finish(problem, sol, throw)
 
 
 # The finer solve of an adaptive error estimate divides both tolerances by
@@ -276,10 +276,10 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
     problem = _frozen(problem)
     dtype = problem.R0.dtype
     adaptive = solver.adaptive
+    # The rounds run in a lax.while_loop, which reverse mode cannot enter anyway.
+    adjoint = ForwardModeAdjoint() if adjoint is None else adjoint
     if adaptive:
         ratio, power = _TOLERANCE_RATIO, 1.0
-        if adjoint is None:
-            adjoint = ForwardModeAdjoint()
         # The calibrated tolerances give errors of 1 to 10 tol, and the finer
         # solve of the pair is 10x better: eps/2 is enough for nearly every
         # member.  Under vmap one member that needs a second round makes the
@@ -301,13 +301,14 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
             s0 = jnp.minimum(s0, jnp.min(jnp.where(gaps > 0, gaps, jnp.inf)))
 
     def pair(s):
+        # (first step, controller) of the setting and of its finer twin; a
+        # fixed step is dt0 with no controller.
         if adaptive:
             c = Controller(s, s)
-            coarse = _solve_adaptive(problem, solver, t0, t1, None, saveat, max_steps, c, adjoint)
-            fine = _solve_adaptive(problem, solver, t0, t1, None, saveat, max_steps, _finer(c), adjoint)
+            twins = ((None, c), (None, _finer(c)))
         else:
-            coarse = _solve_adaptive(problem, solver, t0, t1, s, saveat, max_steps, None, adjoint or ForwardModeAdjoint())
-            fine = _solve_adaptive(problem, solver, t0, t1, s / 2, saveat, max_steps, None, adjoint or ForwardModeAdjoint())
+            twins = ((s, None), (s / 2, None))
+        coarse, fine = (_solve_adaptive(problem, solver, t0, t1, h, saveat, max_steps, c, adjoint) for h, c in twins)
         gap = _attitude_gap(coarse, fine)
         ok = (coarse.result == RESULTS.successful) & (fine.result == RESULTS.successful)
         # The finer solution's estimate: the gap is (ratio - 1) of its error.
@@ -353,6 +354,11 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
 # A conserved quantity that moves by more than this (relative to its scale)
 # marks a run as under-resolved or unstable: RESULTS.invariant_drift.
 _DRIFT_LIMIT = 0.1
+
+
+def _finish(problem, sol: Solution, throw: bool) -> Solution:
+    """What every solve ends with: the drift check, then `throw`."""
+    return raise_if_failed(_flag_drift(problem, sol), throw)
 
 
 def _flag_drift(problem, sol: Solution) -> Solution:
