@@ -429,12 +429,18 @@ def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solutio
         tk = t0 + k.astype(dt.dtype) * dt
         return jnp.where(tk >= t1 - snap, t1, tk)
 
-    def one(state, k):
-        R, y = state
+    # The step index and the count of steps taken ride in the loop's carry:
+    # scanning over an array of indices (or of step times) would allocate a
+    # buffer of the step count, 8 bytes a step, whatever is saved.
+    def one(carry, _):
+        (R, y), k, taken = carry
         ta, tb = time(k), time(k + 1)
         # Past t1, h = 0 and every solver's step is exactly the identity.
         st = solver.step(problem, ta, tb - ta, R, y)
-        return (st.R, st.y), None
+        return ((st.R, st.y), k + 1, taken + (tb > ta).astype(taken.dtype)), None
+
+    def steps(carry, length):
+        return jax.lax.scan(one, carry, None, length=length)[0]
 
     state = (problem.R0, problem.y0)
     ts, states = [], []
@@ -444,22 +450,22 @@ def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solutio
     every = saveat.every
     n_chunks, rem = divmod(n, every) if every else (0, n)
 
-    def chunk(state, c):
-        state, _ = jax.lax.scan(one, state, c * every + jnp.arange(every))
-        return state, state
+    def chunk(carry, _):
+        carry = steps(carry, every)
+        return carry, carry[0]
 
+    carry = (state, jnp.asarray(0), jnp.asarray(0))
     if n_chunks:
-        state, saved = jax.lax.scan(chunk, state, jnp.arange(n_chunks))
+        carry, saved = jax.lax.scan(chunk, carry, None, length=n_chunks)
         ts.append(time((jnp.arange(n_chunks) + 1) * every))
         states.append(saved)
     if rem:
-        state, _ = jax.lax.scan(one, state, n_chunks * every + jnp.arange(rem))
+        carry = steps(carry, rem)
+    state, _, taken = carry
     if saveat.t1 and (rem or not n_chunks):
         ts.append(time(jnp.asarray(n))[None])
         states.append(jax.tree_util.tree_map(lambda x: x[None], state))
     R, y = _stack(states)
-    ks = jnp.arange(n)
-    taken = jnp.sum(time(ks + 1) > time(ks)) if n else jnp.asarray(0)
     reached = (t0 + n * dt >= t1 - snap) | (t1 == t0)
     result = jnp.where(reached, RESULTS.successful, RESULTS.max_steps_reached)
     result = jnp.where(_finite(state), result, RESULTS.nonfinite)
