@@ -31,6 +31,7 @@ from .solution import RESULTS as RESULTS
 from .solution import SaveAt as SaveAt
 from .solution import Solution as Solution
 from .batch import sweep as sweep
+from .batch import sweep_chunks as sweep_chunks
 from .solve import solve as solve
 from .solvers import CF4 as CF4
 from .solvers import DOP853 as DOP853
