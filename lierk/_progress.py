@@ -1,39 +1,97 @@
-"""A progress bar on stderr, shared by long integrations and sweeps."""
+"""Progress on stderr for long integrations and sweeps, drawn by `tqdm`.
+
+Compilation is its own phase: `Progress.compiling` reports how long it took
+and restarts the clock, so the rate and the time left describe the run alone.
+"""
 
 from __future__ import annotations
 
+import contextlib
 import sys
 import time
 
+from tqdm import tqdm
+
 __all__ = ["Progress"]
+
+_METER = "{desc}: {percentage:3.0f}%{bar} {n:.4g}/{total:.4g} {unit} [{elapsed_s:.1f} s elapsed, {remaining} left, {rate_fmt}]"
 
 
 class Progress:
-    """A progress bar on stderr: redrawn in place on a terminal, otherwise a
-    line at every quarter so logs stay short."""
+    """Progress of a run from 0 to ``total`` (in ``unit``) on ``stream``
+    (default stderr).
 
-    def __init__(self, label: str, total: float, unit: str = "", quiet: bool = False, stream=None):
-        self.label, self.total, self.unit, self.quiet = label, float(total), unit, quiet
+    On a terminal a `tqdm` bar is redrawn in place.  Otherwise (a log file, a
+    pipe, a batch job) one line is written each time the run passes another
+    ``1/lines`` of ``total``, and at the end: each line has a larger
+    percentage than the one before, with the elapsed time, the time left and
+    the rate.
+
+    Args:
+        label: what runs, e.g. ``"tee: t"``.
+        total: the value of `update`'s ``done`` at the end (> 0).
+        unit: the unit of ``total`` (``"s"``, ``"members"``).
+        quiet: write nothing.
+        stream: a text stream; default ``sys.stderr``.
+        lines: off a terminal, at most this many progress lines (default 10).
+        clock: seconds as a float (default `time.perf_counter`); tests pass a
+            fake one.
+    """
+
+    def __init__(self, label: str, total: float, unit: str = "", quiet: bool = False, stream=None,
+                 lines: int = 10, clock=time.perf_counter):
+        self.label, self.total, self.unit, self.quiet = label, float(total), unit.strip(), quiet
         self.stream = sys.stderr if stream is None else stream
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-        self.start = time.perf_counter()
-        self.next_quarter = 0.25
+        self.lines, self.clock = lines, clock
+        self.done, self.next_line = 0.0, 1
+        self.start = clock()
+        self.bar = None
+        if not quiet and self.tty:
+            self.bar = tqdm(total=self.total, desc=label, unit=self.unit, file=self.stream, mininterval=0.2,
+                            bar_format=_METER.replace("{bar}", "|{bar}|"), dynamic_ncols=True)
+
+    @contextlib.contextmanager
+    def compiling(self):
+        """The block compiles (e.g. ``jax.jit(f).lower(...).compile()``): say
+        so, then how long it took, and start the run's clock afterwards."""
+        if self.quiet:
+            yield
+            return
+        t = self.clock()
+        if self.bar is not None:
+            self.bar.set_description_str(f"{self.label} (compiling)")
+        else:
+            self._write(f"{self.label}: compiling")
+        yield
+        text = f"{self.label}: compiled in {self.clock() - t:.1f} s"
+        self.start = self.clock()
+        if self.bar is not None:
+            self.bar.set_description_str(self.label)
+            self.bar.write(text, file=self.stream)
+            self.bar.reset(total=self.total)
+            self.bar.update(self.done)
+        else:
+            self._write(text)
 
     def update(self, done: float) -> None:
+        """The run has reached ``done`` (of ``total``)."""
         if self.quiet:
             return
-        frac = min(max(done / self.total, 0.0), 1.0) if self.total > 0 else 1.0
-        if not self.tty and frac < self.next_quarter - 1e-12:
+        delta, self.done = done - self.done, float(done)
+        if self.bar is not None:
+            self.bar.update(delta)
+            if self.done >= self.total:
+                self.bar.close()
             return
-        while self.next_quarter <= frac + 1e-12:
-            self.next_quarter += 0.25
-        width = 30
-        bar = "#" * int(round(frac * width)) + "." * (width - int(round(frac * width)))
-        text = (
-            f"{self.label} [{bar}] {100 * frac:5.1f}%  {done:g}/{self.total:g}{self.unit}"
-            f"  {time.perf_counter() - self.start:.1f} s"
-        )
-        self.stream.write(("\r" + text) if self.tty else text + "\n")
-        if self.tty and frac >= 1.0:
-            self.stream.write("\n")
+        frac = self.done / self.total if self.total > 0 else 1.0
+        if frac * self.lines + 1e-9 < self.next_line:
+            return
+        while self.next_line <= frac * self.lines + 1e-9:
+            self.next_line += 1
+        self._write(tqdm.format_meter(min(self.done, self.total), self.total, self.clock() - self.start,
+                                      prefix=self.label, unit=self.unit, bar_format=_METER.replace("{bar}", "")))
+
+    def _write(self, text: str) -> None:
+        self.stream.write(text + "\n")
         self.stream.flush()

@@ -19,13 +19,17 @@ traceback.
 Outputs are all or nothing: ``--out`` is checked before anything runs, the
 files are written into a temporary directory beside it and moved into it only
 when all of them are complete, so a failed run leaves earlier outputs as
-they were.
+they were.  The exception is by design: ``sweep`` writes each finished
+chunk at once to ``DIR/<name>_sweep.chunks/`` (`lierk.store.ChunkStore`), so
+running the same command again resumes an interrupted sweep; the directory
+is removed once the outputs are written.
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import math
 import os
 import re
@@ -36,20 +40,14 @@ import time
 import warnings
 from pathlib import Path
 
-from ._progress import Progress
 
 __all__ = ["main"]
 
-N_CHUNKS = 20
 _OUT_HELP = "output directory (created if missing); the files are moved into it only when all are written"
 
 
 class CLIError(Exception):
     """A user mistake: reported as one line, exit status 2."""
-
-
-class RunError(Exception):
-    """A failed integration: reported as one line, exit status 1."""
 
 
 class _Parser(argparse.ArgumentParser):
@@ -160,9 +158,8 @@ def build_parser() -> argparse.ArgumentParser:
     sim.add_argument(
         "--chunks",
         type=_positive("--chunks", int),
-        default=N_CHUNKS,
         metavar="K",
-        help=f"integrate in K pieces, reporting progress between them (default {N_CHUNKS})",
+        help="integrate in K pieces, reporting progress between them (default 20, lierk.scene.Scene.solve's)",
     )
     sim.add_argument(
         "--frames", type=_positive("--frames", int), default=120, metavar="N", help="GIF frames (default 120)"
@@ -214,8 +211,13 @@ def build_parser() -> argparse.ArgumentParser:
         type=_positive("--chunk-size", int),
         default=256,
         metavar="K",
-        help="grid points per vmapped batch (default 256); progress is reported between batches",
+        help="grid points per vmapped batch (default 256); each finished batch is written at once to "
+        "DIR/<name>_sweep.chunks/, and running the same command again resumes from there",
     )
+    g = sw.add_argument_group("several processes (lierk.distributed.initialize; none needed under SLURM or Open MPI)")
+    g.add_argument("--coordinator-address", metavar="HOST:PORT", help="process 0's address, the same in every process")
+    g.add_argument("--num-processes", type=int, metavar="N", help="how many processes take part")
+    g.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 to N - 1")
 
     acc = sub.add_parser(
         "accuracy",
@@ -283,6 +285,13 @@ def _configure(args) -> None:
             raise CLIError("--devices must be set before JAX starts; run lierk in a fresh process")
         flags = re.sub(r"--xla_force_host_platform_device_count=\S+", "", os.environ.get("XLA_FLAGS", ""))
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={args.devices}".strip()
+    if args.command == "sweep":
+        from . import distributed
+
+        try:
+            distributed.initialize(args.coordinator_address, args.num_processes, args.process_id)
+        except ValueError as e:
+            raise CLIError(_one_line(e)) from None
 
 
 def _load(args):
@@ -381,135 +390,16 @@ def _run_settings(scene, sol=None) -> str:
         return f"dt = {kw['dt']:g} s"
     if "target_error" in kw:
         text = f"target_error = {kw['target_error']:g}"
-        return text if sol is None else f"{text} (chose {_chosen(sol)})"
+        if sol is None:
+            return text
+        from ._pieces import chosen
+
+        return f"{text} (chose {chosen(sol)})"
     return f"rtol = {kw['rtol']:g}, atol = {kw['atol']:g}"
-
-
-def _chosen(sol) -> str:
-    """The setting a target_error solve chose, from its stats."""
-    if "dt" in sol.stats:
-        return f"dt = {float(sol.stats['dt']):.4g} s"
-    return f"rtol = atol = {float(sol.stats['rtol']):.3g}"
 
 
 # --------------------------------------------------------------------------
 # simulate
-
-
-def integrate(scene, n_chunks: int = N_CHUNKS, progress: Progress | None = None):
-    """Solve ``scene`` in ``n_chunks`` pieces, each a `lierk.solve` from the end
-    state of the one before, reporting progress in between.  Saves the same
-    points as ``scene.solve()``.  Returns ``(Solution, wall seconds)``;
-    raises `RunError` if a piece fails."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-    import numpy as np
-
-    from .solution import RESULTS, SaveAt, Solution
-    from .solve import num_steps, solve
-
-    problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
-    dtype = problem.R0.dtype
-    kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
-    start = time.perf_counter()
-
-    if scene.target_error is not None:
-        # target_error bounds the global error at every saved time, so it is
-        # solved in one piece, on the scene's own grid (the one scene.solve()
-        # saves).  Choosing the setting on the first piece and reusing it
-        # would not do: the error grows over the run (across a flip it grows
-        # fastest), so a step fine enough for the first twentieth is not fine
-        # enough for the whole, and targets per piece would not bound the
-        # total either.  The progress bar therefore shows only start and end.
-        if progress is not None:
-            progress.update(0.0)
-        sol = jax.block_until_ready(scene.solve(throw=False))
-        code = int(sol.result)
-        if code == RESULTS.target_error_not_reached:
-            worst = float(np.max(np.asarray(sol.error_estimate)))
-            raise RunError(
-                f"target_error = {scene.target_error:g} was not reached: the best estimate was {worst:.2g} "
-                f"(last tried {_chosen(sol)}); loosen it or use another solver"
-            )
-        if code != RESULTS.successful:
-            raise RunError(f"integration failed between t = 0 s and {t1:g} s: {RESULTS.message(code)}")
-        if progress is not None:
-            progress.update(t1)
-        stats = {k: (float(v) if k in ("dt", "rtol") else int(v)) for k, v in sol.stats.items()}
-        return eqx.tree_at(lambda s: s.stats, sol, stats), time.perf_counter() - start
-
-    if not scene.adaptive:
-        dt = float(kw["dt"])
-        every = scene.saveat_every
-        n_total = num_steps(0.0, t1, dt, None)
-        # Chunks hold a whole number of save intervals, so the saved grid is
-        # the one a single solve would save.
-        per = every * max(1, math.ceil(n_total / (n_chunks * every)))
-        bounds = [min(k * per, n_total) for k in range(math.ceil(n_total / per) + 1)]
-        times = [min(b * dt, t1) for b in bounds]
-        times[-1] = t1
-
-        @eqx.filter_jit
-        def piece(problem, ta, tb):
-            # Padding steps past tb are exact no-ops, so every piece has the
-            # same static length and compiles once.
-            return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
-
-        pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
-    else:
-        ts_all = np.linspace(0.0, t1, scene.n_save)
-        rest = ts_all[1:]
-        size = math.ceil(len(rest) / n_chunks)
-        max_steps = scene.solve_kwargs.get("max_steps")
-
-        @eqx.filter_jit
-        def piece(problem, ta, tb, ts):
-            return solve(
-                problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw
-            )
-
-        pieces, ta = [], 0.0
-        for k in range(0, len(rest), size):
-            group = rest[k : k + size]
-            group = np.concatenate([group, np.full(size - len(group), group[-1])])
-            pieces.append((ta, float(group[-1]), group))
-            ta = float(group[-1])
-
-    ts_out, R_out, y_out = [np.zeros(1)], [np.asarray(problem.R0)[None]], [problem.y0]
-    y_out[0] = jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)
-    stats = None
-    for ta, tb, group in pieces:
-        args = (problem, jnp.asarray(ta, dtype), jnp.asarray(tb, dtype))
-        if group is not None:
-            args += (jnp.asarray(group, dtype),)
-        sol = piece(*args)
-        code = int(sol.result)
-        if code != RESULTS.successful:
-            raise RunError(f"integration failed between t = {ta:g} s and {tb:g} s: {RESULTS.message(code)}")
-        ts = np.asarray(sol.ts)
-        # Padding repeats the end state; keep each time once.
-        keep = np.concatenate([[True], ts[1:] > ts[:-1]]) & (ts > ts_out[-1][-1])
-        ts_out.append(ts[keep])
-        R_out.append(np.asarray(sol.R)[keep])
-        y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
-        stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
-        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
-        if progress is not None:
-            progress.update(tb)
-    wall = time.perf_counter() - start
-
-    ts = np.concatenate(ts_out)
-    y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
-    sol = Solution(
-        ts=jnp.asarray(ts, dtype),
-        R=jnp.asarray(np.concatenate(R_out), dtype),
-        y=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y),
-        n_saved=jnp.asarray(len(ts)),
-        stats={k: int(v) for k, v in stats.items()},
-        result=jnp.asarray(RESULTS.successful),
-    )
-    return sol, wall
 
 
 def _key(name: str) -> str:
@@ -523,13 +413,24 @@ def simulate(args) -> int:
     import numpy as np
 
     from . import plot
+    from ._pieces import N_PIECES, chosen
     from .body import angular_momentum
+    from .store import check_size
 
     if args.target_error is not None:
         scene = scene.with_target_error(args.target_error)
     problem, solver = scene.problem, scene.solver
-    progress = Progress(f"{scene.name}: t", scene.t1, " s", quiet=args.quiet)
-    sol, wall = integrate(scene, args.chunks, progress)
+    saved = scene.saved_count() * scene.bytes_per_saved()
+    try:
+        # The pieces, their concatenation and the derived omega, L and
+        # invariants hold about 4 copies of the saved points; the .npz 2.
+        check_size(memory=4 * saved, disk=2 * saved, directory=args.out,
+                   what=f"simulating {scene.saved_count()} saved points")
+    except ValueError as e:
+        raise CLIError(_one_line(e)) from None
+    start = time.perf_counter()
+    sol = scene.solve(n_pieces=args.chunks or N_PIECES, progress=not args.quiet)
+    wall = time.perf_counter() - start
 
     ts, R, y = plot.trajectory(sol)
     omega = np.asarray(sol.omega(problem))
@@ -603,7 +504,7 @@ def simulate(args) -> int:
     if scene.target_error is not None:
         est = np.asarray(sol.error_estimate)
         print(
-            f"  target_error {scene.target_error:.3g}: chose {_chosen(sol)} "
+            f"  target_error {scene.target_error:.3g}: chose {chosen(sol)} "
             f"after {st['num_solves']} solves (steps above: the last, finest solve); "
             f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
         )
@@ -686,7 +587,9 @@ def sweep(args) -> int:
 
     from . import so3
     from .adjoint import ForwardMode
-    from .batch import sweep as batch_sweep
+    from ._progress import Progress
+    from .batch import sweep_chunks
+    from .store import ChunkStore, check_size
     from .rigid_body import FreeRigidBody
     from .solution import SaveAt
     from .solve import num_steps, solve
@@ -737,16 +640,48 @@ def sweep(args) -> int:
             out["flip_interval"] = exact(problem.inertia, w)
         return out
 
+    stem = _key(scene.name) or "scene"
+    n_chunks = -(-len(grid) // args.chunk_size)
+    # Everything that decides a chunk's numbers: a directory holding another
+    # run is refused instead of mixed in.
+    key = {
+        "scene": hashlib.sha256(args.scene.read_bytes()).hexdigest(),
+        "t1": t1,
+        "grid": hashlib.sha256(np.ascontiguousarray(grid, dtype).tobytes()).hexdigest(),
+        "grid_shape": list(shape),
+        "solver": solver.name,
+        "settings": {k: repr(v) for k, v in sorted(kw.items())},
+        "dtype": np.dtype(dtype).name,
+        "chunk_size": args.chunk_size,
+        "lierk": _version(),
+    }
+    out_bytes = 5 * np.dtype(dtype).itemsize  # angle, sensitivity, flip interval, result, omega0 per point
+    try:
+        # Per member: R(T) and its three tangents (jacfwd), a few copies each.
+        check_size(memory=args.chunk_size * 4 * 4 * scene.bytes_per_saved(), disk=2 * len(grid) * out_bytes,
+                   directory=args.out, what=f"a sweep of {len(grid)} points")
+        store = ChunkStore.open(args.out / f"{stem}_sweep.chunks", key=key, n_chunks=n_chunks)
+    except ValueError as e:
+        raise CLIError(_one_line(e)) from None
+    if store.resumed:
+        print(f"lierk sweep: resuming: {store.resumed} of {n_chunks} chunks already done", file=sys.stderr)
+    writer = jax.process_index() == 0
+    done = min(len(store.done) * args.chunk_size, len(grid))
+    bar = Progress("sweep", len(grid), "members", quiet=args.quiet or store.complete)
     start = time.perf_counter()
-    res = batch_sweep(point, jnp.asarray(grid, dtype), chunk_size=args.chunk_size, progress=not args.quiet)
-    res = jax.device_get(res)
+    for k, a, b, out in sweep_chunks(point, np.asarray(grid, dtype), chunk_size=args.chunk_size, skip=store.done):
+        if writer:
+            store.write(k, out)
+        done += b - a
+        bar.update(done)
     wall = time.perf_counter() - start
-    res = {k: np.asarray(v).reshape(shape) for k, v in res.items()}
+    if not writer:
+        return 0
+    res = {k: np.asarray(v).reshape(shape) for k, v in store.read_all().items()}
     failed = res.pop("result") != 0
     for k in res:
         res[k] = np.where(failed, np.nan, res[k]) if k != "flip_interval" else res[k]
 
-    stem = _key(scene.name) or "scene"
     names = [f"omega0_{'xyz'[k]}" for k in varied]
     title = f"{scene.name}: sweep of $\\omega_0$, T = {t1:g} s\n{solver.name}, {_run_settings(scene)}"
     with _staged_output(args.out) as tmp:
@@ -754,6 +689,9 @@ def sweep(args) -> int:
                  omega0=grid.reshape(*shape, 3), t1=t1, **res)
         fig = _sweep_figure(res, [axes[k] for k in varied], varied, omega0, title)
         fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
+    # The chunks are in the .npz now; only an unfinished run's are kept (to
+    # resume, and to refuse another run in their place).
+    shutil.rmtree(store.directory, ignore_errors=True)
     npz, png = args.out / f"{stem}_sweep.npz", args.out / f"{stem}_sweep.png"
 
     print(f"scene {scene.name}: {len(grid)} initial angular velocities ({' x '.join(map(str, shape))}), "
@@ -930,9 +868,6 @@ def _dispatch(args, prog: str) -> int:
     except CLIError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)
         return 2
-    except RunError as e:
-        print(f"{prog}: error: {e}", file=sys.stderr)
-        return 1
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

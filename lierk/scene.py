@@ -206,10 +206,7 @@ class Scene:
         kw = {"target_error": eps}
         if self.target_error is not None and "max_steps" in self.solve_kwargs:
             kw["max_steps"] = self.solve_kwargs["max_steps"]
-        n_save = self.n_save
-        if n_save is None:
-            n = _num_steps(0.0, self.t1, self.solve_kwargs["dt"])
-            n_save = max(2, 1 + n // self.saveat_every + (1 if n % self.saveat_every else 0))
+        n_save = self.n_save if self.n_save is not None else max(2, self.saved_count())
         return dataclasses.replace(self, solve_kwargs=kw, saveat_every=None, n_save=n_save)
 
     def with_t1(self, t1: float) -> "Scene":
@@ -224,11 +221,67 @@ class Scene:
         _check_run_size(t1, self.solve_kwargs, self.saveat_every, "t1")
         return dataclasses.replace(self, t1=t1)
 
-    def solve(self, **overrides) -> Solution:
+    def solve(self, *, n_pieces: int | None = None, progress: bool = False, **overrides) -> Solution:
         """``lierk.solve(problem, solver, t1, saveat=self.saveat(), **solve_kwargs)``;
-        keyword ``overrides`` replace entries (e.g. ``throw=False``)."""
-        kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **overrides}
-        return _solve(self.problem, self.solver, self.t1, **kwargs)
+        keyword ``overrides`` replace entries (e.g. ``throw=False``).
+
+        With ``n_pieces`` or ``progress``, the run is solved in pieces (20 by
+        default), each a `lierk.solve` from the end state of the one before,
+        compiled once before the first runs.  ``progress=True`` shows the
+        compilation and then the simulated time on stderr (elapsed, rate,
+        time left).  The pieces save exactly the times one solve saves; the
+        states agree with one solve to rounding with a fixed step, and to the
+        tolerance with ``rtol`` (each piece picks its first step anew).  A ``target_error`` run
+        is solved in one piece: its bound holds over the whole run, and a
+        setting chosen on a first piece would not bound the rest.
+
+        Args:
+            n_pieces: the number of pieces (a positive int), or None.
+            progress: report progress on stderr.
+            **overrides: replace `lierk.solve` arguments; in pieces only
+                ``throw`` may be given.
+
+        Returns:
+            A `Solution`: ``ts`` ``(n_saved,)`` in s, ``R`` ``(n_saved, 3, 3)``,
+            ``y`` the state besides ``R`` at those times; in pieces ``stats``
+            holds Python ints (summed over pieces) and, with
+            ``target_error``, the setting chosen.
+
+        Raises:
+            ValueError: ``n_pieces`` is not a positive int, or overrides other
+                than ``throw`` are given with pieces.
+            RuntimeError: with ``throw=True`` (default), a piece failed; the
+                message names the interval and the `lierk.RESULTS` code's
+                meaning.  With ``throw=False`` the solution up to and
+                including the failed piece comes back with its result code.
+        """
+        if n_pieces is None and not progress:
+            kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **overrides}
+            return _solve(self.problem, self.solver, self.t1, **kwargs)
+        if n_pieces is not None and not (isinstance(n_pieces, (int, np.integer)) and not isinstance(n_pieces, bool) and n_pieces >= 1):
+            raise ValueError(f"n_pieces must be a positive int, got {n_pieces!r}")
+        unknown = set(overrides) - {"throw"}
+        if unknown:
+            raise ValueError(f"a scene solved in pieces takes only throw= as an override, got {', '.join(sorted(unknown))}")
+        from ._pieces import N_PIECES, solve_in_pieces
+
+        return solve_in_pieces(self, N_PIECES if n_pieces is None else int(n_pieces), progress,
+                               overrides.get("throw", True))
+
+    def saved_count(self) -> int:
+        """How many states a run of this scene saves (times included)."""
+        if self.adaptive:
+            return self.n_save
+        n = _num_steps(0.0, self.t1, self.solve_kwargs["dt"])
+        return 1 + n // self.saveat_every + (1 if n % self.saveat_every else 0)
+
+    def bytes_per_saved(self) -> int:
+        """Bytes of one saved point: its time, ``R`` (9 numbers) and the state
+        besides ``R``, in the problem's dtype."""
+        from jax.tree_util import tree_leaves
+
+        y = sum(int(np.size(x)) for x in tree_leaves(self.problem.y0))
+        return (1 + 9 + y) * np.dtype(self.problem.R0.dtype).itemsize
 
 
 def load(path: str | os.PathLike) -> Scene:

@@ -88,7 +88,7 @@ def tiny_run(tmp_path_factory):
 def test_accuracy_writes_png_and_json(tiny_run):
     code, stdout, stderr, out, scene = tiny_run
     assert code == 0, stderr
-    assert "100.0%" in stderr and "Traceback" not in stderr  # the progress bar
+    assert "100%" in stderr and "Traceback" not in stderr  # the progress bar
     with Image.open(out / "work_precision.png") as im:
         assert im.format == "PNG" and im.size == (800, 700)
     doc = json.loads((out / "work_precision.json").read_text(), parse_constant=lambda c: pytest.fail(f"JSON has {c}"))

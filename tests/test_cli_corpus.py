@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import pytest
 
+import lierk.scene
 from lierk import cli
 
 
@@ -213,7 +214,7 @@ def no_integration(monkeypatch):
         calls.append(args)
         raise AssertionError("a malformed scene was integrated")
 
-    monkeypatch.setattr(cli, "integrate", integrate)
+    monkeypatch.setattr(lierk.scene.Scene, "solve", integrate)
     return calls
 
 

@@ -376,3 +376,59 @@ def test_load_reports_bytes_that_are_not_utf8(tmp_path):
     # This used to be a bare UnicodeDecodeError, without the file's name.
     with pytest.raises(ValueError, match=r"latin1.toml: not valid TOML: not UTF-8 text \(byte e9 at offset 11\)"):
         S.load(bad)
+
+
+# --- solved in pieces ----------------------------------------------------------
+
+PIECE_SCENES = {
+    # 1037 steps: the last save interval (every 10) and the last step are short.
+    "fixed": {"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
+              "run": {"solver": "RKMK4", "dt": 0.01, "t1": 10.37, "save_every": 10}},
+    "adaptive, effects": {"body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0], "mass": 1.0},
+                          "initial": {"omega": [0.3, 1.0, 0.2]},
+                          "effects": [{"kind": "damping", "c": 0.01}],
+                          "run": {"solver": "DP54", "rtol": 1e-10, "t1": 3.0, "n_save": 23}},
+}
+
+
+@pytest.mark.parametrize("name", PIECE_SCENES)
+def test_pieces_equal_one_solve(name, capsys):
+    """The same saved times, bit for bit; the same states to rounding with
+    fixed steps, and to the tolerance (1e-10) adaptively, where each piece
+    picks its first step anew."""
+    scene = S.from_dict(copy.deepcopy(PIECE_SCENES[name]))
+    one = scene.solve()
+    pieces = scene.solve(n_pieces=7, progress=True)
+    np.testing.assert_array_equal(np.asarray(pieces.ts), np.asarray(one.ts))
+    tol = 1e-9 if scene.adaptive else 1e-12
+    np.testing.assert_allclose(np.asarray(pieces.R), np.asarray(one.R), rtol=0, atol=tol)
+    np.testing.assert_allclose(np.asarray(pieces.y), np.asarray(one.y), rtol=tol, atol=1e-15)
+    assert int(pieces.result) == 0 and int(pieces.n_saved) == len(one.ts)
+    if not scene.adaptive:
+        assert pieces.stats["num_steps"] == int(one.stats["num_steps"]) == 1037
+    err = capsys.readouterr().err
+    assert "compiling" in err and "100%" in err
+
+
+def test_pieces_report_a_failed_piece_by_its_interval():
+    d = copy.deepcopy(PIECE_SCENES["adaptive, effects"])
+    d["run"]["max_steps"] = 5
+    scene = S.from_dict(d)
+    with pytest.raises(RuntimeError, match=r"integration failed between t = 0 s and .* max_steps"):
+        scene.solve(n_pieces=3)
+    sol = scene.solve(n_pieces=3, throw=False)
+    assert int(sol.result) == lierk.RESULTS.max_steps_reached
+
+
+@pytest.mark.parametrize("kwargs, match", [({"n_pieces": 0}, "n_pieces must be a positive int"),
+                                           ({"n_pieces": 2, "dt": 0.1}, "only throw=")])
+def test_bad_pieces_are_rejected(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        S.from_dict(copy.deepcopy(PIECE_SCENES["fixed"])).solve(**kwargs)
+
+
+def test_saved_count_and_bytes_match_a_solve():
+    scene = S.from_dict(copy.deepcopy(PIECE_SCENES["fixed"]))
+    sol = scene.solve()
+    assert scene.saved_count() == len(sol.ts)
+    assert scene.bytes_per_saved() == (sol.ts.nbytes + sol.R.nbytes + sol.y.nbytes) // len(sol.ts)

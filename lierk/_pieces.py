@@ -1,0 +1,138 @@
+"""A scene solved in pieces, with progress: `lierk.scene.Scene.solve`'s ``n_pieces``."""
+
+from __future__ import annotations
+
+import math
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from ._progress import Progress
+from .solution import RESULTS, SaveAt, Solution
+from .solve import num_steps, solve
+
+__all__ = ["N_PIECES", "solve_in_pieces"]
+
+N_PIECES = 20
+"""Pieces of a `Scene.solve(progress=True)` when ``n_pieces`` is not given."""
+
+
+def chosen(sol: Solution) -> str:
+    """The setting a target_error solve chose, from its stats."""
+    if "dt" in sol.stats:
+        return f"dt = {float(sol.stats['dt']):.4g} s"
+    return f"rtol = atol = {float(sol.stats['rtol']):.3g}"
+
+
+def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Solution:
+    """``scene.solve()`` in ``n_pieces`` pieces; see `Scene.solve`."""
+    problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
+    dtype = problem.R0.dtype
+    kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
+    bar = Progress(f"{scene.name}: t", t1, "s", quiet=not progress)
+
+    if scene.target_error is not None:
+        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=scene.saveat(), throw=False,
+                                                   **scene.solve_kwargs))
+        with bar.compiling():
+            run = run.lower(problem).compile()
+        sol = jax.block_until_ready(run(problem))
+        code = int(sol.result)
+        if throw and code == RESULTS.target_error_not_reached:
+            worst = float(np.max(np.asarray(sol.error_estimate)))
+            raise RuntimeError(
+                f"target_error = {scene.target_error:g} was not reached: the best estimate was {worst:.2g} "
+                f"(last tried {chosen(sol)}); loosen it or use another solver"
+            )
+        _check(code, 0.0, t1, throw)
+        bar.update(t1)
+        stats = {k: (float(v) if k in ("dt", "rtol") else int(v)) for k, v in sol.stats.items()}
+        return eqx.tree_at(lambda s: s.stats, sol, stats)
+
+    if not scene.adaptive:
+        dt = float(kw["dt"])
+        every = scene.saveat_every
+        n_total = num_steps(0.0, t1, dt, None)
+        # Pieces hold a whole number of save intervals, so the saved grid is
+        # the one a single solve saves.
+        per = every * max(1, math.ceil(n_total / (n_pieces * every)))
+        bounds = [min(k * per, n_total) for k in range(math.ceil(n_total / per) + 1)]
+        times = [min(b * dt, t1) for b in bounds]
+        times[-1] = t1
+
+        @eqx.filter_jit
+        def piece(problem, ta, tb):
+            # Padding steps past tb are exact no-ops, so every piece has the
+            # same static length and compiles once.
+            return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
+
+        pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
+    else:
+        # The very times one solve is asked for, so the grids agree bit for bit.
+        rest = np.asarray(scene.saveat().ts)[1:]
+        size = math.ceil(len(rest) / n_pieces)
+        max_steps = scene.solve_kwargs.get("max_steps")
+
+        @eqx.filter_jit
+        def piece(problem, ta, tb, ts):
+            return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
+
+        pieces, ta = [], 0.0
+        for k in range(0, len(rest), size):
+            group = rest[k : k + size]
+            # Every piece saves `size` times (the last repeats its end), so all share one compilation.
+            group = np.concatenate([group, np.full(size - len(group), group[-1])])
+            pieces.append((ta, float(group[-1]), group))
+            ta = float(group[-1])
+
+    def arguments(problem, ta, tb, group):
+        args = (problem, jnp.asarray(ta, dtype), jnp.asarray(tb, dtype))
+        return args if group is None else args + (jnp.asarray(group, dtype),)
+
+    with bar.compiling():
+        piece = piece.lower(*arguments(problem, *pieces[0])).compile()
+
+    ts_out, R_out = [np.zeros(1)], [np.asarray(problem.R0)[None]]
+    y_out = [jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)]
+    stats, code = None, RESULTS.successful
+    for ta, tb, group in pieces:
+        sol = piece(*arguments(problem, ta, tb, group))
+        code = int(sol.result)
+        ts = np.asarray(sol.ts)
+        # Padding repeats the end state; keep each time once.
+        keep = np.concatenate([[True], ts[1:] > ts[:-1]]) & (ts > ts_out[-1][-1])
+        ts_out.append(ts[keep])
+        R_out.append(np.asarray(sol.R)[keep])
+        y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
+        stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
+        if _check(code, ta, tb, throw):
+            break
+        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
+        bar.update(tb)
+
+    ts = np.concatenate(ts_out)
+    if not scene.adaptive and code == RESULTS.successful:
+        # A piece counts its time from its own start (ta + j dt), one solve
+        # from 0 (k dt): the same times up to rounding.  Saved times are
+        # reported as one solve reports them, k dt and then t1.
+        ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[: len(ts)]
+    y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
+    return Solution(
+        ts=jnp.asarray(ts, dtype),
+        R=jnp.asarray(np.concatenate(R_out), dtype),
+        y=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y),
+        n_saved=jnp.asarray(len(ts)),
+        stats={k: int(v) for k, v in stats.items()},
+        result=jnp.asarray(code),
+    )
+
+
+def _check(code: int, ta: float, tb: float, throw: bool) -> bool:
+    """True if the piece from ``ta`` to ``tb`` failed (raised with ``throw``)."""
+    if code == RESULTS.successful:
+        return False
+    if throw:
+        raise RuntimeError(f"integration failed between t = {ta:g} s and {tb:g} s: {RESULTS.message(code)}")
+    return True
