@@ -240,7 +240,10 @@ def _dispatch(fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool
         if index in skip:
             continue
         start, stop = index * chunk, min(index * chunk + chunk, n)
-        rows = np.minimum(np.arange(start, start + padded), stop - 1)
+        if stop - start == padded:
+            rows = slice(start, stop)  # a view, no copy
+        else:
+            rows = np.minimum(np.arange(start, start + padded), stop - 1)
         args = jax.tree_util.tree_unflatten(treedef, [_place(x[rows], batch_sharding) for x in leaves])
         yield index, start, stop, jitted(dynamic, *args)
 

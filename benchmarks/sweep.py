@@ -1,0 +1,257 @@
+"""Sweeps at scale: `lierk.sweep` compiles once, its throughput, and a native anchor.
+
+Part 1, compiled once.  RKMK4 on the momentum-state T-handle, batch 2000,
+200 steps, float64, the batch sharded over the host devices.  Side by side in
+one loop (interleaved, so that a change of machine load hits all alike):
+
+- a held ``jax.jit(jax.vmap(f))`` given the batch already on the devices (the
+  floor), and given the NumPy batch with a ``device_put`` in the timing;
+- `lierk.sweep` on the NumPy batch: the same values, new values each call, a
+  new `functools.partial` holding a new inertia array each call, and
+  `lierk.sweep_chunks` in chunks of 500 copied to the host;
+- what `lierk.sweep` did before it cached: a new ``jit(vmap(f))`` per call.
+
+Part 2, throughput.  Batch 10000, 1000 steps (10 s at dt = 0.01 s), float64
+and float32: body-steps per second through `lierk.sweep`, next to the held
+jit and to the same RKMK4 written in numba with one thread per core
+(`native.py`), with the largest difference of the final attitudes.
+
+Every time is the minimum of the repeats after compile and warm-up (medians
+are in the JSON).  The CPU is split into one XLA host device per core
+(``XLA_FLAGS``, set here before jax is imported; the library never does).
+
+Run: ``python benchmarks/sweep.py [--quick] [--out DIR]``; writes sweep.json
+and sweep.md to benchmarks/results (``--quick``: small sizes, to a temp dir).
+"""
+
+from __future__ import annotations
+
+import os
+
+# Must happen before jax is imported: the device count is fixed at start-up.
+_DEVICES = os.cpu_count() or 1
+if _DEVICES > 1:
+    os.environ["XLA_FLAGS"] = (
+        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={_DEVICES}"
+    ).strip()
+
+import functools  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import time  # noqa: E402
+
+import jax  # noqa: E402
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
+
+import common  # noqa: E402
+import lierk  # noqa: E402
+import native  # noqa: E402
+
+QUICK, OUT = common.cli(__doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__")
+DT = 0.01
+INERTIA = lierk.inertia.tee_handle()
+
+
+def final_R(inertia, n_steps, omega0):
+    """``R(n_steps DT)`` ``(3, 3)`` of RKMK4 from ``R0 = I``, ``omega0`` ``(3,)`` rad/s."""
+    body = lierk.FreeRigidBody(inertia, omega0)
+    return lierk.solve(body, lierk.RKMK4(), n_steps * DT, dt=DT, max_steps=n_steps).R[-1]
+
+
+def omegas(batch: int, dtype) -> np.ndarray:
+    """``(batch, 3)`` body angular velocities (rad/s) around the T-handle's spin."""
+    return (np.random.default_rng(0).normal(size=(batch, 3)) * [1.0, 0.05, 0.3]).astype(dtype)
+
+
+def interleaved(calls: dict, repeats: int) -> dict:
+    """``{name: [seconds, ...]}``: each call timed once per round, round after round."""
+    times = {name: [] for name in calls}
+    for _ in range(repeats):
+        for name, call in calls.items():
+            t = time.perf_counter()
+            jax.block_until_ready(call())
+            times[name].append(time.perf_counter() - t)
+    return times
+
+
+def summary(ts) -> dict:
+    return {"min_s": float(min(ts)), "median_s": float(np.median(ts)), "runs": len(ts)}
+
+
+def compile_once(batch: int, n_steps: int, repeats: int) -> dict:
+    devices = jax.devices()
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    w = omegas(batch, np.float64)
+
+    def f(omega0):
+        return final_R(INERTIA, n_steps, omega0)
+
+    held = jax.jit(jax.vmap(f))
+    w_dev = jax.device_put(w, sharding)
+    t = time.perf_counter()
+    jax.block_until_ready(held(w_dev))
+    held_first = time.perf_counter() - t
+    t = time.perf_counter()
+    ref = np.asarray(jax.block_until_ready(lierk.sweep(f, w)))
+    sweep_first = time.perf_counter() - t
+    fresh = []
+    for _ in range(2):  # the old behaviour compiles every call
+        t = time.perf_counter()
+        jax.block_until_ready(jax.jit(jax.vmap(f))(jax.device_put(w, sharding)))
+        fresh.append(time.perf_counter() - t)
+
+    shift = iter(np.linspace(0.0, 1e-3, 10 * repeats + 10))
+    scale = iter(np.linspace(1.0, 1.1, 10 * repeats + 10))
+    chunk = max(1, batch // 4)
+    calls = {
+        "held jit, batch on the devices": lambda: held(w_dev),
+        "held jit, NumPy batch + device_put": lambda: held(jax.device_put(w, sharding)),
+        "lierk.sweep": lambda: lierk.sweep(f, w),
+        "lierk.sweep, new values": lambda: lierk.sweep(f, w + next(shift)),
+        "lierk.sweep, new partial(inertia)": lambda: lierk.sweep(
+            functools.partial(final_R, INERTIA * next(scale), n_steps), w
+        ),
+        f"lierk.sweep_chunks, chunks of {chunk}, to host": lambda: [
+            out for *_, out in lierk.sweep_chunks(f, w, chunk_size=chunk)
+        ],
+    }
+    for name, call in calls.items():  # compile and warm up each (the partial compiles once)
+        jax.block_until_ready(call())
+    times = interleaved(calls, repeats)
+    floor = min(times["held jit, batch on the devices"])
+    rows = {name: {**summary(ts), "ratio_to_held": float(min(ts) / floor)} for name, ts in times.items()}
+    err = float(np.max(np.abs(np.asarray(lierk.sweep(f, w)) - ref)))
+    return {
+        "batch": batch,
+        "steps": n_steps,
+        "dtype": "float64",
+        "devices": len(devices),
+        "first_call_s": {"held jit": held_first, "lierk.sweep": sweep_first},
+        "new jit(vmap) per call (before the cache), s": fresh,
+        "calls": rows,
+        "max_diff_between_calls": err,
+    }
+
+
+def throughput(batch: int, n_steps: int, repeats: int, dtype) -> dict:
+    devices = jax.devices()
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    w = omegas(batch, dtype)
+    inertia = jnp.asarray(INERTIA, dtype)
+
+    def f(omega0):
+        return final_R(inertia, n_steps, omega0)
+
+    held = jax.jit(jax.vmap(f))
+    w_dev = jax.device_put(w, sharding)
+    threads = os.cpu_count() or 1
+    calls = {
+        "lierk.sweep": lambda: lierk.sweep(f, w),
+        "held jit(vmap)": lambda: held(w_dev),
+        f"numba, {threads} threads": lambda: native.rkmk4_final_R(INERTIA, w, DT, n_steps, threads),
+    }
+    t = time.perf_counter()
+    outs = {name: np.asarray(jax.block_until_ready(call())) for name, call in calls.items()}
+    warm_s = time.perf_counter() - t
+    times = interleaved(calls, repeats)
+    steps = batch * n_steps
+    rows = {name: {**summary(ts), "body_steps_per_s": steps / min(ts)} for name, ts in times.items()}
+    anchor = rows[f"numba, {threads} threads"]["body_steps_per_s"]
+    for r in rows.values():
+        r["ratio_to_native"] = r["body_steps_per_s"] / anchor
+    return {
+        "batch": batch,
+        "steps": n_steps,
+        "dtype": np.dtype(dtype).name,
+        "devices": len(devices),
+        "numba_threads": threads,
+        "compile_and_warm_up_s": warm_s,
+        "calls": rows,
+        "max_diff_lierk_vs_numba": float(np.max(np.abs(outs["lierk.sweep"] - outs[f"numba, {threads} threads"]))),
+        "max_diff_sweep_vs_held": float(np.max(np.abs(outs["lierk.sweep"] - outs["held jit(vmap)"]))),
+    }
+
+
+def machine() -> dict:
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": common.cpu_model(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "numba": getattr(native.numba, "__version__", None),
+        "device_count": jax.device_count(),
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_average_at_start": os.getloadavg(),
+    }
+
+
+def markdown(res: dict) -> str:
+    m = res["machine"]
+    c = res["compile_once"]
+    lines = [
+        "# Sweeps at scale (`benchmarks/sweep.py`)",
+        "",
+        f"{m['cpu_count']} cores ({m['cpu_model']}), {m['device_count']} XLA host devices, jax {m['jax']}, "
+        f"numba {m['numba']}. Load average {m['load_average_at_start'][0]:.1f} at the start, "
+        f"{m['load_average_at_end'][0]:.1f} at the end (a shared machine: read the ratios).",
+        "",
+        f"## Compiled once: RKMK4, batch {c['batch']}, {c['steps']} steps, {c['dtype']}",
+        "",
+        f"First call: held jit {c['first_call_s']['held jit']:.2f} s, `lierk.sweep` "
+        f"{c['first_call_s']['lierk.sweep']:.2f} s (compilation). Before the cache every call compiled: "
+        + ", ".join(f"{t:.2f} s" for t in c["new jit(vmap) per call (before the cache), s"])
+        + ".",
+        "",
+        "| call (after the first) | time (ms) | / held jit |",
+        "|---|---:|---:|",
+    ]
+    for name, r in c["calls"].items():
+        lines.append(f"| {name} | {1e3 * r['min_s']:.1f} | {r['ratio_to_held']:.2f} |")
+    for t in res["throughput"]:
+        lines += [
+            "",
+            f"## Throughput: RKMK4, batch {t['batch']}, {t['steps']} steps, {t['dtype']}",
+            "",
+            "| | body-steps/s | / numba |",
+            "|---|---:|---:|",
+        ]
+        for name, r in t["calls"].items():
+            lines.append(f"| {name} | {r['body_steps_per_s']:.2e} | {r['ratio_to_native']:.2f} |")
+        lines += [
+            "",
+            f"Largest difference of R(T), lierk against numba: {t['max_diff_lierk_vs_numba']:.1e}.",
+        ]
+    return "\n".join(lines) + "\n"
+
+
+def main():
+    info = machine()
+    print(json.dumps(info))
+    batch1, steps1, batch2, steps2, repeats = (1000, 100, 1000, 100, 3) if QUICK else (2000, 200, 10000, 1000, 7)
+    res = {"machine": info, "quick": QUICK, "dt": DT}
+    res["compile_once"] = compile_once(batch1, steps1, 2 * repeats)
+    for name, r in res["compile_once"]["calls"].items():
+        print(f"{name:45s} {1e3 * r['min_s']:8.1f} ms  {r['ratio_to_held']:.2f}x held", flush=True)
+    res["throughput"] = []
+    for dtype in (np.float64, np.float32):
+        t = throughput(batch2, steps2, repeats, dtype)
+        res["throughput"].append(t)
+        for name, r in t["calls"].items():
+            print(f"{t['dtype']:8s} {name:20s} {r['body_steps_per_s']:.3e} body-steps/s  {r['ratio_to_native']:.2f}x numba",
+                  flush=True)
+        print(f"{t['dtype']:8s} max |R_lierk - R_numba| = {t['max_diff_lierk_vs_numba']:.1e}", flush=True)
+    info["load_average_at_end"] = os.getloadavg()
+    OUT.mkdir(parents=True, exist_ok=True)
+    (OUT / "sweep.json").write_text(json.dumps(res, indent=2) + "\n")
+    (OUT / "sweep.md").write_text(markdown(res))
+    print(f"wrote sweep.json and sweep.md in {OUT}")
+
+
+if __name__ == "__main__":
+    main()
