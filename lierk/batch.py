@@ -274,9 +274,10 @@ def sweep_chunks(
     bounded by the chunk size, not by ``N``.
 
     After `lierk.distributed.initialize`, every process calls this with the
-    same arguments (the whole batch, e.g. a grid computed on each process);
-    each process feeds only the rows of its own devices, and every process
-    receives every chunk's whole output (gathered over the processes).
+    same arguments, ``skip`` included (the whole batch, e.g. a grid computed
+    on each process): each chunk is computed by all processes together, each
+    feeding only the rows of its own devices, and every process receives
+    every chunk's whole output (gathered over the processes).
 
     Args:
         fn: function of one batch member's arguments; jit-compatible.
