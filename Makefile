@@ -40,6 +40,7 @@ bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py
 	$(BIN)/python benchmarks/work_precision.py
+	$(BIN)/python benchmarks/torqued.py
 	$(BIN)/python benchmarks/formulation.py
 	$(BIN)/python benchmarks/error_estimate.py
 	$(BIN)/python benchmarks/long_horizon.py

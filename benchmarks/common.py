@@ -71,3 +71,134 @@ def near_axis(moments, n: int, seed: int = 0) -> tuple[np.ndarray, int]:
     d = rng.uniform(-0.2, 0.2, (n, 3))
     d[:, axis] = 1.0
     return mag[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True), axis
+
+
+def interp_time(points, level: float) -> tuple[float, bool] | None:
+    """Time to reach error ``level`` along one method's sweep, ``points`` a list
+    of ``(error, time)``: ``(time, clamped)`` or None if no point reaches it.
+
+    Only the work-precision front counts (points that no other point beats on
+    both error and time).  Between the two front points that bracket
+    ``level``, ``log time`` is interpolated linearly in ``log error``.  When
+    even the cheapest point is below ``level`` its time is returned with
+    ``clamped = True`` (the sweep did not go coarse enough to tell more)."""
+    pts = sorted((t, e) for e, t in points if np.isfinite(e) and e > 0 and t > 0)
+    front = []
+    for t, e in pts:  # time ascending: keep each point more accurate than every cheaper one
+        if not front or e < front[-1][1]:
+            front.append((t, e))
+    if not front or front[-1][1] > level:
+        return None
+    if front[0][1] <= level:
+        return front[0][0], True
+    for (t0, e0), (t1, e1) in zip(front, front[1:]):
+        if e1 <= level < e0:
+            w = (np.log(level) - np.log(e0)) / (np.log(e1) - np.log(e0))
+            return float(np.exp(np.log(t0) + w * (np.log(t1) - np.log(t0)))), False
+    raise AssertionError("unreachable: the front brackets the level")
+
+
+def series_table(records, kind: str, heading: str, fmt: str = "{:.0e}") -> list[str]:
+    """Markdown lines: one row per setting (records whose ``"kind"`` is
+    ``kind``, e.g. "tol" or "dt", by ``"param"`` formatted with ``fmt``), one
+    column per ``"method"``, cells "max error (time s)"."""
+    rs = [r for r in records if r["kind"] == kind]
+    methods = list(dict.fromkeys(r["method"] for r in rs))
+    params = sorted({r["param"] for r in rs}, reverse=True)
+    lines = [f"| {heading} | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
+    for p in params:
+        cells = []
+        for m in methods:
+            hit = [r for r in rs if r["method"] == m and r["param"] == p]
+            cells.append(f"{hit[0]['error']:.1e} ({hit[0]['time_s']:.3g} s)" if hit else "")
+        lines.append(f"| {fmt.format(p)} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def machine_info(**versions) -> dict:
+    """The machine record of a benchmark's JSON: cores, CPU model, platform,
+    jax, numpy, lierk, JAX devices, the load average now, and ``versions``
+    (other packages, by name)."""
+    import os
+
+    import lierk
+
+    return {
+        "cpu_count": os.cpu_count(),
+        "cpu": cpu_model(),
+        "processor": platform.processor() or platform.machine(),
+        "platform": platform.platform(),
+        "python": platform.python_version(),
+        "jax": jax.__version__,
+        "numpy": np.__version__,
+        "lierk": lierk.__version__,
+        **versions,
+        "devices": [str(d) for d in jax.devices()],
+        "xla_flags": os.environ.get("XLA_FLAGS", ""),
+        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
+    }
+
+
+# --- MuJoCo states -------------------------------------------------------------
+#
+# One body on a ball joint: qpos is the body -> world quaternion (w, x, y, z),
+# i.e. lierk's R, and qvel the BODY-frame angular velocity (checked against
+# lierk by work_precision.py's `mujoco_frame_check` and torqued.py's check).
+# mujoco is imported only when these are called, so scripts without MuJoCo
+# can still use this module.
+
+
+def _mj_full():
+    import mujoco
+
+    return mujoco.mjtState.mjSTATE_FULLPHYSICS.value
+
+
+def mujoco_initial_states(model, omegas, quats=(1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
+    """``(n, nstate)`` full physics states: qpos = ``quats`` (one ``(4,)`` for
+    every member, or ``(n, 4)``), qvel = ``omegas`` ``(n, 3)`` (body frame)."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    quats = np.broadcast_to(np.asarray(quats, float), (len(omegas), 4))
+    init = np.empty((len(omegas), mujoco.mj_stateSize(model, _mj_full())))
+    for i, (w, q) in enumerate(zip(omegas, quats)):
+        mujoco.mj_resetData(model, data)
+        data.qpos[:] = q
+        data.qvel[:] = w
+        mujoco.mj_getState(model, data, init[i], _mj_full())
+    return init
+
+
+def mujoco_get_state(model, data) -> np.ndarray:
+    """``data``'s full physics state ``(nstate,)``."""
+    import mujoco
+
+    s = np.empty(mujoco.mj_stateSize(model, _mj_full()))
+    mujoco.mj_getState(model, data, s, _mj_full())
+    return s
+
+
+def mujoco_final(model, final_states) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(R (n, 3, 3), body angular velocity (n, 3), time (n,))`` from full physics states."""
+    import mujoco
+
+    data = mujoco.MjData(model)
+    n = len(final_states)
+    R, w, t = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n)
+    r9 = np.empty(9)
+    for i, s in enumerate(final_states):
+        mujoco.mj_setState(model, data, s, _mj_full())
+        mujoco.mju_quat2Mat(r9, data.qpos)
+        R[i], w[i], t[i] = r9.reshape(3, 3), data.qvel, data.time
+    return R, w, t
+
+
+def mujoco_quats(R) -> np.ndarray:
+    """``(n, 4)`` quaternions (w, x, y, z) of rotation matrices ``R`` ``(n, 3, 3)``."""
+    import mujoco
+
+    out = np.empty((len(R), 4))
+    for i, r in enumerate(np.asarray(R, float)):
+        mujoco.mju_mat2Quat(out[i], r.ravel())
+    return out

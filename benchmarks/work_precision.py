@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import json
 import os
-import platform
 import time
 from pathlib import Path
 
@@ -57,7 +56,16 @@ from scipy.integrate import solve_ivp  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import cli, cpu_model, max_err, timed  # noqa: E402
+from common import (  # noqa: E402
+    cli,
+    machine_info,
+    max_err,
+    mujoco_final,
+    mujoco_get_state,
+    mujoco_initial_states,
+    series_table,
+    timed,
+)
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
@@ -218,31 +226,6 @@ def mujoco_xml(dt: float) -> str:
 """
 
 
-def mujoco_initial_states(model, omegas_np, quat0=(1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
-    """``(n, nstate)`` full physics states: qpos = ``quat0``, qvel = omega0 (body frame)."""
-    data = mujoco.MjData(model)
-    init = np.empty((len(omegas_np), mujoco.mj_stateSize(model, MJ_FULL)))
-    for i, w in enumerate(omegas_np):
-        mujoco.mj_resetData(model, data)
-        data.qpos[:] = quat0
-        data.qvel[:] = w
-        mujoco.mj_getState(model, data, init[i], MJ_FULL)
-    return init
-
-
-def mujoco_final(model, final_states) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(R (n, 3, 3), body angular velocity (n, 3), time (n,))`` from full physics states."""
-    data = mujoco.MjData(model)
-    n = len(final_states)
-    R, w, t = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n)
-    r9 = np.empty(9)
-    for i, s in enumerate(final_states):
-        mujoco.mj_setState(model, data, s, MJ_FULL)
-        mujoco.mju_quat2Mat(r9, data.qpos)
-        R[i], w[i], t[i] = r9.reshape(3, 3), data.qvel, data.time
-    return R, w, t
-
-
 def mujoco_frame_check(w) -> dict:
     """Is a ball joint's qvel the body-frame angular velocity?  One body, started
     at a non-identity attitude (1 rad about (1, 1, 1)), dt = 1e-3, t = 1 s,
@@ -267,12 +250,6 @@ def mujoco_frame_check(w) -> dict:
         "qvel_minus_exact_body_omega": float(np.linalg.norm(w_mj[0] - w_ex)),
         "qvel_minus_exact_spatial_omega": float(np.linalg.norm(w_mj[0] - R_ex @ w_ex)),
     }
-
-
-def mujoco_get_state(model, data) -> np.ndarray:
-    s = np.empty(mujoco.mj_stateSize(model, MJ_FULL))
-    mujoco.mj_getState(model, data, s, MJ_FULL)
-    return s
 
 
 def mujoco_batch(omegas_np, dt):
@@ -340,7 +317,7 @@ def main():
     OUT.mkdir(parents=True, exist_ok=True)
     omegas_np = initial_velocities()
     omegas = jnp.asarray(omegas_np)
-    load_start = os.getloadavg() if hasattr(os, "getloadavg") else None
+    machine = machine_info(diffrax=diffrax.__version__, mujoco=mujoco.__version__, scipy=scipy.__version__)
     t_start = time.perf_counter()
 
     # Reference and ceiling: the closed form, jitted and vmapped over the batch.
@@ -462,22 +439,7 @@ def main():
             row[f"ratio_lierk_over_{peer}"] = a["time_s"] / b["time_s"] if a and b else None
         table.append(row)
 
-    machine = {
-        "cpu_count": os.cpu_count(),
-        "cpu": cpu_model(),
-        "processor": platform.processor() or platform.machine(),
-        "platform": platform.platform(),
-        "python": platform.python_version(),
-        "jax": jax.__version__,
-        "diffrax": diffrax.__version__,
-        "mujoco": mujoco.__version__,
-        "scipy": scipy.__version__,
-        "numpy": np.__version__,
-        "lierk": lierk.__version__,
-        "devices": [str(d) for d in jax.devices()],
-        "load_average_at_start": load_start,
-        "load_average_at_end": os.getloadavg() if hasattr(os, "getloadavg") else None,
-    }
+    machine["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
     total = time.perf_counter() - t_start
     payload = {
         "quick": QUICK,
@@ -522,22 +484,6 @@ def _param(x) -> str:
     return "-" if x is None else f"{x:.0e}"
 
 
-def _series_table(records, kind, heading):
-    """Rows: the parameter (tolerance or dt); columns: every method of that kind;
-    cells: max error (time s)."""
-    rs = [r for r in records if r["kind"] == kind]
-    methods = list(dict.fromkeys(r["method"] for r in rs))
-    params = sorted({r["param"] for r in rs}, reverse=True)
-    lines = [f"| {heading} | " + " | ".join(methods) + " |", "|---" * (len(methods) + 1) + "|"]
-    for p in params:
-        cells = []
-        for m in methods:
-            hit = [r for r in rs if r["method"] == m and r["param"] == p]
-            cells.append(f"{hit[0]['error']:.1e} ({hit[0]['time_s']:.3g} s)" if hit else "")
-        lines.append(f"| {p:.0e} | " + " | ".join(cells) + " |")
-    return lines
-
-
 def write_markdown(p):
     m = p["machine"]
     ceiling = p["exact_ceiling"]
@@ -568,11 +514,11 @@ def write_markdown(p):
         "Max error over the batch (median time for the batch). Adaptive lierk runs use `rtol = atol = tol`",
         "(lierk measures the momentum error relative to its size); diffrax and SciPy `rtol = atol = tol`.",
         "",
-        *_series_table(p["records"], "tol", "tol"),
+        *series_table(p["records"], "tol", "tol"),
         "",
         "## Error reached at each step size",
         "",
-        *_series_table(p["records"], "dt", "dt (s)"),
+        *series_table(p["records"], "dt", "dt (s)"),
         "",
         "## Cheapest time to reach each error level, per program",
         "",
