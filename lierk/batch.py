@@ -38,6 +38,7 @@ from typing import Any, Callable, Iterable, Iterator
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
@@ -298,11 +299,8 @@ def sweep_chunks(
             common leading axis, or an empty batch.
 
     Example:
-        >>> I = lierk.inertia.tee_handle()
-        >>> omega0s = np.random.default_rng(0).normal(size=(1000, 3))  # rad/s
-        >>> def final_R(omega0):
-        ...     body = lierk.FreeRigidBody(I, omega0)
-        ...     return lierk.solve(body, lierk.RKMK4(), 10.0, dt=0.01, max_steps=1000).R[-1]
+        With ``final_R`` and ``omega0s`` of `sweep`'s example:
+
         >>> for k, start, stop, R in lierk.sweep_chunks(final_R, omega0s, chunk_size=256):
         ...     np.save(f"out/R_{k:04d}.npy", R)  # (stop - start, 3, 3)
     """
@@ -398,12 +396,8 @@ def sweep(
             bar.update(stop)
     if not all(x.is_fully_addressable for _, out in pieces for x in jax.tree_util.tree_leaves(out)):
         parts = [_to_host(out, m) for m, out in pieces]
-        return jax.tree_util.tree_map(lambda *xs: jax.numpy.asarray(np.concatenate(xs)), *parts)
-    parts = [out if m == _rows(out) else jax.tree_util.tree_map(lambda x, m=m: x[:m], out) for m, out in pieces]
+        return jax.tree_util.tree_map(lambda *xs: jnp.asarray(np.concatenate(xs)), *parts)
+    parts = [jax.tree_util.tree_map(lambda x, m=m: x if x.shape[0] == m else x[:m], out) for m, out in pieces]
     if len(parts) == 1:
         return parts[0]
-    return jax.tree_util.tree_map(lambda *xs: jax.numpy.concatenate(xs), *parts)
-
-
-def _rows(out: Any) -> int:
-    return jax.tree_util.tree_leaves(out)[0].shape[0]
+    return jax.tree_util.tree_map(lambda *xs: jnp.concatenate(xs), *parts)
