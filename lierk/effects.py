@@ -59,7 +59,32 @@ class AbstractEffect(eqx.Module):
     def torque(self, t: Array, R: Array, m: Array, omega: Array) -> Array:
         """Body-frame torque ``(3,)`` (N m) at time ``t`` (s), attitude ``R``
         ``(3, 3)`` (body -> space), body momentum ``m`` ``(3,)`` (kg m^2/s)
-        and body angular velocity ``omega = I^{-1} m`` ``(3,)`` (rad/s)."""
+        and body angular velocity ``omega = I^{-1} m`` ``(3,)`` (rad/s).
+
+        The default reads the attitude through `space_vectors` and calls
+        `torque_from`; an effect that needs ``R`` otherwise overrides this
+        and returns None from `space_vectors`.
+        """
+        S = self.space_vectors()
+        if S is None:
+            raise NotImplementedError(f"{type(self).__name__} implements neither torque nor space_vectors/torque_from")
+        return self.torque_from(t, S @ R, m, omega)
+
+    def space_vectors(self) -> Array | None:
+        """The space-frame vectors ``s_j`` ``(k, 3)`` whose body-frame images
+        ``R^T s_j`` are all the torque needs of the attitude (``(0, 3)`` for a
+        torque that ignores it), or None if it reads ``R`` another way.
+
+        With vectors, solver stages rotate only these ``k`` vectors to the
+        stage point instead of forming a 3x3 attitude, and the torque is
+        `torque_from`.
+        """
+        return None
+
+    def torque_from(self, t: Array, v: Array, m: Array, omega: Array) -> Array:
+        """Body-frame torque ``(3,)`` (N m) from ``v`` ``(k, 3)``, the body images
+        ``R^T s_j`` of `space_vectors` (rows), and ``t``, ``m``, ``omega`` as in
+        `torque`."""
         raise NotImplementedError
 
     def potential(self, R: Array) -> Array:
@@ -138,9 +163,12 @@ class Gravity(AbstractEffect):
         self.mass = _scalar(mass, "mass", positive=True)
         self.g = _scalar(g, "g")
 
-    def torque(self, t, R, m, omega):
-        gamma = R[2, :]  # R^T e3
-        return (self.mass * self.g) * so3.cross(gamma, self.pivot_to_com)
+    def space_vectors(self):
+        return jnp.eye(3, dtype=self.pivot_to_com.dtype)[2:]  # the vertical e3
+
+    def torque_from(self, t, v, m, omega):
+        # v[0] = Gamma = R^T e3, the vertical in the body frame.
+        return (self.mass * self.g) * so3.cross(v[0], self.pivot_to_com)
 
     def potential(self, R):
         return (self.mass * self.g) * jnp.einsum("...j,j->...", R[..., 2, :], self.pivot_to_com)
@@ -173,7 +201,10 @@ class BodyTorque(AbstractEffect):
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
 
-    def torque(self, t, R, m, omega):
+    def space_vectors(self):
+        return jnp.zeros((0, 3), self.tau.dtype)
+
+    def torque_from(self, t, v, m, omega):
         return self.tau
 
 
@@ -190,8 +221,11 @@ class SpaceTorque(AbstractEffect):
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
 
-    def torque(self, t, R, m, omega):
-        return R.T @ self.tau
+    def space_vectors(self):
+        return self.tau[None]
+
+    def torque_from(self, t, v, m, omega):
+        return v[0]  # R^T tau
 
     def invariants(self, R, m):
         L = jnp.einsum("...ij,...j->...i", R, m)
@@ -214,7 +248,10 @@ class Damping(AbstractEffect):
     def __init__(self, c: ArrayLike):
         self.c = _scalar(c, "c")
 
-    def torque(self, t, R, m, omega):
+    def space_vectors(self):
+        return jnp.zeros((0, 3), self.c.dtype)
+
+    def torque_from(self, t, v, m, omega):
         return -self.c * omega
 
 

@@ -103,17 +103,19 @@ class AbstractProblem(eqx.Module):
         """What `local` needs to know about a step's base point ``R_n``."""
         return R
 
-    def advance(self, base: Any, u: Array) -> Any:
-        """The base of ``R_n exp(hat(u))`` from the base of ``R_n``; ``u`` is ``(3,)``."""
-        return base @ so3.exp(u)
+    def advance(self, base: Any, u: Array, coefficients: tuple | None = None) -> Any:
+        """The base of ``R_n exp(hat(u))`` from the base of ``R_n``; ``u`` is ``(3,)``.
+        ``coefficients``: ``so3.exp_coefficients`` of ``|u|^2``, if the solver has them."""
+        return base @ so3.exp(u, coefficients)
 
     def at(self, base: Any, t: Array, y: Any) -> tuple[Array, Any]:
         """`field` at the point that ``base`` describes."""
         return self.field(t, base, y)
 
-    def local(self, base: Any, t: Array, u: Array, y: Any) -> tuple[Array, Any]:
-        """`field` at ``R = R_n exp(hat(u))``, given ``base = self.base(t_n, R_n, y_n)``."""
-        return self.at(self.advance(base, u), t, y)
+    def local(self, base: Any, t: Array, u: Array, y: Any, coefficients: tuple | None = None) -> tuple[Array, Any]:
+        """`field` at ``R = R_n exp(hat(u))``, given ``base = self.base(t_n, R_n, y_n)``
+        (and optionally ``so3.exp_coefficients`` of ``|u|^2``)."""
+        return self.at(self.advance(base, u, coefficients), t, y)
 
     def invariants(self, R: Array, y: Any) -> dict[str, Array]:
         """Quantities the exact flow conserves, for diagnostics.  ``R`` may carry
@@ -199,9 +201,9 @@ class SpatialFreeRigidBody(AbstractProblem):
     def base(self, t, R, y):
         return R.T @ self.L  # body momentum m_n
 
-    def advance(self, base, u):
+    def advance(self, base, u, coefficients=None):
         # R^T L at R_n exp(u) is exp(-u) m_n: a vector rotation, no matrix product.
-        return so3.rotate(-u, base)
+        return so3.rotate(-u, base, coefficients)
 
     def at(self, base, t, y):
         return self.inertia_inv @ base, None

@@ -27,6 +27,7 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
@@ -106,21 +107,55 @@ class RigidBodyWithEffects(AbstractProblem):
         omega0 = check_vector(omega0, "omega0", self.y0.dtype)
         return eqx.tree_at(lambda p: p.y0, self, self.inertia @ omega0)
 
-    def field(self, t, R, y):
+    def _space_vectors(self) -> Array | None:
+        """The effects' `AbstractEffect.space_vectors` stacked, ``(K, 3)``, or
+        None when some effect reads the attitude another way."""
+        vs = [e.space_vectors() for e in self.effects]
+        if any(v is None for v in vs):
+            return None
+        return jnp.concatenate([jnp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [jnp.zeros((0, 3), self.y0.dtype)])
+
+    # Stages never need the whole attitude when every effect reads it only
+    # through the body images R^T s of a few space-fixed vectors s (gravity's
+    # vertical, a space-fixed torque): the base of a step is those images, and
+    # at a stage point R_n exp(u) they are exp(-u) R_n^T s, a Rodrigues rotation
+    # of each vector, with no 3x3 product.  Without such vectors (no effects,
+    # body torques, damping) the stage point is not formed at all.
+    def base(self, t, R, y):
+        S = self._space_vectors()
+        return R if S is None else S @ R  # rows: (R^T s_j)^T
+
+    def advance(self, base, u, coefficients=None):
+        if self._space_vectors() is None:
+            return super().advance(base, u, coefficients)
+        return so3.rotate(-u, base, coefficients)
+
+    def at(self, base, t, y):
         omega = self.inertia_inv @ y
         dm = so3.cross(y, omega)
+        vectors = self._space_vectors() is not None
+        start = 0
         for e in self.effects:
             # The scope names the effect's equations (including the sum, so a
             # constant torque shows up too) in jaxprs and profiles.
             with jax.named_scope(f"lierk_effect_{type(e).__name__}"):
-                dm = dm + e.torque(t, R, y, omega)
+                if vectors:
+                    k = np.shape(e.space_vectors())[0]
+                    dm = dm + e.torque_from(t, base[start : start + k], y, omega)
+                    start += k
+                else:
+                    dm = dm + e.torque(t, base, y, omega)
         return omega, dm
 
-    def local(self, base, t, u, y):
-        if not self.effects:
-            # Euler's equations without torque do not depend on R: skip the stage point.
-            return self.field(t, None, y)
-        return super().local(base, t, u, y)
+    def field(self, t, R, y):
+        return self.at(self.base(t, R, y), t, y)
+
+    def local(self, base, t, u, y, coefficients=None):
+        S = self._space_vectors()
+        if S is not None and S.shape[0] == 0:
+            # The torques do not depend on the attitude: skip the stage point.
+            return self.at(base, t, y)
+        return super().local(base, t, u, y, coefficients)
 
     def error_tolerance(self, y0, y1, rtol, atol):
         """The momentum's error is measured as a vector against

@@ -19,6 +19,8 @@ References:
 
 from __future__ import annotations
 
+import math
+
 import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
@@ -33,6 +35,8 @@ __all__ = [
     "rotate",
     "right_exp",
     "exp_coefficients",
+    "series_in_range",
+    "SERIES_RADIUS",
     "cross",
     "orthogonality_error",
     "from_quaternion",
@@ -95,7 +99,38 @@ def _small(dtype) -> float:
     return 1e-2 if jnp.finfo(dtype).bits >= 64 else 1e-1
 
 
-def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
+# Radius (rad) within which `exp_coefficients(..., series=True)` is exact to
+# rounding: the first dropped term of each half-angle series below is < 1e-17
+# relative there.  Solvers that use the series reject a stage that rotates
+# further (`series_in_range`), so the radius costs steps, never accuracy.  It
+# sits below 2 pi, where dexpinv itself is singular.
+SERIES_RADIUS = 5.0
+_SERIES_TERMS = 14  # (5/2)^28 / 29! ~ 2e-20
+
+
+def _series_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
+    # With x = theta/2: S = sin(x)/x, C = cos(x) and E = (S - C)/x^2 are entire
+    # power series in x^2 (Horner, no trigonometry), and
+    #   A = sin(theta)/theta = S C,   B = (1 - cos(theta))/theta^2 = S^2/2,
+    #   D = (1 - x cot x)/theta^2 = E / (4 S),
+    # with no cancellation anywhere (E is formed term by term).
+    x2 = 0.25 * theta2
+    f = math.factorial
+    s_coef = [(-1) ** k / f(2 * k + 1) for k in range(_SERIES_TERMS)]
+    c_coef = [(-1) ** k / f(2 * k) for k in range(_SERIES_TERMS)]
+    e_coef = [(-1) ** k * (2 * k + 2) / f(2 * k + 3) for k in range(_SERIES_TERMS)]
+
+    def horner(coef):
+        acc = jnp.full_like(x2, coef[-1])
+        for c in coef[-2::-1]:
+            acc = acc * x2 + c
+        return acc
+
+    S, C, E = horner(s_coef), horner(c_coef), horner(e_coef)
+    return S * C, 0.5 * S * S, E / (4.0 * S)
+
+
+def exp_coefficients(theta2: Array, series: bool = False) -> tuple[Array, Array, Array]:
     """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``.
 
     - ``A = sin(theta)/theta``
@@ -105,7 +140,15 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     so that ``exp(hat(u)) = I + A hat(u) + B hat(u)^2`` and
     ``dexpinv_u(v) = v - u x v / 2 + D u x (u x v)``.  One ``sin``/``cos`` pair
     of ``theta/2`` serves all three, which is what keeps RKMK stages cheap.
+
+    With ``series=True`` they are polynomials in ``theta^2`` instead (no
+    trigonometry, no square root), exact to rounding for
+    ``theta <= SERIES_RADIUS`` (5 rad) and increasingly wrong beyond it.  The adaptive RKMK solvers use them for their
+    stages, which is about twice as fast, and reject any step whose stages
+    leave that radius (`series_in_range`).
     """
+    if series:
+        return _series_coefficients(theta2)
     small = theta2 < _small(theta2.dtype)
     t2 = jnp.where(small, jnp.ones_like(theta2), theta2)
     theta = jnp.sqrt(t2)
@@ -132,18 +175,19 @@ def _sq(u: Array) -> Array:
     return u[..., 0] ** 2 + u[..., 1] ** 2 + u[..., 2] ** 2
 
 
-def exp(w: ArrayLike) -> Array:
+def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     """Exponential map ``so(3) -> SO(3)`` (Rodrigues): ``(..., 3) -> (..., 3, 3)``.
 
     Exact for any angle, including several full turns in one call, and at
     ``w = 0`` in value and in both forward- and reverse-mode derivatives (the
-    Jacobian there is the three generators ``hat(e_i)``).
+    Jacobian there is the three generators ``hat(e_i)``).  ``coefficients``:
+    ``(A, B, D)`` of ``w`` from `exp_coefficients`, if the caller has them.
     """
     w = _float(w)
     if w.shape[-1:] != (3,):
         raise ValueError(f"exp expects shape (..., 3), got {w.shape}")
     theta2 = _sq(w)
-    A, B, _ = exp_coefficients(theta2)
+    A, B, _ = exp_coefficients(theta2) if coefficients is None else coefficients
     # hat(w)^2 = w w^T - theta^2 I, so exp = (1 - B theta^2) I + A hat(w) + B w w^T,
     # written entry by entry: XLA on CPU runs a batched 3x3 matmul as a separate
     # dot kernel that no elementwise work fuses into (about 15% of an RKMK4 step).
@@ -190,12 +234,22 @@ def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
     return R
 
 
-def rotate(u: ArrayLike, x: ArrayLike) -> Array:
-    """``exp(hat(u)) @ x`` without forming the matrix: ``(..., 3), (..., 3) -> (..., 3)``."""
+def rotate(u: ArrayLike, x: ArrayLike, coefficients: tuple | None = None) -> Array:
+    """``exp(hat(u)) @ x`` without forming the matrix: ``(..., 3), (..., 3) -> (..., 3)``.
+
+    ``coefficients``: ``(A, B, D)`` of ``u`` from `exp_coefficients`, when the
+    caller has them already (a solver stage shares them with `dexpinv`).
+    """
     u, x = _float(u), _float(x)
-    A, B, _ = exp_coefficients(_sq(u))
+    A, B, _ = exp_coefficients(_sq(u)) if coefficients is None else coefficients
     ux = cross(u, x)
     return x + A[..., None] * ux + B[..., None] * cross(u, ux)
+
+
+def series_in_range(theta2: Array) -> Array:
+    """Whether ``exp_coefficients(theta2, series=True)`` is exact to rounding:
+    ``theta <= SERIES_RADIUS``."""
+    return theta2 <= SERIES_RADIUS**2
 
 
 def dexp(u: ArrayLike, v: ArrayLike) -> Array:
@@ -219,7 +273,7 @@ def dexp(u: ArrayLike, v: ArrayLike) -> Array:
     return v + B[..., None] * uv + C[..., None] * cross(u, uv)
 
 
-def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None) -> Array:
+def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None, coefficients: tuple | None = None) -> Array:
     """Inverse of :func:`dexp`: exact closed form, or its truncated series.
 
     ``dexpinv_u(v) = v - 1/2 u x v + D(theta) u x (u x v)`` with ``theta = |u|``
@@ -233,6 +287,8 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None) -> Array:
             ``ad_u^terms``: 0 gives ``v``, 1 adds ``-u x v/2``, 2 adds
             ``u x (u x v)/12`` (no trigonometry, no singularity).  An RKMK
             method of order p needs ``terms >= p - 2`` (Munthe-Kaas 1999).
+        coefficients: ``(A, B, D)`` of ``u`` from `exp_coefficients` (closed
+            form or series), when the caller has them; only with ``terms=None``.
 
     Sign convention: this is the left (space-frame) form.  For the body-frame
     equation ``dR/dt = R hat(omega)`` with ``R = R_n exp(hat(u))`` one has
@@ -248,7 +304,7 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None) -> Array:
         return v - 0.5 * uv
     if terms == 2:
         return v - 0.5 * uv + cross(u, uv) / 12.0
-    _, _, D = exp_coefficients(_sq(u))
+    _, _, D = exp_coefficients(_sq(u)) if coefficients is None else coefficients
     return v - 0.5 * uv + D[..., None] * cross(u, uv)
 
 

@@ -607,7 +607,9 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
                 # 3rd-order estimates so the norm behaves like O(h^8).
                 e3 = controller.norm(st.error[2][0], st.error[2][1], tol_y)
                 denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
-                err = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
+                blend = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
+                # A rejected stage (inf) must stay inf: inf/inf would be NaN.
+                err = jnp.where(jnp.isfinite(err) & jnp.isfinite(e3), blend, jnp.inf)
             err = jax.lax.stop_gradient(err / calibration)
             f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
             finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)

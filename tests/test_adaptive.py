@@ -172,9 +172,11 @@ def test_stats_are_consistent(solver, dt0):
     counter = []
 
     class Counted(lierk.FreeRigidBody):
-        def field(self, t, R, y):
+        # `at` is where the rigid body evaluates its equations (`field` and
+        # the stages both go through it).
+        def at(self, base, t, y):
             jax.debug.callback(lambda: counter.append(1))
-            return super().field(t, R, y)
+            return super().at(base, t, y)
 
     body = Counted(TEE, OMEGA_GENERIC)
     sol = lierk.solve(body, solver, T, rtol=1e-7, dt0=dt0, saveat=lierk.SaveAt(steps=True))

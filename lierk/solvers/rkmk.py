@@ -47,6 +47,13 @@ class AbstractRKMK(AbstractSolver):
     # keeps the series up to ad_u^k (see `so3.dexpinv`).  The report's "RK4"
     # applies none of it (0), which is why it is only order 2.
     dexpinv_terms: ClassVar[int | None] = None
+    # Whether stages take their rotation and dexpinv coefficients from the
+    # polynomial series (`so3.exp_coefficients(..., series=True)`): no
+    # trigonometry in the stages, about twice as fast.  The series is exact to
+    # rounding only within `so3.SERIES_RADIUS`, so a step whose stages rotate
+    # further gets an infinite error estimate and is rejected: only for
+    # adaptive tableaux, where that rejection exists.
+    series: ClassVar[bool] = False
 
     @property
     def order(self) -> int:  # type: ignore[override]
@@ -68,7 +75,7 @@ class AbstractRKMK(AbstractSolver):
         tab = self.tableau
         base = problem.base(t, R, y)
         ks, kys = [], []
-        omega = ydot = None
+        omega = ydot = in_range = None
         for i in range(tab.stages):
             if i == 0:
                 omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
@@ -76,19 +83,30 @@ class AbstractRKMK(AbstractSolver):
             else:
                 u = _stage_sum(h, tab.a[i], ks)
                 yi = combine(y, h, tab.a[i], kys)
-                omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi)
-                k = so3.dexpinv(-u, omega, self.dexpinv_terms)
+                coefficients = None
+                if self.series:
+                    theta2 = jnp.sum(u * u)
+                    coefficients = so3.exp_coefficients(theta2, series=True)
+                    in_range = so3.series_in_range(theta2) & (True if in_range is None else in_range)
+                omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi, coefficients)
+                k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
             ks.append(k)
             kys.append(ydot)
         u1 = _stage_sum(h, tab.b, ks)
         y1 = combine(y, h, tab.b, kys)
         error = None
         if tab.b_error is not None:
-            error = (_stage_sum(h, tab.b_error, ks), combine(None, h, tab.b_error, kys) if y is not None else None)
+            e_u = _stage_sum(h, tab.b_error, ks)
+            if in_range is not None:
+                # Outside the series' radius the stages are not to be trusted,
+                # whatever the embedded pair says: reject the step.
+                e_u = jnp.where(in_range, e_u, jnp.inf)
+            error = (e_u, combine(None, h, tab.b_error, kys) if y is not None else None)
             if tab.b_error3 is not None:
-                error = error + (
-                    (_stage_sum(h, tab.b_error3, ks), combine(None, h, tab.b_error3, kys) if y is not None else None),
-                )
+                e_u3 = _stage_sum(h, tab.b_error3, ks)
+                if in_range is not None:
+                    e_u3 = jnp.where(in_range, e_u3, jnp.inf)
+                error = error + ((e_u3, combine(None, h, tab.b_error3, kys) if y is not None else None),)
         return Step(so3.right_exp(R, u1), y1, error, (omega, ydot) if tab.fsal else None)
 
 
@@ -139,15 +157,18 @@ class RKF45(AbstractRKMK):
     """RKMK with the report's Fehlberg 4(5) pair, advancing with order 5."""
 
     tableau: ClassVar[ButcherTableau] = FEHLBERG45
+    series: ClassVar[bool] = True
 
 
 class DP54(AbstractRKMK):
     """RKMK with Dormand-Prince 5(4), FSAL: 6 new field evaluations per accepted step."""
 
     tableau: ClassVar[ButcherTableau] = DOPRI54
+    series: ClassVar[bool] = True
 
 
 class DOP853(AbstractRKMK):
     """RKMK with Dormand-Prince 8(5,3), FSAL: order 8, for tight tolerances."""
 
     tableau: ClassVar[ButcherTableau] = _DOP853
+    series: ClassVar[bool] = True
