@@ -184,6 +184,18 @@ def throughput(batch: int, n_steps: int, repeats: int, dtype, reference=None) ->
     }
 
 
+def _cpu_seconds() -> tuple[float, float]:
+    """(seconds all CPUs were busy, seconds this process ran) so far: their
+    difference over the run is what others took from the machine."""
+    try:
+        fields = [float(x) for x in open("/proc/stat").readline().split()[1:]]
+        busy = (sum(fields) - fields[3] - fields[4]) / os.sysconf("SC_CLK_TCK")  # minus idle, iowait
+    except (OSError, ValueError, IndexError):
+        busy = float("nan")
+    t = os.times()
+    return busy, t.user + t.system
+
+
 def machine() -> dict:
     return {
         "cpu_count": os.cpu_count(),
@@ -205,8 +217,9 @@ def markdown(res: dict) -> str:
         "# Sweeps at scale (`benchmarks/sweep.py`)",
         "",
         f"{m['cpu_count']} cores ({m['cpu_model']}), {m['device_count']} XLA host devices, jax {m['jax']}, "
-        f"numba {m['numba']}. Load average {m['load_average_at_start'][0]:.1f} at the start, "
-        f"{m['load_average_at_end'][0]:.1f} at the end (a shared machine: read the ratios).",
+        f"numba {m['numba']}. Other processes kept {m['others_cores_busy']:.2f} of the "
+        f"{m['cpu_count']} cores busy during the run (load average {m['load_average_at_start'][0]:.1f} at the "
+        f"start, {m['load_average_at_end'][0]:.1f} at the end; a shared machine: read the ratios).",
         "",
         f"## Compiled once: RKMK4, batch {c['batch']}, {c['steps']} steps, {c['dtype']}",
         "",
@@ -243,6 +256,7 @@ def markdown(res: dict) -> str:
 def main():
     info = machine()
     print(json.dumps(info))
+    wall0, (busy0, own0) = time.perf_counter(), _cpu_seconds()
     batch1, steps1, batch2, steps2, repeats = (1000, 100, 1000, 100, 3) if QUICK else (2000, 200, 10000, 1000, 7)
     res = {"machine": info, "quick": QUICK, "dt": DT}
     res["compile_once"] = compile_once(batch1, steps1, 2 * repeats)
@@ -259,6 +273,9 @@ def main():
                   flush=True)
         print(f"{t['dtype']:8s} max |R_lierk - R_numba| = {t['max_diff_lierk_vs_numba']:.1e}", flush=True)
     info["load_average_at_end"] = os.getloadavg()
+    busy1, own1 = _cpu_seconds()
+    # Cores' worth of CPU that other processes used during the run (0 = idle machine).
+    info["others_cores_busy"] = ((busy1 - busy0) - (own1 - own0)) / (time.perf_counter() - wall0)
     OUT.mkdir(parents=True, exist_ok=True)
     (OUT / "sweep.json").write_text(json.dumps(res, indent=2) + "\n")
     (OUT / "sweep.md").write_text(markdown(res))
