@@ -39,6 +39,7 @@ test: $(STAMP)
 bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py
+	$(BIN)/python benchmarks/sweep.py
 	$(BIN)/python benchmarks/work_precision.py
 	$(BIN)/python benchmarks/torqued.py
 	$(BIN)/python benchmarks/formulation.py
