@@ -8,23 +8,8 @@ process), cut into chunks of one compiled shape so that memory stays bounded,
 and compiled once per function.  The library never sets ``XLA_FLAGS`` itself;
 a script that wants several host devices sets it before importing jax.
 
-Compiled once: the compiled ``jit(vmap(fn))`` is cached per function, and jit's
-own cache adds the shapes, dtypes and shardings.  What counts as "the same
-function":
-
-- A plain function, method or callable object is keyed on its identity and
-  held only weakly: its compiled code is freed with it.  A *fresh* lambda or
-  closure (one created anew for each call) is a new function every time and is
-  compiled every time; define it once outside the loop instead, and pass what
-  changes as an array, in a batched argument, a `functools.partial` or an
-  `equinox.Module`.
-- A `functools.partial` or a pytree callable (an `equinox.Module` with a
-  ``__call__``) is keyed on its structure and its non-array parts; its array
-  leaves (inertia, step sizes, ...) are traced arguments.  A new partial or
-  module that differs only in array *values* reuses the compiled code.  Python
-  numbers in it are structure (as in `equinox.filter_jit`): a new number
-  compiles again.  These entries keep their function alive, so they are held
-  in a small least-recently-used cache (`_STRUCTURAL_CACHE_SIZE`) instead.
+What counts as the same function for the compile cache is in `sweep`'s
+docstring.
 """
 
 from __future__ import annotations
@@ -269,8 +254,7 @@ def sweep_chunks(
     size rounded up to a multiple of the device count, padded with copies of
     the chunk's last member, which are dropped), so a sweep compiles once, and
     a later sweep of ``fn`` with the same chunk size, dtypes and devices
-    compiles nothing (see the module docstring for what "the same ``fn``"
-    means).  The next chunk is dispatched before the current one is copied to
+    compiles nothing (see `sweep` for what "the same ``fn``" means).  The next chunk is dispatched before the current one is copied to
     the host, so at most two chunks' outputs exist at a time: memory is
     bounded by the chunk size, not by ``N``.
 
@@ -348,10 +332,28 @@ def sweep(
 
     The batch (or each chunk) is padded to a multiple of the device count with
     copies of its last member, split over a 1-d `Mesh` of `jax.devices()` with
-    a `NamedSharding`, and the padding is dropped from the result.  A second
-    call with the same ``fn`` (see the module docstring for what counts as the
-    same), shapes, dtypes and devices compiles nothing.  The chunks run on
-    `sweep_chunks`' machinery, all at one compiled shape.
+    a `NamedSharding`, and the padding is dropped from the result.  The chunks
+    run on `sweep_chunks`' machinery, all at one compiled shape.
+
+    Compiled once: the compiled ``jit(vmap(fn))`` is cached per function, and
+    jit's own cache adds the shapes, dtypes and shardings, so a second call
+    with the same ``fn``, shapes, dtypes and devices compiles nothing.  What
+    counts as the same ``fn``:
+
+    - A plain function, method or callable object is keyed on its identity
+      and held only weakly: its compiled code is freed with it.  A lambda or
+      closure created anew for each call is a new function every time and is
+      compiled every time.  Define it once, outside the loop, and pass what
+      changes as arrays: in a batched argument, a `functools.partial` or an
+      `equinox.Module`.
+    - A `functools.partial` or a pytree callable (an `equinox.Module` with a
+      ``__call__``) is keyed on its structure and its non-array parts; its
+      array leaves (inertia, step sizes, ...) are traced arguments.  A new
+      partial or module that differs only in array *values* reuses the
+      compiled code.  Python numbers in it are structure (as in
+      `equinox.filter_jit`): a new number compiles again.  These entries keep
+      their function alive, so a small least-recently-used cache holds them
+      (the last 64 structures).
 
     After `lierk.distributed.initialize`, every process calls ``sweep`` with
     the same arguments; each process computes the rows of its own devices, and
@@ -369,9 +371,10 @@ def sweep(
             device.
 
     Returns:
-        ``fn``'s output pytree with a leading axis of length ``N`` on every
-        leaf, as JAX arrays (sharded over the devices in a single process; on
-        a multi-process run, gathered onto this process's first device).
+        The output pytree of ``fn`` with a leading axis of length ``N`` on
+            every leaf, as JAX arrays (sharded over the devices in a single
+            process; on a multi-process run, gathered onto this process's
+            first device).
 
     Raises:
         ValueError: ``chunk_size`` not a positive int or None; batched
