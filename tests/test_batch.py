@@ -116,6 +116,16 @@ def test_sweep_pytree_arguments_and_outputs():
         assert float(got["trace"][i]) == pytest.approx(np.trace(R), abs=ATOL)
 
 
+def test_float64_inputs_follow_jax_precision_setting():
+    # The command line runs --float32 under jax.enable_x64(False): NumPy float64
+    # inputs become float32, as jnp.asarray would make them.
+    with jax.enable_x64(False):
+        out = sweep(lambda v: v * 2.0, np.arange(4.0))
+        (*_, chunk), = sweep_chunks(lambda v: {"a": v * 2.0}, np.arange(3.0), chunk_size=3)
+    assert out.dtype == jnp.float32 and chunk["a"].dtype == np.float32
+    np.testing.assert_array_equal(np.asarray(out), [0.0, 2.0, 4.0, 6.0])
+
+
 # --------------------------------------------------------------------------
 # Compiled once
 
