@@ -23,6 +23,7 @@ from .effects import BodyTorque as BodyTorque
 from .effects import Damping as Damping
 from .effects import Gravity as Gravity
 from .effects import SpaceTorque as SpaceTorque
+from .effects import TimedTorque as TimedTorque
 from .fields import AbstractProblem as AbstractProblem
 from .fields import SpatialFreeRigidBody as SpatialFreeRigidBody
 from .rigid_body import FreeRigidBody as FreeRigidBody
@@ -43,5 +44,12 @@ from .solvers import AbstractSolver as AbstractSolver
 from .solvers import ExplicitEuler as ExplicitEuler
 from .solvers import LieEuler as LieEuler
 from .solvers import NaiveLieRK4 as NaiveLieRK4
+from .solvers import AbstractSplitting as AbstractSplitting
+from .solvers import BlanesMoan4 as BlanesMoan4
+from .solvers import BlanesMoan6 as BlanesMoan6
+from .solvers import Splitting as Splitting
+from .solvers import Strang as Strang
+from .solvers import Yoshida4 as Yoshida4
+from .solvers import Yoshida6 as Yoshida6
 
 __version__ = "0.1.0"

@@ -44,6 +44,7 @@ __all__ = [
     "Gravity",
     "BodyTorque",
     "SpaceTorque",
+    "TimedTorque",
     "Damping",
 ]
 
@@ -55,6 +56,11 @@ class AbstractEffect(eqx.Module):
     """
 
     conservative: ClassVar[bool] = False
+    # Whether the torque reads m or omega.  Splitting solvers need each
+    # effect's exact flow with R and t fixed (`kick`): for a torque that does
+    # not read the momentum that flow is a straight line.  True by default so
+    # that an effect written elsewhere is not kicked wrongly.
+    reads_momentum: ClassVar[bool] = True
 
     def torque(self, t: Array, R: Array, m: Array, omega: Array) -> Array:
         """Body-frame torque ``(3,)`` (N m) at time ``t`` (s), attitude ``R``
@@ -68,7 +74,7 @@ class AbstractEffect(eqx.Module):
         S = self.space_vectors()
         if S is None:
             raise NotImplementedError(f"{type(self).__name__} implements neither torque nor space_vectors/torque_from")
-        return self.torque_from(t, S @ R, m, omega)
+        return self.torque_from(t, so3.compose(S, R), m, omega)
 
     def space_vectors(self) -> Array | None:
         """The space-frame vectors ``s_j`` ``(k, 3)`` whose body-frame images
@@ -86,6 +92,20 @@ class AbstractEffect(eqx.Module):
         ``R^T s_j`` of `space_vectors` (rows), and ``t``, ``m``, ``omega`` as in
         `torque`."""
         raise NotImplementedError
+
+    def kick(self, t: Array, R: Array, m: Array, h: Array, inertia_inv: Array) -> Array:
+        """The exact flow of ``dm/dt = torque`` over ``h`` (s) with ``t`` and the
+        attitude ``R`` ``(3, 3)`` held fixed, from body momentum ``m`` ``(3,)``;
+        ``inertia_inv`` ``(3, 3)`` gives ``omega = inertia_inv @ m``.  The
+        splitting solvers' kick.  The default, ``m + h torque``, holds for a
+        torque that does not read the momentum (``reads_momentum = False``);
+        an effect whose torque does must override this."""
+        if self.reads_momentum:
+            raise ValueError(
+                f"{type(self).__name__} reads the momentum but has no exact kick, so a splitting solver "
+                "cannot use it; give it a `kick` method or pick an RKMK solver"
+            )
+        return m + h * self.torque(t, R, m, inertia_inv @ m)
 
     def potential(self, R: Array) -> Array:
         """Potential energy (J) at attitude ``R`` ``(..., 3, 3)``; 0 unless conservative."""
@@ -158,6 +178,8 @@ class Gravity(AbstractEffect):
     g: Array
     conservative: ClassVar[bool] = True
 
+    reads_momentum: ClassVar[bool] = False
+
     def __init__(self, pivot_to_com: ArrayLike, mass: ArrayLike, g: ArrayLike = 9.81):
         self.pivot_to_com = _vector(pivot_to_com, "pivot_to_com")
         self.mass = _scalar(mass, "mass", positive=True)
@@ -198,6 +220,8 @@ class BodyTorque(AbstractEffect):
 
     tau: Array
 
+    reads_momentum: ClassVar[bool] = False
+
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
 
@@ -218,6 +242,8 @@ class SpaceTorque(AbstractEffect):
 
     tau: Array
 
+    reads_momentum: ClassVar[bool] = False
+
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
 
@@ -233,6 +259,87 @@ class SpaceTorque(AbstractEffect):
         tau_hat = self.tau / jnp.where(n > 0, n, 1.0)
         L_perp = L - jnp.einsum("...j,j->...", L, tau_hat)[..., None] * tau_hat
         return {"L_perp": jnp.linalg.norm(L_perp, axis=-1)}
+
+
+class TimedTorque(AbstractEffect):
+    """A torque that varies in time, fixed in the body or in space: a thruster
+    profile or a control input.
+
+    Give it either as samples, ``torque`` ``(n, 3)`` (N m) at ``times`` ``(n,)``
+    (s, strictly increasing), interpolated linearly in between and held at the
+    end values outside; or as a function ``torque(t) -> (3,)`` of time (s)
+    that JAX can trace (it is jitted, vmapped and differentiated with the
+    solve).  With ``frame="body"`` the torque turns with the body (a thruster
+    on it); with ``frame="space"`` it is ``R^T tau(t)`` in the body frame.
+
+    Samples are array leaves, so a sweep over them does not recompile; a
+    function is part of the compiled program.  Piecewise-linear samples have
+    kinks: adaptive solvers step through them by rejection, and fixed-step
+    methods of order above 2 lose their order on a step that holds one, so
+    put sample times on the step grid.
+
+    Conserves nothing in general.
+
+    Args:
+        torque: ``(n, 3)`` samples (N m), or a callable ``t -> (3,)``.
+        times: ``(n,)`` sample times (s), strictly increasing; only with samples.
+        frame: ``"body"`` (default) or ``"space"``.
+
+    Example:
+        >>> burn = TimedTorque([[0, 0, 0], [0, 0, 0.5], [0, 0, 0]], times=[0.0, 1.0, 2.0])
+        >>> spin_up = TimedTorque(lambda t: jnp.array([0.0, 0.0, 0.1 * jnp.sin(t)]), frame="space")
+    """
+
+    fn: object = eqx.field(static=True)
+    times: Array | None
+    values: Array | None
+    frame: str = eqx.field(static=True)
+    reads_momentum: ClassVar[bool] = False
+
+    def __init__(self, torque, times: ArrayLike | None = None, frame: str = "body"):
+        if frame not in ("body", "space"):
+            raise ValueError(f"frame must be 'body' or 'space', got {frame!r}")
+        self.frame = frame
+        if callable(torque):
+            if times is not None:
+                raise ValueError("times apply to sampled torques; a torque function takes the time itself")
+            out = jax.eval_shape(torque, jax.ShapeDtypeStruct((), jnp.result_type(float)))
+            if getattr(out, "shape", None) != (3,):
+                raise ValueError(f"a torque function must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}")
+            self.fn, self.times, self.values = torque, None, None
+            return
+        if times is None:
+            raise ValueError("sampled torques need their times (s): TimedTorque(torque, times=...)")
+        values = _checks.asarray(torque, name="torque")
+        times = _checks.asarray(times, name="times")
+        if times.ndim != 1 or times.shape[0] < 1:
+            raise ValueError(f"times must be a non-empty 1-d array (s), got shape {times.shape}")
+        if values.shape != (times.shape[0], 3):
+            raise ValueError(f"torque must have shape ({times.shape[0]}, 3), one row per time, got {values.shape}")
+        dtype = jnp.result_type(values.dtype, times.dtype)
+        values = _checks.check(values, lambda v: (abs(v) < float("inf")).all(), "torque must be finite, got {value}")
+        times = _checks.check(times, lambda v: (abs(v) < float("inf")).all(), "times must be finite, got {value}")
+        times = _checks.check(
+            times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
+        )
+        self.fn = None
+        self.times, self.values = jnp.asarray(times, dtype), jnp.asarray(values, dtype)
+
+    def at_time(self, t: Array) -> Array:
+        """The torque ``(3,)`` (N m) at time ``t`` (s), in the effect's frame."""
+        if self.fn is not None:
+            return jnp.asarray(self.fn(t))
+        return jnp.stack([jnp.interp(t, self.times, self.values[:, j]) for j in range(3)])
+
+    def space_vectors(self):
+        dtype = (self.values if self.values is not None else jnp.zeros(())).dtype
+        # In space frame the whole R^T is needed: the images of e1, e2, e3.
+        return jnp.eye(3, dtype=dtype) if self.frame == "space" else jnp.zeros((0, 3), dtype)
+
+    def torque_from(self, t, v, m, omega):
+        tau = self.at_time(t).astype(m.dtype)
+        # v's rows are R^T e_i, so R^T tau = sum_i tau_i v_i.
+        return tau @ v if self.frame == "space" else tau
 
 
 class Damping(AbstractEffect):
@@ -253,6 +360,11 @@ class Damping(AbstractEffect):
 
     def torque_from(self, t, v, m, omega):
         return -self.c * omega
+
+    def kick(self, t, R, m, h, inertia_inv):
+        # dm/dt = -c I^{-1} m: m(h) = exp(-c h I^{-1}) m, in I^{-1}'s eigenbasis.
+        lam, V = jnp.linalg.eigh(inertia_inv)
+        return V @ (jnp.exp(-self.c * h * lam) * (V.T @ m))
 
 
 def _symmetric_about(inertia, chi, tol: float = 1e-9) -> bool:

@@ -76,7 +76,7 @@ from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
 from lierk.fields import rigid_body_state
 
-__all__ = ["free_rigid_body", "flip_interval", "sphere", "principal_frame"]
+__all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "sphere", "principal_frame"]
 
 
 def _dtype(*xs) -> jnp.dtype:
@@ -244,6 +244,41 @@ def free_rigid_body(
         Landau & Lifshitz, "Mechanics", section 37.
     """
     inertia, omega0, R0 = _validated(inertia, omega0, R0)
+    return _free_motion(inertia, omega0, t, R0)
+
+
+def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
+    """The exact torque-free flow over a time ``h`` (s), in the body frame:
+    ``(Q, m_h)`` such that a body at ``(R, m)`` is at ``(R Q, m_h)`` after ``h``.
+
+    ``inertia`` ``(3, 3)`` (kg m^2) and the body momentum ``m`` ``(3,)``
+    (kg m^2/s) are taken as valid (no checks: this is a solver's inner step;
+    `free_rigid_body` is the checked entry point).  ``Q`` is ``(3, 3)``.
+    """
+    omega0 = jnp.linalg.solve(inertia, m)
+    Q, omega = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
+    return Q, inertia @ omega
+
+
+def symmetric_flow(I_a: Array, I_3: Array, axis: Array, m: Array, h: Array) -> tuple[Array, Array]:
+    """`free_flow` for a symmetric body in closed form: two rotations.
+
+    The body has moment ``I_3`` about the unit body vector ``axis`` ``(3,)`` and
+    ``I_a`` about every axis orthogonal to it.  Its kinetic energy
+    ``|m|^2/(2 I_a) + (m . axis)^2 (1/I_3 - 1/I_a)/2`` is a sum of two
+    commuting parts: the first turns the body about ``m`` at ``|m|/I_a`` and
+    leaves ``m`` fixed, the second turns it about ``axis`` at
+    ``Omega = (m . axis)(1/I_3 - 1/I_a)`` and turns ``m`` back by the same
+    angle.  So ``Q = exp(h m / I_a) exp(h Omega axis)`` and
+    ``m_h = exp(-h Omega axis) m``.
+    """
+    spin = h * jnp.dot(m, axis) * (1.0 / I_3 - 1.0 / I_a) * axis
+    Q = so3.right_exp(so3.exp((h / I_a) * m), spin)
+    return Q, so3.rotate(-spin, m)
+
+
+def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
+    """`free_rigid_body` on inputs that are already checked."""
     c = _working_constants(inertia, omega0)
     dtype = c["dtype"]
     t = jnp.asarray(t, dtype=dtype)

@@ -31,7 +31,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import so3
+from . import _checks, exact, so3
 from .body import kinetic_energy
 from .effects import AbstractEffect
 from .fields import AbstractProblem, check_vector, rigid_body_state
@@ -70,6 +70,11 @@ class RigidBodyWithEffects(AbstractProblem):
     R0: Array
     y0: Array
     effects: tuple
+    # The principal axis (0, 1, 2) of a diagonal inertia whose other two
+    # moments are equal, found when the inertia is concrete; None otherwise.
+    # Only the splitting solvers' drift reads it (a closed form instead of the
+    # elliptic one), so a traced inertia merely takes the general path.
+    symmetry_axis: int | None = eqx.field(static=True)
 
     def __init__(
         self,
@@ -89,6 +94,9 @@ class RigidBodyWithEffects(AbstractProblem):
         self.inertia, self.inertia_inv, omega0, self.R0 = rigid_body_state(inertia, omega0, R0)
         self.y0 = self.inertia @ omega0
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
+        # From the argument as given: the checked copy may be traced (its checks
+        # join the traced R0's) even when the inertia itself is a constant.
+        self.symmetry_axis = _symmetry_axis(inertia)
 
     @property
     def omega0(self) -> Array:
@@ -123,7 +131,7 @@ class RigidBodyWithEffects(AbstractProblem):
     # body torques, damping) the stage point is not formed at all.
     def base(self, t, R, y):
         S = self._space_vectors()
-        return R if S is None else S @ R  # rows: (R^T s_j)^T
+        return R if S is None else so3.compose(S, R)  # rows: (R^T s_j)^T
 
     def advance(self, base, u, coefficients=None):
         if self._space_vectors() is None:
@@ -156,6 +164,38 @@ class RigidBodyWithEffects(AbstractProblem):
             # The torques do not depend on the attitude: skip the stage point.
             return self.at(base, t, y)
         return super().local(base, t, u, y, coefficients)
+
+    def free_flow(self, m: Array, h: Array) -> tuple[Array, Array]:
+        """The exact torque-free flow over ``h`` (s) from body momentum ``m``
+        ``(3,)``: ``(Q, m_h)``, the body turning by ``Q`` ``(3, 3)`` (``R -> R Q``).
+        A symmetric body (`symmetry_axis`) uses two rotations
+        (`lierk.exact.symmetric_flow`), any other the elliptic-function
+        solution (`lierk.exact.free_flow`)."""
+        k = self.symmetry_axis
+        if k is None:
+            return exact.free_flow(self.inertia, m, h)
+        moments = jnp.diagonal(self.inertia)
+        axis = jnp.eye(3, dtype=m.dtype)[k]
+        return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], axis, m, h)
+
+    def kick(self, t: Array, R: Array, m: Array, h: Array) -> Array:
+        """The torques' flow over ``h`` (s) with ``t`` and ``R`` held fixed: the
+        kick of a splitting method.  Each effect's own flow is exact
+        (`AbstractEffect.kick`); several are composed symmetrically
+        (``K_1(h/2) ... K_n(h) ... K_1(h/2)``), which keeps the splitting
+        symmetric, and is exact when no torque reads the momentum (they commute)."""
+        effects = self.effects
+        if not effects:
+            return m
+        if all(not e.reads_momentum for e in effects):
+            omega = self.inertia_inv @ m
+            return m + h * sum(e.torque(t, R, m, omega) for e in effects)
+        for e in effects[:-1]:
+            m = e.kick(t, R, m, 0.5 * h, self.inertia_inv)
+        m = effects[-1].kick(t, R, m, h, self.inertia_inv)
+        for e in effects[-2::-1]:
+            m = e.kick(t, R, m, 0.5 * h, self.inertia_inv)
+        return m
 
     def error_tolerance(self, y0, y1, rtol, atol):
         """The momentum's error is measured as a vector against
@@ -238,3 +278,21 @@ class FreeRigidBody(RigidBodyWithEffects):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         super().__init__(inertia, omega0, R0, effects=())
+
+
+def _symmetry_axis(inertia: Array) -> int | None:
+    """See `RigidBodyWithEffects.symmetry_axis`: exact equality to a few ulps."""
+    if _checks.is_traced(inertia):
+        return None
+    I = np.asarray(inertia, float)
+    if I.shape == (3,):
+        I = np.diag(I)
+    d = np.diagonal(I)
+    if np.any(I - np.diag(d)):
+        return None
+    close = lambda a, b: abs(a - b) <= 4 * np.finfo(float).eps * max(abs(a), abs(b))  # noqa: E731
+    for k in range(3):
+        i, j = (k + 1) % 3, (k + 2) % 3
+        if close(d[i], d[j]):
+            return k
+    return None

@@ -44,10 +44,14 @@ Schema (every table rejects keys it does not know)::
     # kind = "body_torque"   torque = [x, y, z]   (N m, fixed in the body)
     # kind = "space_torque"  torque = [x, y, z]   (N m, fixed in space)
     # kind = "damping"       c = 0.1              (N m s; torque -c omega)
+    # kind = "timed_torque"  times = [0, 1, 2]  torque = [[0, 0, 0], [0, 0, 0.1], [0, 0, 0]]
+    #                        frame = "body"       (N m at each time (s), linear in between,
+    #                                              held outside; "body" or "space")
 
     [run]
     solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
-                                # RKMK4, CF4 (fixed step), RKF45, DP54, DOP853 (adaptive)
+                                # RKMK4, CF4, Strang, Yoshida4, BlanesMoan4, Yoshida6,
+                                # BlanesMoan6 (fixed step), RKF45, DP54, DOP853 (adaptive)
     t1 = 100.0                  # end time (s); runs start at t = 0
     dt = 0.01                   # exactly one of: dt, the fixed step (s);
     # rtol = 1e-8               #   rtol (and optional atol), adaptive solvers only;
@@ -92,7 +96,7 @@ import numpy as np
 from . import inertia as _inertia
 from . import so3
 from . import solvers as _solvers
-from .effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque
+from .effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
 from .fields import AbstractProblem, check_attitude
 from .rigid_body import FreeRigidBody, RigidBodyWithEffects
 from .solution import SaveAt, Solution
@@ -112,6 +116,11 @@ SOLVERS: dict[str, type] = {
         _solvers.RKF45,
         _solvers.DP54,
         _solvers.DOP853,
+        _solvers.Strang,
+        _solvers.Yoshida4,
+        _solvers.BlanesMoan4,
+        _solvers.Yoshida6,
+        _solvers.BlanesMoan6,
     )
 }
 """Solver names a scene may use, to their classes."""
@@ -574,6 +583,7 @@ _EFFECT_KEYS = {
     "gravity": ({"pivot_to_com", "pivot", "mass", "g"}, set()),
     "body_torque": ({"torque"}, {"torque"}),
     "space_torque": ({"torque"}, {"torque"}),
+    "timed_torque": ({"times", "torque", "frame"}, {"times", "torque"}),
     "damping": ({"c"}, {"c"}),
 }
 
@@ -600,6 +610,13 @@ def _effects(items: list, body: _Body) -> tuple[tuple[AbstractEffect, ...], np.n
                 pivot_to_com = _vec(t["pivot_to_com"], f"{p}.pivot_to_com")
             if "mass" in t:
                 mass = _number(t["mass"], f"{p}.mass", positive=True)
+                # One mass for both the torque and the parallel-axis shift of
+                # the inertia to the pivot, or the top is not a rigid body.
+                if body.mass is not None and abs(mass - body.mass) > 1e-9 * body.mass:
+                    raise ValueError(
+                        f"{p}.mass = {mass:g} kg differs from the body's mass {body.mass:g} kg; gravity acts on "
+                        "the body's own mass (leave 'mass' out), or give the body that mass"
+                    )
             elif body.mass is not None:
                 mass = body.mass
             else:
@@ -610,6 +627,19 @@ def _effects(items: list, body: _Body) -> tuple[tuple[AbstractEffect, ...], np.n
             effects.append(BodyTorque(_vec(t["torque"], f"{p}.torque")))
         elif kind == "space_torque":
             effects.append(SpaceTorque(_vec(t["torque"], f"{p}.torque")))
+        elif kind == "timed_torque":
+            times = np.asarray(t["times"], dtype=object)
+            if times.ndim != 1 or len(times) == 0:
+                raise ValueError(f"{p}.times must be a non-empty list of times (s), got {_show(t['times'])}")
+            times = np.array([_number(x, f"{p}.times[{j}]") for j, x in enumerate(t["times"])])
+            torque = t["torque"]
+            if not isinstance(torque, list) or len(torque) != len(times):
+                raise ValueError(
+                    f"{p}.torque must list one [x, y, z] per time ({len(times)}), got {_show(torque)}"
+                )
+            values = np.stack([_vec(v, f"{p}.torque[{j}]") for j, v in enumerate(torque)])
+            frame = _choice(t.get("frame", "body"), f"{p}.frame", ("body", "space"))
+            effects.append(TimedTorque(values, times=times, frame=frame))
         else:
             effects.append(Damping(_number(t["c"], f"{p}.c", nonnegative=True)))
     return tuple(effects), pivot_to_com

@@ -34,6 +34,7 @@ __all__ = [
     "dexpinv",
     "rotate",
     "right_exp",
+    "compose",
     "exp_coefficients",
     "series_in_range",
     "SERIES_RADIUS",
@@ -206,10 +207,14 @@ def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     )
 
 
-def _matmul(X: Array, Y: Array) -> Array:
-    """``X @ Y`` for ``(..., 3, 3)`` stacks as elementwise products that fuse
-    with their neighbours (see `exp`): for the last product of a solver step."""
+def compose(X: ArrayLike, Y: ArrayLike) -> Array:
+    """``X @ Y`` for ``(..., k, 3) @ (..., 3, 3)`` stacks, written as elementwise
+    products that fuse with their neighbours: under ``vmap`` XLA on CPU runs a
+    batched 3x3 matmul as a separate dot kernel (see `exp`), which inside a
+    solver step costs more than the arithmetic."""
+    X, Y = _float(X), _float(Y)
     return X[..., :, 0:1] * Y[..., 0:1, :] + X[..., :, 1:2] * Y[..., 1:2, :] + X[..., :, 2:3] * Y[..., 2:3, :]
+
 
 
 def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
@@ -227,10 +232,10 @@ def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
     """
     R = _float(R)
     for v in (u,) + more:
-        R = _matmul(R, exp(v))
+        R = compose(R, exp(v))
     if jnp.finfo(R.dtype).bits < 64:
-        S = _matmul(jnp.swapaxes(R, -1, -2), R)
-        R = 1.5 * R - 0.5 * _matmul(R, S)
+        S = compose(jnp.swapaxes(R, -1, -2), R)
+        R = 1.5 * R - 0.5 * compose(R, S)
     return R
 
 

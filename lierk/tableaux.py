@@ -14,7 +14,20 @@ from fractions import Fraction as F
 
 import numpy as np
 
-__all__ = ["ButcherTableau", "EULER", "RK4", "FEHLBERG45", "DOPRI54", "DOP853"]
+__all__ = [
+    "ButcherTableau",
+    "EULER",
+    "RK4",
+    "FEHLBERG45",
+    "DOPRI54",
+    "DOP853",
+    "SplittingScheme",
+    "STRANG",
+    "YOSHIDA4",
+    "YOSHIDA6",
+    "BLANES_MOAN4",
+    "BLANES_MOAN6",
+]
 
 
 @dataclasses.dataclass(frozen=True)
@@ -191,4 +204,85 @@ DOP853 = ButcherTableau(
     fsal=True,
     # Near-axis batches of four bodies (T = 10 s) measured error/tol of 13 to 30.
     tolerance_calibration=1 / 3,
+)
+
+
+@dataclasses.dataclass(frozen=True)
+class SplittingScheme:
+    """Coefficients of a symmetric splitting ``K(a_0 h) D(b_0 h) K(a_1 h) ... D(b_{s-1} h) K(a_s h)``.
+
+    ``K`` is the kick (the torques' flow) and ``D`` the drift (the exact
+    torque-free flow).  Checked once, when defined: ``sum(a) = sum(b) = 1``,
+    ``len(a) = len(b) + 1``, and both are palindromes, so the method is
+    symmetric (time-reversible) and its order is even.  The order itself is
+    measured by the tests (a fitted slope on the heavy top), not assumed.
+
+    Attributes:
+        name: for messages and plots.
+        a: ``(s + 1,)`` kick fractions of the step.
+        b: ``(s,)`` drift fractions of the step.
+        order: the composition's order.
+    """
+
+    name: str
+    a: tuple
+    b: tuple
+    order: int
+
+    def __post_init__(self):
+        tol = 1e-13
+        if len(self.a) != len(self.b) + 1:
+            raise ValueError(f"{self.name}: need one more kick than drifts, got {len(self.a)} and {len(self.b)}")
+        for label, x in (("a", self.a), ("b", self.b)):
+            if abs(sum(x) - 1) > tol:
+                raise ValueError(f"{self.name}: {label} sums to {sum(x)}, not 1")
+            if any(abs(p - q) > tol for p, q in zip(x, x[::-1])):
+                raise ValueError(f"{self.name}: {label} is not a palindrome, so the method is not symmetric")
+
+    @property
+    def stages(self) -> int:
+        """Drifts per step."""
+        return len(self.b)
+
+    @classmethod
+    def compose(cls, name: str, gammas: tuple, order: int) -> "SplittingScheme":
+        """Strang steps of fractions ``gammas`` in sequence, adjacent half-kicks merged."""
+        a = [gammas[0] / 2] + [(p + q) / 2 for p, q in zip(gammas, gammas[1:])] + [gammas[-1] / 2]
+        return cls(name, tuple(a), tuple(gammas), order)
+
+
+STRANG = SplittingScheme("Strang", a=(0.5, 0.5), b=(1.0,), order=2)
+
+# Yoshida (1990) / Suzuki triple jump of Strang steps.
+_Y1 = 1.0 / (2.0 - 2.0 ** (1.0 / 3.0))
+YOSHIDA4 = SplittingScheme.compose("Yoshida 4", (_Y1, 1.0 - 2.0 * _Y1, _Y1), order=4)
+
+# Yoshida (1990), Phys. Lett. A 150, 262, order 6 "solution A": 7 Strang steps.
+_W1, _W2, _W3 = -1.17767998417887, 0.235573213359357, 0.784513610477560
+_W0 = 1.0 - 2.0 * (_W1 + _W2 + _W3)
+YOSHIDA6 = SplittingScheme.compose("Yoshida 6", (_W3, _W2, _W1, _W0, _W1, _W2, _W3), order=6)
+
+
+def _palindrome(head: tuple, middle: float | None) -> tuple:
+    return head + (() if middle is None else (middle,)) + head[::-1]
+
+
+# Blanes and Moan (2002), J. Comput. Appl. Math. 142, 313, Table 2: the
+# 6-stage order-4 method S6 and the 10-stage order-6 method S10, optimised for
+# small error constants.
+_BM4_A = (0.0792036964311957, 0.353172906049774, -0.0420650803577195)
+_BM4_B = (0.209515106613362, -0.143851773179818)
+BLANES_MOAN4 = SplittingScheme(
+    "Blanes-Moan 4",
+    a=_palindrome(_BM4_A, 1.0 - 2.0 * sum(_BM4_A)),
+    b=_palindrome(_BM4_B + (0.5 - sum(_BM4_B),), None),
+    order=4,
+)
+_BM6_A = (0.0502627644003922, 0.413514300428344, 0.0450798897943977, -0.188054853819569, 0.541960678450780)
+_BM6_B = (0.148816447901042, -0.132385865767784, 0.067307604692185, 0.432666402578175)
+BLANES_MOAN6 = SplittingScheme(
+    "Blanes-Moan 6",
+    a=_palindrome(_BM6_A, 1.0 - 2.0 * sum(_BM6_A)),
+    b=_palindrome(_BM6_B + (0.5 - sum(_BM6_B),), None),
+    order=6,
 )

@@ -12,3 +12,10 @@ from .rkmk import RKMK as RKMK
 from .rkmk import RKMK4 as RKMK4
 from .rkmk import AbstractRKMK as AbstractRKMK
 from .rkmk import NaiveLieRK4 as NaiveLieRK4
+from .splitting import AbstractSplitting as AbstractSplitting
+from .splitting import BlanesMoan4 as BlanesMoan4
+from .splitting import BlanesMoan6 as BlanesMoan6
+from .splitting import Splitting as Splitting
+from .splitting import Strang as Strang
+from .splitting import Yoshida4 as Yoshida4
+from .splitting import Yoshida6 as Yoshida6
