@@ -208,6 +208,17 @@ class SpatialFreeRigidBody(AbstractProblem):
     def at(self, base, t, y):
         return self.inertia_inv @ base, None
 
+    def drift(self, R, y, h):
+        """The exact flow over ``h`` (s) for the splitting solvers: ``(R Q, None)``."""
+        from .exact import free_flow  # exact imports this module
+
+        Q, _ = free_flow(self.inertia, R.T @ self.L, h)
+        return so3.compose(R, Q), None
+
+    def kick(self, t, R, y, h):
+        """No torques: the splitting solvers' kick does nothing."""
+        return y
+
     def invariants(self, R, y):
         m = jnp.einsum("...ji,j->...i", R, self.L)
         omega = jnp.einsum("ij,...j->...i", self.inertia_inv, m)

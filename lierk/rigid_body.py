@@ -178,6 +178,12 @@ class RigidBodyWithEffects(AbstractProblem):
         axis = jnp.eye(3, dtype=m.dtype)[k]
         return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], axis, m, h)
 
+    def drift(self, R: Array, m: Array, h: Array) -> tuple[Array, Array]:
+        """The exact torque-free flow over ``h`` (s) from ``(R, m)``: the
+        splitting solvers' drift (`free_flow`)."""
+        Q, m = self.free_flow(m, h)
+        return so3.compose(R, Q), m
+
     def kick(self, t: Array, R: Array, m: Array, h: Array) -> Array:
         """The torques' flow over ``h`` (s) with ``t`` and ``R`` held fixed: the
         kick of a splitting method.  Each effect's own flow is exact

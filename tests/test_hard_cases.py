@@ -170,7 +170,14 @@ def test_fast_spin_fixed_steps_stay_on_so3(solver):
     assert orth < 1e-12
     assert np.all(np.linalg.det(R) > 0)
     sol = lierk.solve(lierk.FreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, throw=False)
-    assert int(sol.result) == lierk.RESULTS.nonfinite
+    if isinstance(solver, lierk.AbstractSplitting):
+        # Without torques a splitting is the exact flow, composed: any step works.
+        assert int(sol.result) == lierk.RESULTS.successful
+        err = np.linalg.norm(np.asarray(sol.R[-1]) - exact_R(TEE, FAST, 0.2))
+        print(f"{solver.name}: error {err:.2e}")
+        assert err < 1e-9
+    else:
+        assert int(sol.result) == lierk.RESULTS.nonfinite
 
 
 @pytest.mark.parametrize("solver", ADAPTIVE_SOLVERS, ids=lambda s: s.name)
@@ -257,8 +264,13 @@ def test_float32_floors(solver, kw):
     # DOP853 1.7e-5; orthogonality <= 1.1e-7 (ExplicitEuler: 0.17).  Error vs
     # exact: RKMK4/CF4/RKMK(RK4) equal to the gap (<= 2.6e-6); NaiveLieRK4 3.0e-5;
     # adaptive at rtol 1e-5: 6.4e-4, 4.0e-4, 3.8e-5; Euler methods 8.5e-2.
+    # Splittings evaluate the elliptic-function flow afresh in every drift, and
+    # each float32 call adds its rounding: measured gaps 1.2e-4 (Strang, 1000
+    # drifts), 3.4e-4 (Yoshida4), 7.1e-4 (BlanesMoan4), 8.1e-4 (Yoshida6),
+    # 1.2e-3 (BlanesMoan6, 10^4 drifts): about 1.2e-7 per drift.
+    drifts = solver.stages * round(T / kw["dt"]) if isinstance(solver, lierk.AbstractSplitting) else 0
     assert int(sol32.result) == lierk.RESULTS.successful
-    assert gap < 1e-4
+    assert gap < max(1e-4, 2.5e-7 * drifts)
     if not isinstance(solver, lierk.ExplicitEuler):
         assert orth < 1e-6
 

@@ -19,7 +19,7 @@ class ExplicitEuler(AbstractSolver):
 
     def step(self, problem, t, h, R, y, fsal=None):
         omega, ydot = problem.at(problem.base(t, R, y), t, y)
-        return Step(R + h * so3._matmul(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None)
+        return Step(R + h * so3.compose(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None)
 
 
 class LieEuler(AbstractSolver):

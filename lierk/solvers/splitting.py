@@ -21,6 +21,11 @@ nothing; what limits the step is how fast the torque changes along the motion,
 which for an asymmetric body is the spin rate again: there an RKMK method is
 usually faster per accuracy (``benchmarks/results/torqued.md``).
 
+In float32 every drift adds the rounding of an elliptic-function evaluation,
+about 1e-7 per drift on the T-handle near its intermediate axis (1.2e-4 after
+1000 Strang steps), against 2e-6 for RKMK4 over the same run; float64 has no
+such floor worth noting.
+
 References:
     E. Celledoni, F. Fasso, N. Safstrom, A. Zanna, SIAM J. Sci. Comput. 30
     (2008) 2084-2112.  H. Yoshida, Phys. Lett. A 150 (1990) 262-268.
@@ -32,6 +37,7 @@ from __future__ import annotations
 from typing import ClassVar
 
 import equinox as eqx
+import jax.numpy as jnp
 
 from .. import so3
 from ..tableaux import BLANES_MOAN4, BLANES_MOAN6, STRANG, YOSHIDA4, YOSHIDA6, SplittingScheme
@@ -43,8 +49,9 @@ __all__ = ["AbstractSplitting", "Splitting", "Strang", "Yoshida4", "Yoshida6", "
 class AbstractSplitting(AbstractSolver):
     """Kick-drift splitting with the coefficients of ``self.scheme``.
 
-    Works on problems that provide ``free_flow(m, h)`` and ``kick(t, R, m, h)``
-    (`lierk.RigidBodyWithEffects`, `lierk.FreeRigidBody`).  Fixed step only:
+    Works on problems that provide ``drift(R, y, h)`` (the exact torque-free
+    flow) and ``kick(t, R, y, h)`` (the torques' flow): `lierk.RigidBodyWithEffects`,
+    `lierk.FreeRigidBody` and `lierk.SpatialFreeRigidBody`.  Fixed step only:
     ``lierk.solve(problem, solver, t1, dt=...)``; ``estimate_error=True`` and
     ``target_error`` work as for any fixed-step solver.
     """
@@ -60,22 +67,21 @@ class AbstractSplitting(AbstractSolver):
         return self.scheme.stages
 
     def step(self, problem, t, h, R, y, fsal=None):
-        if not (hasattr(problem, "free_flow") and hasattr(problem, "kick")):
+        if not (hasattr(problem, "drift") and hasattr(problem, "kick")):
             raise ValueError(
-                f"{self.name} splits off the exact torque-free flow, so it needs a lierk.RigidBodyWithEffects "
-                f"(or FreeRigidBody), got {type(problem).__name__}"
+                f"{self.name} splits off the exact torque-free flow, so it needs a problem with `drift` and "
+                f"`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), got {type(problem).__name__}"
             )
         a, b = self.scheme.a, self.scheme.b
-        m, tk = y, t
+        tk = t
         for i, frac in enumerate(b):
-            m = problem.kick(tk, R, m, a[i] * h)
-            Q, m = problem.free_flow(m, frac * h)
-            R = so3.compose(R, Q)
+            y = problem.kick(tk, R, y, a[i] * h)
+            R, y = problem.drift(R, y, frac * h)
             tk = tk + frac * h
-        m = problem.kick(t + h, R, m, a[-1] * h)
+        y = problem.kick(t + h, R, y, a[-1] * h)
         # The drifts' products leave R off SO(3) by rounding only; `right_exp`
         # with a zero increment applies the float32 re-orthonormalisation.
-        return Step(so3.right_exp(R, 0.0 * m), m, None, None)
+        return Step(so3.right_exp(R, jnp.zeros(3, R.dtype)), y, None, None)
 
 
 class Splitting(AbstractSplitting):
