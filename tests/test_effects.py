@@ -178,7 +178,7 @@ def _traced_effects(problem) -> set[str]:
     solver = lierk.RKMK4()
     jaxpr = jax.make_jaxpr(lambda p, R, y: solver.step(p, 0.0, 0.01, R, y))(problem, problem.R0, problem.y0)
     text = jaxpr.pretty_print(name_stack=True)
-    return {n for n in ("Gravity", "BodyTorque", "SpaceTorque", "Damping") if f"lierk_effect_{n}" in text}
+    return {n for n in ("Gravity", "BodyTorque", "SpaceTorque", "TimedTorque", "Damping") if f"lierk_effect_{n}" in text}
 
 
 def test_absent_effects_are_never_traced():
@@ -186,13 +186,17 @@ def test_absent_effects_are_never_traced():
     only_damping = RigidBodyWithEffects(inertia, omega0, effects=(Damping(0.1),))
     assert _traced_effects(only_damping) == {"Damping"}
     # The probe sees every effect that is present.
-    every = (Gravity([0.0, 0.0, 0.1], 1.0), BodyTorque([1.0, 0.0, 0.0]), SpaceTorque([0.0, 0.0, 1.0]), Damping(0.1))
+    timed = lierk.TimedTorque([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], times=[0.0, 1.0], frame="space")
+    every = (Gravity([0.0, 0.0, 0.1], 1.0), BodyTorque([1.0, 0.0, 0.0]), SpaceTorque([0.0, 0.0, 1.0]), timed, Damping(0.1))
     assert _traced_effects(RigidBodyWithEffects(inertia, omega0, effects=every)) == {
         "Gravity",
         "BodyTorque",
         "SpaceTorque",
+        "TimedTorque",
         "Damping",
     }
+    # A time-dependent torque is compiled only where a scene has one.
+    assert _traced_effects(RigidBodyWithEffects(inertia, omega0, effects=every[:3])) == {"Gravity", "BodyTorque", "SpaceTorque"}
     # Without effects the field is the bare Euler equation: its jaxpr has one
     # multiply-add fewer per stage than with damping.
     bare = jax.make_jaxpr(RigidBodyWithEffects(inertia, omega0).field)(0.0, jnp.eye(3), jnp.ones(3))
