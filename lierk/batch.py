@@ -199,9 +199,15 @@ def _batch_size(batched_args: tuple) -> int:
     return n
 
 
-def _dispatch(fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool) -> Iterator[tuple[int, int, int, Any]]:
+def _dispatch(
+    fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool, compiling=None
+) -> Iterator[tuple[int, int, int, Any]]:
     """``(index, start, stop, out)`` per chunk not in ``skip``, where ``out`` is
     the padded chunk's output on the devices, dispatched but not waited for.
+    With ``compiling`` (a context-manager factory, e.g. `Progress.compiling`),
+    the program is compiled ahead of the first chunk inside it, so that a
+    progress display shows compilation as its own phase (jit's cache then
+    serves the first call).
 
     Every chunk is padded to the same ``padded`` rows (the chunk size rounded
     up to a multiple of the device count) with copies of its last member, so
@@ -231,6 +237,10 @@ def _dispatch(fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool
         else:
             rows = np.minimum(np.arange(start, start + padded), stop - 1)
         args = jax.tree_util.tree_unflatten(treedef, [_place(x[rows], batch_sharding) for x in leaves])
+        if compiling is not None:
+            with compiling():
+                jitted.lower(dynamic, *args).compile()
+            compiling = None
         yield index, start, stop, jitted(dynamic, *args)
 
 
@@ -240,6 +250,7 @@ def sweep_chunks(
     chunk_size: int,
     skip: Iterable[int] = (),
     shard: bool = True,
+    compiling: Callable[[], Any] | None = None,
 ) -> Iterator[tuple[int, int, int, Any]]:
     """``jax.vmap(fn)`` over the batch, one chunk at a time, results on the host.
 
@@ -276,6 +287,9 @@ def sweep_chunks(
             chunk_size)``.
         shard: split each chunk over all devices (of all processes).  With
             ``False`` each process runs every chunk on its first local device.
+        compiling: a context-manager factory (e.g. a progress display's
+            "compiling" phase) inside which the program is compiled before
+            the first chunk runs; None compiles at the first chunk's call.
 
     Raises:
         ValueError: ``chunk_size`` not a positive int; ``skip`` holding
@@ -298,7 +312,7 @@ def sweep_chunks(
             f"skip holds {bad[0]!r}, which is not a chunk index: {n} members in chunks of {chunk} "
             f"make chunks 0 to {n_chunks - 1}"
         )
-    return _host_chunks(_dispatch(fn, batched_args, n, chunk, skip, shard))
+    return _host_chunks(_dispatch(fn, batched_args, n, chunk, skip, shard, compiling))
 
 
 def _host_chunks(dispatched: Iterator) -> Iterator[tuple[int, int, int, Any]]:
@@ -392,7 +406,8 @@ def sweep(
     chunk = n if chunk_size is None else _check_chunk_size(chunk_size)
     bar = Progress("sweep", n, " members") if progress else None
     pieces = []
-    for _, start, stop, out in _dispatch(fn, batched_args, n, chunk, frozenset(), shard):
+    compiling = None if bar is None else bar.compiling
+    for _, start, stop, out in _dispatch(fn, batched_args, n, chunk, frozenset(), shard, compiling):
         pieces.append((stop - start, out))
         if bar is not None:
             jax.block_until_ready(out)

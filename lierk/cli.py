@@ -669,7 +669,8 @@ def sweep(args) -> int:
     done = min(len(store.done) * args.chunk_size, len(grid))
     bar = Progress("sweep", len(grid), "members", quiet=args.quiet or store.complete)
     start = time.perf_counter()
-    for k, a, b, out in sweep_chunks(point, np.asarray(grid, dtype), chunk_size=args.chunk_size, skip=store.done):
+    chunks = sweep_chunks(point, np.asarray(grid, dtype), chunk_size=args.chunk_size, skip=store.done, compiling=bar.compiling)
+    for k, a, b, out in chunks:
         if writer:
             store.write(k, out)
         done += b - a

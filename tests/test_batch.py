@@ -303,3 +303,30 @@ def test_sweep_sharded_over_two_host_devices_equals_unsharded():
     proc = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip().startswith("OK 2"), proc.stdout
+
+
+def test_compiling_phase_runs_once_before_the_first_chunk():
+    """`sweep_chunks(..., compiling=)` compiles inside the given context, once,
+    before any chunk is computed; the chunks then reuse that program."""
+    import contextlib
+
+    events, traces = [], []
+
+    def fn(x):
+        traces.append(1)
+        return 2.0 * x
+
+    @contextlib.contextmanager
+    def compiling():
+        events.append("enter")
+        yield
+        events.append(f"exit after {len(traces)} trace(s)")
+
+    xs = np.arange(10.0)
+    outs = []
+    for k, a, b, out in lierk.sweep_chunks(fn, xs, chunk_size=4, compiling=compiling):
+        events.append(f"chunk {k}")
+        outs.append(out)
+    assert events == ["enter", "exit after 1 trace(s)", "chunk 0", "chunk 1", "chunk 2"]
+    assert len(traces) == 1
+    np.testing.assert_array_equal(np.concatenate(outs), 2.0 * xs)
