@@ -653,6 +653,10 @@ def sweep(args) -> int:
         "settings": {k: repr(v) for k, v in sorted(kw.items())},
         "dtype": np.dtype(dtype).name,
         "chunk_size": args.chunk_size,
+        # How the batch is split decides the reduction order, hence the last
+        # bit: a resume on another device layout would not be identical.
+        "devices": jax.device_count(),
+        "processes": jax.process_count(),
         "lierk": _version(),
     }
     out_bytes = 5 * np.dtype(dtype).itemsize  # angle, sensitivity, flip interval, result, omega0 per point
