@@ -13,8 +13,27 @@ where the start-up transient is gone.  p = 1 is the linear phase-error growth
 expected of a method that keeps energy bounded; p = 2 means the energy itself
 drifts linearly, which then shears the phase quadratically.
 
-Run: ``python benchmarks/long_horizon.py``; writes benchmarks/results/
-long_horizon.json, long_horizon.md and long_horizon.png.
+Heavy tops (``--part heavy_top``; issue 10, item 4): conservative scenes
+(gravity only, float64) over 1000 s, 10^6 steps of dt = 1e-3 s, for RKMK4,
+CF4, the splittings Strang and BlanesMoan4 (kick/drift around the exact
+torque-free flow; symplectic here), BlanesMoan4 at a coarse dt = 0.02 s, and
+DOP853 at rtol 1e-10 (not symplectic, shown for its drift).  Two tops: the
+symmetric fast top of ``examples/heavy_top.toml`` (spin 150 rad/s) and an
+asymmetric one, I = diag(0.6, 0.8, 0.3) kg m^2 about the pivot, centre of
+mass at (0.02, 0.01, 0.5) m, M = 1 kg, omega0 = (0.5, -0.3, 30) rad/s, tilted
+0.3 rad about x.  About 2000 states are saved per run.  Measured: the
+relative energy error |E(t)/E(0) - 1|, the error of the vertical spatial
+momentum L_vertical (conserved exactly by the flow) and, for the symmetric
+top, of the spin m_chi, both relative to |L(0)|, and ||R^T R - I||.  For
+each: the max over the first and over the last tenth of the run, their
+ratio, the overall max and the growth exponent (as above, of the running
+max over [500, 1000] s).  The issue's criterion: last/first <= 2 and
+max energy error < 1e-6.  Each run is compiled ahead of time (compile time
+reported apart) and timed once.
+
+Run: ``python benchmarks/long_horizon.py [--part free|heavy_top|all]
+[--out DIR]`` (default all, benchmarks/results); writes long_horizon.{json,
+md,png} (T-handle) and long_horizon_top.{json,md,png} (heavy tops).
 """
 
 from __future__ import annotations
@@ -23,7 +42,9 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import argparse  # noqa: E402
 import json  # noqa: E402
+import os  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -35,6 +56,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import lierk  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -59,8 +81,8 @@ ADAPTIVE = [
 TS_ADAPTIVE = np.geomspace(0.1, T, 300)
 
 
-def growth_exponent(t, err):
-    keep = (t >= FIT_FROM) & np.isfinite(err) & (err > 0)
+def growth_exponent(t, err, fit_from=FIT_FROM):
+    keep = (t >= fit_from) & np.isfinite(err) & (err > 0)
     if keep.sum() < 3:
         return float("nan")
     # Fit the running maximum: the raw error oscillates with the motion.
@@ -68,7 +90,8 @@ def growth_exponent(t, err):
     return float(np.polyfit(np.log(t[keep]), np.log(env[keep]), 1)[0])
 
 
-def main():
+def run_free(out: Path):
+    """The T-handle part: long_horizon.{json,md,png}."""
     inertia = np.asarray(lierk.inertia.tee_handle())
     problem = lierk.FreeRigidBody(inertia, OMEGA0)
     exact = jax.jit(lambda t: lierk.exact.free_rigid_body(inertia, OMEGA0, t)[0])
@@ -76,12 +99,14 @@ def main():
     runs = []
     for name, solver in FIXED:
         start = time.perf_counter()
-        sol = lierk.solve(problem, solver, T, dt=DT, saveat=lierk.SaveAt(steps=SAVE_EVERY))
+        # throw=False: LieEuler's energy drifts by more than 10% over the run, which
+        # solve flags as RESULTS.invariant_drift; the row notes it instead.
+        sol = lierk.solve(problem, solver, T, dt=DT, saveat=lierk.SaveAt(steps=SAVE_EVERY), throw=False)
         sol.R.block_until_ready()
         runs.append((name, sol, time.perf_counter() - start, int(sol.stats["num_steps"])))
     for name, solver, rtol in ADAPTIVE:
         start = time.perf_counter()
-        sol = lierk.solve(problem, solver, T, rtol=rtol, saveat=lierk.SaveAt(ts=TS_ADAPTIVE), max_steps=400_000)
+        sol = lierk.solve(problem, solver, T, rtol=rtol, saveat=lierk.SaveAt(ts=TS_ADAPTIVE), max_steps=400_000, throw=False)
         sol.R.block_until_ready()
         runs.append((name, sol, time.perf_counter() - start, int(sol.stats["num_steps"])))
 
@@ -94,7 +119,7 @@ def main():
         err = np.linalg.norm(R - np.asarray(exact(jnp.asarray(t))), axis=(-2, -1))
         inv = sol.invariants(problem)
         if E0 is None:
-            R0_inv = problem.invariants(jnp.eye(3), None)
+            R0_inv = problem.invariants(problem.R0, problem.y0)
             E0, L0 = float(R0_inv["energy"]), float(R0_inv["|L|"])
         dE = np.abs(np.asarray(inv["energy"]) / E0 - 1)
         dL = np.abs(np.asarray(inv["|L|"]) / L0 - 1)
@@ -102,6 +127,10 @@ def main():
         # An exponent means nothing once the error saturates (||R1 - R2|| <= 2 sqrt 2)
         # or sits at the reference's own accuracy (~1e-12 over many periods).
         note = "saturated" if err[-1] > 1.0 else ("at reference floor" if err.max() < 1e-10 else "")
+        if int(sol.result) == lierk.RESULTS.invariant_drift:
+            note = ", ".join(x for x in (note, "flagged invariant_drift") if x)
+        elif int(sol.result) != lierk.RESULTS.successful:
+            raise RuntimeError(f"{name}: solve failed with result {int(sol.result)}")
         pE = growth_exponent(t, dE)
         rows.append(
             dict(
@@ -130,8 +159,8 @@ def main():
     axes[0].legend(fontsize=7)
     fig.suptitle(f"T-handle, omega0 = {tuple(OMEGA0.tolist())} rad/s; fixed h = {DT} s; fit of error ~ t^p over t >= {FIT_FROM:g} s")
     fig.tight_layout()
-    RESULTS.mkdir(exist_ok=True)
-    fig.savefig(RESULTS / "long_horizon.png", dpi=110)
+    out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out / "long_horizon.png", dpi=110)
 
     meta = dict(
         problem="T-handle (lierk.inertia.tee_handle()), R0 = I",
@@ -143,7 +172,7 @@ def main():
         machine=platform.platform(),
         jax=jax.__version__,
     )
-    (RESULTS / "long_horizon.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
+    (out / "long_horizon.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
     lines = [
         "# Long horizon on the T-handle",
         "",
@@ -159,8 +188,303 @@ def main():
             f"{r['max_energy_drift']:.2e} | {r['energy_drift_exponent']:.2f} | {r['max_L_drift']:.2e} | "
             f"{r['max_orthogonality_error']:.1e} |"
         )
-    (RESULTS / "long_horizon.md").write_text("\n".join(lines) + "\n")
+    (out / "long_horizon.md").write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
+
+
+# --- Heavy tops: bounded energy over 10^6 steps (issue 10, item 4) ------------
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+TOP_T = 1000.0
+TOP_DT = 1e-3  # 10^6 steps over TOP_T
+TOP_DT_COARSE = 0.02  # BlanesMoan4 at 20x fewer steps, still far below 1e-6
+TOP_DT_MID = 0.004  # BlanesMoan4 where its truncation error is back above the rounding walk
+TOP_SAVES = 2000
+TOP_FIT_FROM = 0.5 * TOP_T
+ENERGY_LIMIT = 1e-6  # the issue's bound on the relative energy error
+RATIO_LIMIT = 2.0  # ... and on max(last tenth) / max(first tenth)
+DOP853_MAX_STEPS = 2_000_000
+
+TOP_METHODS = [
+    # (label, solver, dt or None for adaptive, rtol)
+    ("RKMK4", lierk.RKMK4(), TOP_DT, None),
+    ("CF4", lierk.CF4(), TOP_DT, None),
+    ("Strang", lierk.Strang(), TOP_DT, None),
+    ("BlanesMoan4", lierk.BlanesMoan4(), TOP_DT, None),
+    (f"BlanesMoan4, dt {TOP_DT_MID:g}", lierk.BlanesMoan4(), TOP_DT_MID, None),
+    (f"BlanesMoan4, dt {TOP_DT_COARSE:g}", lierk.BlanesMoan4(), TOP_DT_COARSE, None),
+    ("DOP853, rtol 1e-10", lierk.DOP853(), None, 1e-10),
+]
+
+
+def _rot_x(angle: float) -> np.ndarray:
+    c, s = np.cos(angle), np.sin(angle)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def top_problems():
+    """``[(key, title, problem, description)]``: the symmetric and the asymmetric top."""
+    sym = lierk.scene.load(EXAMPLES / "heavy_top.toml").problem
+    asym = lierk.RigidBodyWithEffects(
+        np.diag([0.6, 0.8, 0.3]),
+        [0.5, -0.3, 30.0],
+        _rot_x(0.3),
+        effects=(lierk.Gravity((0.02, 0.01, 0.5), mass=1.0, g=9.81),),
+    )
+    for p in (sym, asym):
+        assert p.R0.dtype == jnp.float64, p.R0.dtype
+    return [
+        (
+            "symmetric",
+            "symmetric heavy top (examples/heavy_top.toml), spin 150 rad/s",
+            sym,
+            "examples/heavy_top.toml: disc on a stem, I = diag(2.071e-3, 2.071e-3, 4.001e-4) kg m^2 about the tip, "
+            "omega0 = (0, 0, 150) rad/s, tilted 0.3 rad about y; nutation period 0.354 s, precession 6.25 rad/s",
+        ),
+        (
+            "asymmetric",
+            "asymmetric heavy top, I = diag(0.6, 0.8, 0.3), omega0 = (0.5, -0.3, 30)",
+            asym,
+            "I = diag(0.6, 0.8, 0.3) kg m^2 about the pivot, Gravity(chi = (0.02, 0.01, 0.5) m, M = 1 kg, g = 9.81), "
+            "omega0 = (0.5, -0.3, 30) rad/s, R0 = rotation by 0.3 rad about x",
+        ),
+    ]
+
+
+def _top_solve_fn(solver, dt, rtol):
+    if dt is not None:
+        n = round(TOP_T / dt)
+        assert n % TOP_SAVES == 0, (n, TOP_SAVES)
+        saveat = lierk.SaveAt(t0=True, steps=n // TOP_SAVES)
+        return lambda p: lierk.solve(p, solver, TOP_T, dt=dt, saveat=saveat)
+    ts = np.linspace(0.0, TOP_T, TOP_SAVES + 1)[1:]
+    saveat = lierk.SaveAt(t0=True, ts=ts)
+    return lambda p: lierk.solve(p, solver, TOP_T, rtol=rtol, saveat=saveat, max_steps=DOP853_MAX_STEPS)
+
+
+def _windows(t, x, fit_from):
+    """First-tenth max, last-tenth max, their ratio, overall max, growth exponent."""
+    first = float(np.max(x[t <= 0.1 * TOP_T]))
+    last = float(np.max(x[t >= 0.9 * TOP_T]))
+    return dict(
+        first_tenth_max=first,
+        last_tenth_max=last,
+        ratio=last / first if first > 0 else float("inf"),
+        max=float(np.max(x)),
+        exponent=growth_exponent(t, x, fit_from),
+    )
+
+
+def rounding_walk(problem, scheme, R, m, dt, steps):
+    """Float64 rounding of the splitting's energy, measured along the run's
+    saved states ``R``, ``m``: the relative change of the kinetic energy
+    ``T`` over one drift (which conserves ``T`` exactly) and the error of one
+    kick's ``T`` against the same kick in extended precision (numpy's
+    longdouble), both against ``E(0)``.  Returns the per-operation standard
+    deviations and the random walk they predict over ``steps`` steps,
+    ``sqrt(steps (n_drift s_drift^2 + n_kick s_kick^2))``; None where
+    longdouble is no wider than float64 or an effect is not gravity."""
+    if np.finfo(np.longdouble).eps > 1e-18 or not all(isinstance(e, lierk.Gravity) for e in problem.effects):
+        return None
+    LD = np.longdouble
+    E0 = LD(float(problem.invariants(problem.R0, problem.y0)["energy"]))
+    I_inv = np.asarray(problem.inertia_inv, LD)
+
+    def T(m):
+        m = np.asarray(m, LD)
+        return 0.5 * np.einsum("ni,ij,nj->n", m, I_inv, m)
+
+    drift = jax.jit(jax.vmap(problem.drift, in_axes=(0, 0, None)))
+    kick = jax.jit(jax.vmap(lambda R, m, h: problem.kick(0.0, R, m, h), in_axes=(0, 0, None)))
+    d = [np.asarray((T(drift(R, m, b * dt)[1]) - T(m)) / E0, float) for b in scheme.b]
+    RL, mL = np.asarray(R, LD), np.asarray(m, LD)
+    k = []
+    for a in scheme.a:
+        tau = sum(LD(float(e.mass)) * LD(float(e.g)) * np.cross(RL[:, 2, :], np.asarray(e.pivot_to_com, LD)) for e in problem.effects)
+        exact_kick = mL + LD(a * dt) * tau
+        k.append(np.asarray((T(kick(R, m, a * dt)) - T(exact_kick)) / E0, float))
+    s_d, s_k = float(np.std(np.concatenate(d))), float(np.std(np.concatenate(k)))
+    walk = float(np.sqrt(steps * (len(scheme.b) * s_d**2 + len(scheme.a) * s_k**2)))
+    return dict(per_drift_std=s_d, per_kick_std=s_k, drifts_per_step=len(scheme.b), kicks_per_step=len(scheme.a), predicted_walk=walk)
+
+
+def run_top_method(problem, label, solver, dt, rtol):
+    f = jax.jit(_top_solve_fn(solver, dt, rtol))
+    start = time.perf_counter()
+    compiled = f.lower(problem).compile()
+    compile_s = time.perf_counter() - start
+    start = time.perf_counter()
+    sol = jax.block_until_ready(compiled(problem))
+    run_s = time.perf_counter() - start
+    if int(sol.result) != 0:
+        raise RuntimeError(f"{label}: solve failed, result {int(sol.result)}")
+    return sol, compile_s, run_s
+
+
+def run_heavy_top(out: Path):
+    """The heavy-top part: long_horizon_top.{json,md,png}."""
+    machine = common.machine_info(matplotlib=matplotlib.__version__)
+    problems = top_problems()
+    fig, axes = plt.subplots(len(problems), 2, figsize=(15, 4.6 * len(problems)), squeeze=False)
+    results = {}
+    for row, (key, title, problem, description) in enumerate(problems):
+        inv0 = {k: float(v) for k, v in problem.invariants(problem.R0, problem.y0).items()}
+        conserved = problem.conserved()
+        casimirs = [k for k in ("L_vertical", "m_chi") if k in conserved]
+        rows = []
+        for label, solver, dt, rtol in TOP_METHODS:
+            sol, compile_s, run_s = run_top_method(problem, label, solver, dt, rtol)
+            n_saved = int(sol.n_saved)
+            t = np.asarray(sol.ts)[:n_saved]
+            inv = {k: np.asarray(v)[:n_saved] for k, v in sol.invariants(problem).items()}
+            dE = np.abs(inv["energy"] / inv0["energy"] - 1.0)
+            r = dict(
+                method=label,
+                dt=dt,
+                rtol=rtol,
+                steps=int(sol.stats["num_steps"]),
+                saved=int(len(t)),
+                compile_s=round(compile_s, 2),
+                run_s=round(run_s, 2),
+                us_per_step=round(1e6 * run_s / int(sol.stats["num_steps"]), 2),
+                energy=_windows(t, dE, TOP_FIT_FROM),
+                orthogonality_max=float(np.max(np.asarray(sol.orthogonality_error)[:n_saved])),
+            )
+            for k in casimirs:
+                r[k] = _windows(t, np.abs(inv[k] - inv0[k]) / inv0["|L|"], TOP_FIT_FROM)
+            if isinstance(solver, lierk.solvers.splitting.AbstractSplitting):
+                r["rounding"] = rounding_walk(problem, solver.scheme, sol.R[:n_saved], sol.y[:n_saved], dt, r["steps"])
+            r["meets_criterion"] = bool(r["energy"]["ratio"] <= RATIO_LIMIT and r["energy"]["max"] < ENERGY_LIMIT)
+            rows.append(r)
+            print(
+                f"[{key}] {label}: {r['steps']} steps, compile {compile_s:.1f} s, run {run_s:.1f} s; energy "
+                f"first {r['energy']['first_tenth_max']:.2e} last {r['energy']['last_tenth_max']:.2e} "
+                f"ratio {r['energy']['ratio']:.2f} max {r['energy']['max']:.2e}; L_vertical max "
+                f"{r['L_vertical']['max']:.2e}; meets {r['meets_criterion']}",
+                flush=True,
+            )
+            style = "--" if dt is None else ("-." if dt != TOP_DT else "-")
+            axes[row, 0].semilogy(t, np.maximum(dE, 1e-17), style, lw=0.9, label=label)
+            axes[row, 1].semilogy(
+                t, np.maximum(np.abs(inv["L_vertical"] - inv0["L_vertical"]) / inv0["|L|"], 1e-17), style, lw=0.9, label=label
+            )
+        results[key] = dict(title=title, description=description, initial_invariants=inv0, conserved=list(conserved), rows=rows)
+        axes[row, 0].set_title(f"{title}\n|E(t)/E(0) - 1|", fontsize=9)
+        axes[row, 1].set_title(f"{title}\n|L_vertical(t) - L_vertical(0)| / |L(0)|", fontsize=9)
+        for ax in axes[row]:
+            ax.axhline(ENERGY_LIMIT, color="k", lw=0.6, ls=":")
+            ax.set_xlabel("t (s)")
+            ax.grid(True, which="both", alpha=0.3)
+        axes[row, 0].legend(fontsize=7, loc="lower right")
+    fig.suptitle(
+        f"Heavy tops, float64, {TOP_T:g} s: fixed dt = {TOP_DT:g} s ({round(TOP_T / TOP_DT):.0e} steps) unless labelled; "
+        f"DOP853 adaptive (dashed); dotted line: the issue's 1e-6"
+    )
+    fig.tight_layout()
+    out.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out / "long_horizon_top.png", dpi=110)
+    plt.close(fig)
+
+    machine["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
+    meta = dict(
+        T=TOP_T,
+        dt=TOP_DT,
+        dt_mid=TOP_DT_MID,
+        dt_coarse=TOP_DT_COARSE,
+        saves=TOP_SAVES,
+        fit_window=[TOP_FIT_FROM, TOP_T],
+        energy_limit=ENERGY_LIMIT,
+        ratio_limit=RATIO_LIMIT,
+        criterion="max(last tenth)/max(first tenth) of |E/E0 - 1| <= 2 and max |E/E0 - 1| < 1e-6",
+        casimir_scale="|L(0)|",
+        timing="compiled ahead of time (compile_s), then one timed run (run_s)",
+        machine=machine,
+    )
+    (out / "long_horizon_top.json").write_text(json.dumps(dict(meta=meta, problems=results), indent=2))
+    lines = top_markdown(meta, results)
+    (out / "long_horizon_top.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+
+
+def _fmt_ratio(x):
+    return f"{x:.2f}" if np.isfinite(x) else "inf"
+
+
+def top_markdown(meta, results) -> list[str]:
+    m = meta["machine"]
+    summary = []
+    for key, res in results.items():
+        ok = [r["method"] for r in res["rows"] if r["meets_criterion"]]
+        bad = [
+            f"{r['method']} (ratio {_fmt_ratio(r['energy']['ratio'])}, max {r['energy']['max']:.1e})"
+            for r in res["rows"]
+            if not r["meets_criterion"]
+        ]
+        summary.append(
+            f"On the {key} top the criterion is met by {', '.join(ok) if ok else 'no method'}"
+            + (f"; not by {', '.join(bad)}" if bad else "")
+            + "."
+        )
+    load = m.get("load_average_at_start")
+    lines = [
+        "# Long horizon: heavy tops, energy and Casimirs over 10^6 steps",
+        "",
+        f"Machine: {m['cpu_count']} cores, {m['cpu']}; jax {m['jax']}, lierk {m['lierk']}, float64; "
+        f"load average {load[0]:.2f} at the start and {meta['machine']['load_average_at_end'][0]:.2f} at the end "
+        "(the machine is shared).  "
+        f"Conservative scenes (gravity only) over {meta['T']:g} s with dt = {meta['dt']:g} s "
+        f"({round(meta['T'] / meta['dt']):.0e} steps), except BlanesMoan4 at dt = {meta['dt_mid']:g} s and "
+        f"{meta['dt_coarse']:g} s ({round(meta['T'] / meta['dt_mid']):.2g} and {round(meta['T'] / meta['dt_coarse']):.0e} "
+        "steps) and adaptive DOP853.  The issue's criterion: the "
+        "relative energy error's max over the last tenth of the run is at most 2x its max over the first tenth, "
+        "and its overall max is below 1e-6.  " + "  ".join(summary),
+        "",
+        "Columns: relative energy error |E(t)/E(0) - 1| (max over t <= 100 s, over t >= 900 s, their ratio, the "
+        "overall max, and the exponent p of its running max ~ t^p over [500, 1000] s: 0 bounded, 1 linear drift, "
+        "0.5 a random walk); the Casimirs' errors relative to |L(0)|; ||R^T R - I||; wall time of one run after an "
+        "ahead-of-time compile (compile time apart).  Rounding walk (splittings): the float64 rounding of the "
+        "energy per drift and per kick, measured along the run's saved states against extended precision, and the "
+        "random walk sqrt(steps (drifts s_drift^2 + kicks s_kick^2)) it predicts at the end of the run; where it "
+        "exceeds the method's truncation error the energy error grows like t^0.5 (Brouwer's law) however small it is.  "
+        "Figure: long_horizon_top.png.",
+        "",
+    ]
+    for key, res in results.items():
+        has_mchi = any("m_chi" in r for r in res["rows"])
+        lines += [
+            f"## {res['title']}",
+            "",
+            res["description"] + ".  Conserved by the exact flow: " + ", ".join(res["conserved"]) + ".",
+            "",
+            "| method | steps | E err, first tenth | E err, last tenth | ratio | max E err | E exponent | meets | "
+            "L_vert err: first / last / max" + (" | m_chi err max" if has_mchi else "") + " | max orth. | rounding walk | run (compile) s | µs/step |",
+            "|---|---:|---:|---:|---:|---:|---:|:---:|---:|" + ("---:|" if has_mchi else "") + "---:|---:|---:|---:|",
+        ]
+        for r in res["rows"]:
+            e, lv = r["energy"], r["L_vertical"]
+            walk = f"{r['rounding']['predicted_walk']:.1e}" if r.get("rounding") else "-"
+            lines.append(
+                f"| {r['method']} | {r['steps']} | {e['first_tenth_max']:.2e} | {e['last_tenth_max']:.2e} | "
+                f"{_fmt_ratio(e['ratio'])} | {e['max']:.2e} | {e['exponent']:.2f} | {'yes' if r['meets_criterion'] else 'no'} | "
+                f"{lv['first_tenth_max']:.1e} / {lv['last_tenth_max']:.1e} / {lv['max']:.1e}"
+                + (f" | {r['m_chi']['max']:.1e}" if has_mchi else "")
+                + f" | {r['orthogonality_max']:.1e} | {walk} | {r['run_s']:.1f} ({r['compile_s']:.1f}) | {r['us_per_step']:.2f} |"
+            )
+        lines.append("")
+    return lines
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--part", choices=("free", "heavy_top", "all"), default="all",
+                        help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*)")
+    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
+    args = parser.parse_args(argv)
+    out = Path(args.out) if args.out else RESULTS
+    if args.part in ("free", "all"):
+        run_free(out)
+    if args.part in ("heavy_top", "all"):
+        run_heavy_top(out)
 
 
 if __name__ == "__main__":
