@@ -272,7 +272,9 @@ def lierk_fn(fam: Family, solver, dt: float | None = None):
     effects = fam.effects()
 
     def one(w, R0, tol):
-        problem = lierk.RigidBodyWithEffects(jnp.asarray(fam.inertia), w, R0, effects=effects)
+        # A NumPy inertia stays concrete under jit, so a symmetric top gets the
+        # splittings' closed-form drift (`RigidBodyWithEffects.symmetry_axis`).
+        problem = lierk.RigidBodyWithEffects(np.asarray(fam.inertia), w, R0, effects=effects)
         if dt is None:
             sol = lierk.solve(problem, solver, fam.T, rtol=tol, atol=tol, max_steps=MAX_STEPS, throw=False)
         else:

@@ -73,7 +73,9 @@ class RigidBodyWithEffects(AbstractProblem):
     # The principal axis (0, 1, 2) of a diagonal inertia whose other two
     # moments are equal, found when the inertia is concrete; None otherwise.
     # Only the splitting solvers' drift reads it (a closed form instead of the
-    # elliptic one), so a traced inertia merely takes the general path.
+    # elliptic one), so a traced inertia merely takes the general path.  Note
+    # that inside jit even jnp.asarray(constant) is traced: pass NumPy arrays
+    # or lists to get the closed form there.
     symmetry_axis: int | None = eqx.field(static=True)
 
     def __init__(
