@@ -35,6 +35,7 @@ __all__ = [
     "rotate",
     "right_exp",
     "compose",
+    "reorthonormalize",
     "exp_coefficients",
     "series_in_range",
     "SERIES_RADIUS",
@@ -233,6 +234,14 @@ def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
     R = _float(R)
     for v in (u,) + more:
         R = compose(R, exp(v))
+    return reorthonormalize(R)
+
+
+def reorthonormalize(R: ArrayLike) -> Array:
+    """The rounding correction every solver step ends with (`right_exp`): in
+    float32 and narrower one Newton-Schulz step ``R (3I - R^T R)/2``; in
+    float64 ``R`` unchanged (the check is on the static dtype).  ``(..., 3, 3)``."""
+    R = _float(R)
     if jnp.finfo(R.dtype).bits < 64:
         S = compose(jnp.swapaxes(R, -1, -2), R)
         R = 1.5 * R - 0.5 * compose(R, S)

@@ -85,7 +85,7 @@ class AbstractRKMK(AbstractSolver):
                 yi = combine(y, h, tab.a[i], kys)
                 coefficients = None
                 if self.series:
-                    theta2 = jnp.sum(u * u)
+                    theta2 = so3._sq(u)
                     coefficients = so3.exp_coefficients(theta2, series=True)
                     in_range = so3.series_in_range(theta2) & (True if in_range is None else in_range)
                 omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi, coefficients)
