@@ -114,10 +114,6 @@ class AbstractRKMK(AbstractSolver):
         if tab.b_error is not None:
             e_u, e_y = sums[1]
             if in_range is not None:
-                # The barrier makes XLA compute the flag once per step; fused
-                # into the error norm, it re-derived every stage's angle for
-                # each of the norm's components (a tenth of a DOP853 step).
-                in_range = jax.lax.optimization_barrier(in_range)
                 # Outside the series' radius the stages are not to be trusted,
                 # whatever the embedded pair says: reject the step.  (Marking
                 # one estimate is enough: `solve` keeps an infinite estimate
