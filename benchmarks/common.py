@@ -32,14 +32,17 @@ def cli(doc: str, quick_help: str, run: bool) -> tuple[bool, Path]:
     return args.quick, (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
 
 
-def timed(f, *args, repeats: int):
+def timed(f, *args, repeats: int, min_time: float = 0.0, max_repeats: int = 51):
     """``(output, median wall time, time of the first call)``: the first call
-    compiles and warms up and is not part of the median."""
+    compiles and warms up and is not part of the median.  At least ``repeats``
+    timed calls, and more (up to ``max_repeats``) until they add up to
+    ``min_time`` seconds: on a shared machine one descheduling can double a
+    call of a few milliseconds, and the median of 3 such calls is not robust."""
     t = time.perf_counter()
     out = jax.block_until_ready(f(*args))
     first = time.perf_counter() - t
     times = []
-    for _ in range(repeats):
+    while len(times) < repeats or (sum(times) < min_time and len(times) < max_repeats):
         t = time.perf_counter()
         out = jax.block_until_ready(f(*args))
         times.append(time.perf_counter() - t)

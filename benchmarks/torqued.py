@@ -43,12 +43,13 @@ Error: the largest ``||R(T) - R_ref(T)||_F`` over the batch.  Reference: lierk
 DOP853 at rtol = atol = 1e-14, cross-checked against diffrax Dopri8 at 1e-14
 on the whole batch and SciPy DOP853 at 2.5e-14 on two members; levels within
 10x of the larger disagreement are not claimed.  Timing: compile and a warm-up call
-excluded, median of 3 calls, all programs of a family measured in one run.
+excluded, median of at least 3 calls (more, up to 51, until they add up to
+0.25 s), all programs of a family measured in one run.
 Each program's time at an error level is interpolated log-log along its
 work-precision front (`common.interp_time`).
 
 Writes benchmarks/results/torqued.{json,md,png}.  Run:
-``python benchmarks/torqued.py`` (about 6 minutes on 2 cores, without the splitting solvers);
+``python benchmarks/torqued.py`` (about 8 minutes on 2 cores);
 ``--quick`` (8 bodies, fewer settings, no repeats, about 2 minutes) only
 checks that the script works and writes to a temporary directory unless
 ``--out`` is given.
@@ -98,6 +99,8 @@ QUICK, OUT = cli(__doc__, "tiny run (8 bodies, few settings, no repeats) to chec
 N = 8 if QUICK else 256
 SEED = 0
 REPEATS = 1 if QUICK else 3
+# Calls of a few ms are repeated until they add up to this (common.timed).
+MIN_TIME = 0.0 if QUICK else 0.25
 LEVELS = [10.0**-k for k in range(4, 11)]
 REF_TOL = 1e-14  # lierk DOP853 and diffrax Dopri8
 SCIPY_CHECK_TOL = 2.5e-14  # SciPy floors rtol at 100 eps
@@ -478,7 +481,7 @@ def run_family(fam: Family) -> dict:
 
     def adaptive(method, program, fn, tols):
         for tol in tols:
-            (R, steps, res), s, first = timed(fn, omegas, R0s, tol, repeats=REPEATS)
+            (R, steps, res), s, first = timed(fn, omegas, R0s, tol, repeats=REPEATS, min_time=MIN_TIME)
             add(method, program, "tol", tol, R, s, first, steps, res, R_ref)
 
     def fixed(method, solver, dts, budget=None):
@@ -486,7 +489,7 @@ def run_family(fam: Family) -> dict:
         call took longer or whose error is already at the reference's."""
         for dt in dts:
             fn = lierk_fn(fam, solver, dt)
-            (R, steps, res), s, first = timed(fn, omegas, R0s, 0.0, repeats=REPEATS)
+            (R, steps, res), s, first = timed(fn, omegas, R0s, 0.0, repeats=REPEATS, min_time=MIN_TIME)
             add(method, "lierk", "dt", dt, R, s, first, steps, res, R_ref)
             if budget is not None and (s > budget or records[-1]["error"] <= agreement):
                 break
@@ -526,7 +529,7 @@ def run_family(fam: Family) -> dict:
     # and its finest point would take a quarter of the whole run).
     for dt in sweep(fam.dts4[:-1]):
         go, model = mujoco_runner(fam, omegas_np, R0_np, dt)
-        final, s, first = timed(go, repeats=REPEATS)
+        final, s, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
         R, _, t_end = mujoco_final(model, final)
         assert np.all(np.abs(t_end - fam.T) <= 1e-9 * fam.T), f"MuJoCo ended at {t_end.min()}..{t_end.max()}"
         add("MuJoCo RK4", "mujoco", "dt", dt, R, s, first, R_ref=R_ref, note=f"rollout, {MUJOCO_THREADS} threads")
@@ -706,7 +709,7 @@ def main():
         "seed": SEED,
         "levels": LEVELS,
         "error": "max over the batch of ||R(T) - R_ref(T)||_F (SciPy: member 0 only)",
-        "timing": f"median of {REPEATS} calls after a warm-up call; SciPy: one body x {N}",
+        "timing": f"median of at least {REPEATS} calls (up to 51, until they add up to {MIN_TIME} s) after a warm-up call; SciPy: one body x {N}",
         "machine": machine,
         "total_runtime_s": time.perf_counter() - t_start,
         "families": families,
