@@ -39,16 +39,6 @@ def _leaves(tree) -> list[Array]:
     return [jnp.ravel(x) for x in jax.tree_util.tree_leaves(tree)]
 
 
-def _sum_of_squares(x: Array) -> Array:
-    # A few components are summed elementwise rather than reduced: XLA fuses
-    # a reduction's inputs into its loop, once per element, and the error's
-    # inputs include the series-range check over every stage (solvers.rkmk),
-    # which was then re-derived per component (a tenth of a DOP853 step).
-    if x.size <= 16:
-        return sum(x[i] * x[i] for i in range(x.size))
-    return jnp.sum(x * x)
-
-
 class Controller(eqx.Module):
     """Error-per-step controller ``h_new = h min(facmax, max(facmin, safety err^(-1/(q+1))))``.
 
@@ -116,7 +106,8 @@ class Controller(eqx.Module):
         terms = [e_u / (self.atol + self.rtol)]
         for e, s in zip(_leaves(e_y), _leaves(tol_y)):
             terms.append(e / s)
-        return jnp.sqrt(sum(_sum_of_squares(x) for x in terms) / sum(x.size for x in terms))
+        x = jnp.concatenate(terms)
+        return jnp.sqrt(jnp.mean(x * x))
 
     def factor(self, err: Array, error_order: int, after_reject: Array) -> Array:
         """Step-size ratio for the next attempt from a step's error norm."""
