@@ -37,8 +37,6 @@ __all__ = [
     "compose",
     "reorthonormalize",
     "exp_coefficients",
-    "series_in_range",
-    "SERIES_RADIUS",
     "cross",
     "orthogonality_error",
     "from_quaternion",
@@ -101,76 +99,82 @@ def _small(dtype) -> float:
     return 1e-2 if jnp.finfo(dtype).bits >= 64 else 1e-1
 
 
-# Radius (rad) within which `exp_coefficients(..., series=True)` is exact to
-# rounding: the first dropped term of each half-angle series below is < 1e-17
-# relative there.  Solvers that use the series reject a stage that rotates
-# further (`series_in_range`), so the radius costs steps, never accuracy.  It
-# sits below 2 pi, where dexpinv itself is singular.
-SERIES_RADIUS = 5.0
-_SERIES_TERMS = 14  # (5/2)^28 / 29! ~ 2e-20
+# pi/2 in three parts (Cephes' split of pi/4, doubled): the first two have 23
+# and 21 significant bits (float32: 8 and 11), so ``n * part`` is exact for
+# quadrant counts n < 2^30 (float32: 2^13), i.e. theta up to 3e9 rad (float32:
+# 2.6e4).  Beyond that the reduction error grows like ulp(theta), which is the
+# angle's own uncertainty there.
+_PI_2_PARTS = {
+    64: (2 * 7.85398125648498535156e-1, 2 * 3.77489470793079817668e-8, 2 * 2.69515142907905952645e-15),
+    32: (2 * 0.78515625, 2 * 2.4187564849853515625e-4, 2 * 3.77489497744594108e-8),
+}
+_TERMS = 10  # on |x| <= pi/4 the first dropped term of each series is < 1e-20 relative
 
 
-def _series_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
-    # With x = theta/2: S = sin(x)/x, C = cos(x) and E = (S - C)/x^2 are entire
-    # power series in x^2 (Horner, no trigonometry), and
-    #   A = sin(theta)/theta = S C,   B = (1 - cos(theta))/theta^2 = S^2/2,
-    #   D = (1 - x cot x)/theta^2 = E / (4 S),
-    # with no cancellation anywhere (E is formed term by term).
-    x2 = 0.25 * theta2
-    f = math.factorial
-    s_coef = [(-1) ** k / f(2 * k + 1) for k in range(_SERIES_TERMS)]
-    c_coef = [(-1) ** k / f(2 * k) for k in range(_SERIES_TERMS)]
-    e_coef = [(-1) ** k * (2 * k + 2) / f(2 * k + 3) for k in range(_SERIES_TERMS)]
-
-    def horner(coef):
-        acc = jnp.full_like(x2, coef[-1])
-        for c in coef[-2::-1]:
-            acc = acc * x2 + c
-        return acc
-
-    S, C, E = horner(s_coef), horner(c_coef), horner(e_coef)
-    return S * C, 0.5 * S * S, E / (4.0 * S)
+def _horner(coef, x2):
+    acc = jnp.full_like(x2, coef[-1])
+    for c in coef[-2::-1]:
+        acc = acc * x2 + c
+    return acc
 
 
-def exp_coefficients(theta2: Array, series: bool = False) -> tuple[Array, Array, Array]:
-    """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``.
+def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
+    """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``:
+    ``(...) -> 3 x (...)``.
 
     - ``A = sin(theta)/theta``
     - ``B = (1 - cos(theta))/theta^2``
     - ``D = (1 - (theta/2) cot(theta/2))/theta^2``
 
     so that ``exp(hat(u)) = I + A hat(u) + B hat(u)^2`` and
-    ``dexpinv_u(v) = v - u x v / 2 + D u x (u x v)``.  One ``sin``/``cos`` pair
-    of ``theta/2`` serves all three, which is what keeps RKMK stages cheap.
+    ``dexpinv_u(v) = v - u x v / 2 + D u x (u x v)``.  Exact to rounding at
+    every angle (several turns included) and smooth at 0, in value and
+    derivatives; ``D`` is singular where ``theta = 2 pi k``, k >= 1, as dexpinv
+    is.
 
-    With ``series=True`` they are polynomials in ``theta^2`` instead (no
-    trigonometry, no square root), exact to rounding for
-    ``theta <= SERIES_RADIUS`` (5 rad) and increasingly wrong beyond it.  The adaptive RKMK solvers use them for their
-    stages, which is about twice as fast, and reject any step whose stages
-    leave that radius (`series_in_range`).
+    One ``sin``/``cos`` pair of ``x = theta/2`` serves all three, evaluated from
+    polynomials only: XLA on CPU runs ``jnp.sin``/``jnp.cos`` in float64 at
+    about 40 times the cost of a multiply-add, which made them most of an RKMK
+    stage's arithmetic.  For ``x > pi/4``, ``x`` is reduced to
+    ``r = x - n pi/2``, ``|r| <= pi/4`` (three-part Cody-Waite), where the
+    power series of ``sin r / r`` and ``cos r`` converge to rounding in 10
+    terms.  For ``x <= pi/4`` the series of ``sin x / x``, ``cos x`` and
+    ``(sin x / x - cos x)/x^2`` are taken in ``x^2`` itself: no square root,
+    and no cancellation at small angles.
     """
-    if series:
-        return _series_coefficients(theta2)
-    small = theta2 < _small(theta2.dtype)
-    t2 = jnp.where(small, jnp.ones_like(theta2), theta2)
-    theta = jnp.sqrt(t2)
-    half = 0.5 * theta
-    s, c = jnp.sin(half), jnp.cos(half)
-    # sin(theta) = 2 s c and 1 - cos(theta) = 2 s^2: no cancellation near 0.
-    A_closed = 2.0 * s * c / theta
-    B_closed = 2.0 * s * s / t2
-    # D is singular where sin(theta/2) = 0 (theta = 2 pi k, k >= 1); that is a
-    # property of dexpinv itself, not of this formula.
-    D_closed = (1.0 - half * c / s) / t2
-    x = theta2
-    A_series = 1.0 - x / 6.0 * (1.0 - x / 20.0 * (1.0 - x / 42.0 * (1.0 - x / 72.0)))
-    B_series = 0.5 - x / 24.0 * (1.0 - x / 30.0 * (1.0 - x / 56.0 * (1.0 - x / 90.0)))
-    D_series = 1.0 / 12.0 + x * (1.0 / 720.0 + x * (1.0 / 30240.0 + x * (1.0 / 1209600.0 + x / 47900160.0)))
-    return (
-        jnp.where(small, A_series, A_closed),
-        jnp.where(small, B_series, B_closed),
-        jnp.where(small, D_series, D_closed),
-    )
+    x2 = 0.25 * theta2
+    near = x2 <= (0.25 * math.pi) ** 2
+    f = math.factorial
+    s_coef = [(-1) ** k / f(2 * k + 1) for k in range(_TERMS)]
+    c_coef = [(-1) ** k / f(2 * k) for k in range(_TERMS)]
+    e_coef = [(-1) ** k * (2 * k + 2) / f(2 * k + 3) for k in range(_TERMS)]
+    # Near: the series in x^2 directly.  (Each branch sees only its own inputs,
+    # so neither divides by zero and both have finite cotangents.)
+    xn2 = jnp.where(near, x2, jnp.zeros_like(x2))
+    S_near, C_near, E_near = _horner(s_coef, xn2), _horner(c_coef, xn2), _horner(e_coef, xn2)
+    # Far: x = n pi/2 + r.
+    xf2 = jnp.where(near, jnp.ones_like(x2), x2)
+    x = jnp.sqrt(xf2)
+    p1, p2, p3 = _PI_2_PARTS[64 if jnp.finfo(x.dtype).bits >= 64 else 32]
+    n = jnp.round(x * (2.0 / math.pi))
+    # The clip only matters where x is so large that ulp(x) > pi (no angle left).
+    r = jnp.clip(((x - n * p1) - n * p2) - n * p3, -0.786, 0.786)
+    sin_r = r * _horner(s_coef, r * r)
+    cos_r = _horner(c_coef, r * r)
+    q = n - 4.0 * jnp.floor(0.25 * n)  # quadrant, 0..3
+    odd = (q == 1.0) | (q == 3.0)
+    sin_x = jnp.where(odd, cos_r, sin_r)
+    cos_x = jnp.where(odd, sin_r, cos_r)
+    sin_x = jnp.where(q >= 2.0, -sin_x, sin_x)
+    cos_x = jnp.where((q == 1.0) | (q == 2.0), -cos_x, cos_x)
+    # Each coefficient ends in one division (an expensive op for XLA), so it is
+    # computed once per angle and stored, instead of being re-derived inside
+    # every consumer's fused loop (once per vector component).
+    one = jnp.ones_like(x2)
+    A = jnp.where(near, S_near * C_near, sin_x * cos_x) / jnp.where(near, one, x)
+    B = jnp.where(near, 0.5 * S_near * S_near, 0.5 * sin_x * sin_x) / jnp.where(near, one, xf2)
+    D = jnp.where(near, E_near, sin_x - x * cos_x) / jnp.where(near, 4.0 * S_near, 4.0 * xf2 * sin_x)
+    return A, B, D
 
 
 def _sq(u: Array) -> Array:
@@ -260,12 +264,6 @@ def rotate(u: ArrayLike, x: ArrayLike, coefficients: tuple | None = None) -> Arr
     return x + A[..., None] * ux + B[..., None] * cross(u, ux)
 
 
-def series_in_range(theta2: Array) -> Array:
-    """Whether ``exp_coefficients(theta2, series=True)`` is exact to rounding:
-    ``theta <= SERIES_RADIUS``."""
-    return theta2 <= SERIES_RADIUS**2
-
-
 def dexp(u: ArrayLike, v: ArrayLike) -> Array:
     """Left-trivialised derivative of exp, ``dexp_u(v) = sum_k ad_u^k v/(k+1)!``.
 
@@ -301,8 +299,8 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None, coefficients: 
             ``ad_u^terms``: 0 gives ``v``, 1 adds ``-u x v/2``, 2 adds
             ``u x (u x v)/12`` (no trigonometry, no singularity).  An RKMK
             method of order p needs ``terms >= p - 2`` (Munthe-Kaas 1999).
-        coefficients: ``(A, B, D)`` of ``u`` from `exp_coefficients` (closed
-            form or series), when the caller has them; only with ``terms=None``.
+        coefficients: ``(A, B, D)`` of ``u`` from `exp_coefficients`, when
+            the caller has them (used only with ``terms=None``).
 
     Sign convention: this is the left (space-frame) form.  For the body-frame
     equation ``dR/dt = R hat(omega)`` with ``R = R_n exp(hat(u))`` one has

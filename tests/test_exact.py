@@ -167,9 +167,12 @@ def test_regimes_vs_dop853(name):
     # while the exact solution is self-consistent to ~1e-13
     # (test_restart_consistency).
     # Near the separatrix the problem itself is ill-conditioned: the period
-    # depends on 1/k'^2, and one ulp of omega0 moves R(t) by 9e-8 at this
-    # horizon (|dR/domega0| |omega0| eps, from jacfwd); allow ~20 ulps.
-    assert err < (2e-6 if name == "near_separatrix" else 3e-11), err
+    # depends on 1/k'^2, and one ulp of omega0 moves R(t) by 1.1e-7 at this
+    # horizon (|dR/domega0| |omega0| eps, from jacfwd).  The reference starts
+    # from m0 = R0^T R0 I omega0, so R0's own last bits count as much: R0 from
+    # so3.exp, from SciPy, or either made orthonormal by an SVD, gave 4e-7 to
+    # 2.7e-6 here.  Allow ~40 ulps.
+    assert err < (5e-6 if name == "near_separatrix" else 3e-11), err
     # omega(t) consistent with the attitude: m = R^T L.
     L = R0 @ inertia @ omega0
     m = np.einsum("tji,j->ti", np.asarray(R), L)

@@ -152,15 +152,73 @@ def test_exp_is_a_one_parameter_group():
 
 
 def test_exp_continuous_across_series_threshold():
-    """The series and closed forms agree where exp switches between them (theta^2 = 1e-2
-    in float64, 1e-1 in float32): no jump larger than a few ulp."""
+    """The two evaluations of the coefficients (series in theta^2 up to theta = pi/2,
+    reduced argument beyond) agree where they meet: no jump larger than a few ulp."""
     axis = np.array([0.36, 0.48, 0.8])
-    for dtype, t2, tol in [(np.float64, 1e-2, 1e-15), (np.float32, 1e-1, 3e-7)]:
-        th = np.sqrt(t2)
+    for dtype, tol in [(np.float64, 2e-15), (np.float32, 6e-7)]:
+        th = np.pi / 2
         w = (th * np.array([1 - 1e-7, 1 + 1e-7]))[:, None] * axis
         a, b = np.asarray(so3.exp(w.astype(dtype)))
         # The true difference is ~1e-7 th |dR/dth| <= 1e-7 th.
         assert np.abs(a - b).max() < 2e-7 * th + tol
+
+
+def _coefficients_reference(theta):
+    """(A, B, D) in extended precision (NumPy long double), D by its series below 0.1 rad."""
+    t = np.asarray(theta, np.longdouble)
+    x = t / 2
+    with np.errstate(divide="ignore", invalid="ignore"):
+        A = np.where(t > 0, np.sin(t) / t, 1)
+        B = np.where(t > 0, 2 * np.sin(x) ** 2 / t**2, 0.5)
+        t2 = t * t
+        D_series = 1 / np.longdouble(12) + t2 / 720 + t2**2 / 30240 + t2**3 / 1209600 + t2**4 / 47900160
+        D = np.where(t > 0.1, (1 - x * np.cos(x) / np.sin(x)) / t2, D_series)
+    return A, B, D
+
+
+def test_exp_coefficients_exact_to_rounding_at_every_angle():
+    """A, B, D against extended precision from 1e-9 rad to 3e9 rad (about 5e8 turns),
+    including the quadrant edges of the argument reduction (theta/2 = k pi/4), in float64
+    and float32.  Errors are measured as they enter exp and dexpinv: |dA|, |dB| theta^2
+    and |dD| theta^2, each against 1.  D is left out next to its poles (theta = 2 pi k)."""
+    if np.finfo(np.longdouble).bits <= 64:
+        pytest.skip("no extended precision long double on this platform")
+    rng = np.random.default_rng(3)
+    edges = np.arange(1, 80) * np.pi / 2
+    theta = np.concatenate([
+        np.geomspace(1e-9, 3e9, 3000), rng.uniform(0, 40, 3000),
+        edges, edges * (1 + 1e-9), edges * (1 - 1e-9),
+    ])
+    for dtype, limit, tol in [(np.float64, 3e9, 4e-16), (np.float32, 2.6e4, 4e-7)]:
+        th = theta[theta <= limit].astype(dtype)
+        A, B, D = (np.asarray(c, np.float64) for c in jax.jit(_so3.exp_coefficients)(th.astype(dtype) ** 2))
+        # The reference at the angle the input actually holds (theta^2 rounded in dtype).
+        t = np.sqrt(np.asarray(th.astype(dtype) ** 2, np.longdouble))
+        rA, rB, rD = _coefficients_reference(t)
+        t2 = t * t
+        far_from_pole = np.abs(np.sin(t / 2)) > 0.05
+        # Large angles: theta itself is only known to ulp(theta), and every
+        # coefficient moves by up to that much (times 1/theta).
+        slack = tol + np.spacing(np.asarray(t, dtype)).astype(np.float64)
+        assert np.all(np.abs(A - rA) <= 4 * slack), np.max(np.abs(A - rA) / slack)
+        assert np.all(np.abs(B - rB) * t2 <= 4 * slack * np.maximum(1, t)), np.max(np.abs(B - rB) * t2 / slack)
+        dD = (np.abs(D - rD) * t2)[far_from_pole]
+        assert np.all(dD <= 20 * (slack * np.maximum(1, t2))[far_from_pole]), np.max(dD / slack[far_from_pole])
+
+
+def test_exp_coefficients_derivatives_at_zero_and_across_the_switch():
+    """d/d(theta^2) of (A, B, D) is (-1/6, -1/24, 1/720) at 0, finite everywhere
+    (no NaN leaking from the unused branch), and continuous where the evaluation
+    switches at theta = pi/2."""
+    grad = jax.jit(jax.vmap(jax.jacfwd(lambda t2: jnp.stack(_so3.exp_coefficients(t2)))))
+    g0 = np.asarray(grad(jnp.zeros(1)))[0]
+    np.testing.assert_allclose(g0, [-1 / 6, -1 / 24, 1 / 720], rtol=1e-15)
+    grev = jax.jit(jax.vmap(jax.grad(lambda t2: sum(_so3.exp_coefficients(t2)))))
+    t2 = np.concatenate([[0.0, 1e-30], np.linspace(0, 30, 301) ** 2])
+    assert np.all(np.isfinite(grev(t2)))
+    s = (np.pi / 2) ** 2 * np.array([1 - 1e-9, 1 + 1e-9])
+    a, b = np.asarray(grad(s))
+    np.testing.assert_allclose(a, b, rtol=1e-7)
 
 
 def test_rotate_equals_exp_times_x():

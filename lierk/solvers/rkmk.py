@@ -54,13 +54,6 @@ class AbstractRKMK(AbstractSolver):
     # keeps the series up to ad_u^k (see `so3.dexpinv`).  The report's "RK4"
     # applies none of it (0), which is why it is only order 2.
     dexpinv_terms: ClassVar[int | None] = None
-    # Whether stages take their rotation and dexpinv coefficients from the
-    # polynomial series (`so3.exp_coefficients(..., series=True)`): no
-    # trigonometry in the stages, about twice as fast.  The series is exact to
-    # rounding only within `so3.SERIES_RADIUS`, so a step whose stages rotate
-    # further gets an infinite error estimate and is rejected: only for
-    # adaptive tableaux, where that rejection exists.
-    series: ClassVar[bool] = False
 
     @property
     def order(self) -> int:  # type: ignore[override]
@@ -88,7 +81,7 @@ class AbstractRKMK(AbstractSolver):
         # around them) made a DOP853 step with torques 1.7x faster.
         ks = []
         unravel = None
-        omega = ydot = in_range = None
+        omega = ydot = None
         for i in range(tab.stages):
             if i == 0:
                 omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
@@ -97,11 +90,8 @@ class AbstractRKMK(AbstractSolver):
                 (du,) = _stage_sums(h, [tab.a[i]], ks)
                 u, dy = unravel(du)
                 yi = _add(y, dy)
-                coefficients = None
-                if self.series:
-                    theta2 = so3._sq(u)
-                    coefficients = so3.exp_coefficients(theta2, series=True)
-                    in_range = so3.series_in_range(theta2) & (True if in_range is None else in_range)
+                # One evaluation per stage serves the effects' rotations and dexpinv.
+                coefficients = so3.exp_coefficients(so3._sq(u))
                 omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi, coefficients)
                 k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
             flat, unravel = ravel_pytree((k, ydot))
@@ -112,14 +102,7 @@ class AbstractRKMK(AbstractSolver):
         y1 = _add(y, dy1)
         error = None
         if tab.b_error is not None:
-            e_u, e_y = sums[1]
-            if in_range is not None:
-                # Outside the series' radius the stages are not to be trusted,
-                # whatever the embedded pair says: reject the step.  (Marking
-                # one estimate is enough: `solve` keeps an infinite estimate
-                # infinite when it blends DOP853's two.)
-                e_u = jnp.where(in_range, e_u, jnp.inf)
-            error = (e_u, e_y) + tuple(sums[2:])
+            error = tuple(sums[1]) + tuple(sums[2:])
         return Step(so3.right_exp(R, u1), y1, error, (omega, ydot) if tab.fsal else None)
 
 
@@ -139,9 +122,8 @@ class RKMK4(AbstractRKMK):
         u' = omega + 1/2 u x omega + 1/12 u x (u x omega),
 
     which is all that order 4 needs (Munthe-Kaas 1999; stopping after the first
-    commutator gives order 3).  Dropping the exact ``D(|u|)`` removes a
-    trigonometric evaluation per stage (about twice the throughput) and the
-    singularity of dexpinv at ``|u| = 2 pi``.  `RKMK(tableaux.RK4)` is the same
+    commutator gives order 3).  Dropping the exact ``D(|u|)`` removes the
+    singularity of dexpinv at ``|u| = 2 pi`` and a division per stage.  `RKMK(tableaux.RK4)` is the same
     method with exact dexpinv.
     """
 
@@ -170,18 +152,15 @@ class RKF45(AbstractRKMK):
     """RKMK with the report's Fehlberg 4(5) pair, advancing with order 5."""
 
     tableau: ClassVar[ButcherTableau] = FEHLBERG45
-    series: ClassVar[bool] = True
 
 
 class DP54(AbstractRKMK):
     """RKMK with Dormand-Prince 5(4), FSAL: 6 new field evaluations per accepted step."""
 
     tableau: ClassVar[ButcherTableau] = DOPRI54
-    series: ClassVar[bool] = True
 
 
 class DOP853(AbstractRKMK):
     """RKMK with Dormand-Prince 8(5,3), FSAL: order 8, for tight tolerances."""
 
     tableau: ClassVar[ButcherTableau] = _DOP853
-    series: ClassVar[bool] = True
