@@ -227,7 +227,7 @@ FAMILIES = [
     Family(
         "lagrange_slow", "Lagrange top, slow (spin 2-5 rad/s)", 5.0,
         omega=((-0.5, 0.5), (-0.5, 0.5), (2.0, 5.0)), **LAGRANGE,
-        dts4=(5e-2, 2.5e-2, 1.25e-2, 6.25e-3, 3.125e-3, 1.5625e-3), dts8=(0.25, 0.125, 6.25e-2, 3.125e-2, 1.5625e-2),
+        dts4=(5e-2, 2.5e-2, 1.25e-2, 6.25e-3, 3.125e-3, 1.5625e-3), dts8=(0.5, 0.25, 0.125, 6.25e-2, 3.125e-2, 1.5625e-2),
     ),
     Family(
         "asymmetric", "asymmetric heavy top (spin 30-120 rad/s)", 2.0,

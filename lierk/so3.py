@@ -61,6 +61,14 @@ def cross(a: Array, b: Array) -> Array:
     return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def _cross_cross(u: Array, v: Array) -> Array:
+    """``u x (u x v) = u (u.v) - |u|^2 v``, ``(..., 3)``: written without the
+    inner cross product, whose stacked result XLA would store for its two
+    uses (a kernel of its own in every RKMK stage)."""
+    uv = u[..., 0] * v[..., 0] + u[..., 1] * v[..., 1] + u[..., 2] * v[..., 2]
+    return u * uv[..., None] - _sq(u)[..., None] * v
+
+
 def hat(w: ArrayLike) -> Array:
     """Skew matrix of ``w``: ``(..., 3) -> (..., 3, 3)`` with ``hat(w) @ b = w x b``."""
     w = _float(w)
@@ -261,7 +269,7 @@ def rotate(u: ArrayLike, x: ArrayLike, coefficients: tuple | None = None) -> Arr
     u, x = _float(u), _float(x)
     A, B, _ = exp_coefficients(_sq(u)) if coefficients is None else coefficients
     ux = cross(u, x)
-    return x + A[..., None] * ux + B[..., None] * cross(u, ux)
+    return x + A[..., None] * ux + B[..., None] * _cross_cross(u, x)
 
 
 def dexp(u: ArrayLike, v: ArrayLike) -> Array:
@@ -282,7 +290,7 @@ def dexp(u: ArrayLike, v: ArrayLike) -> Array:
         (1.0 - A) / t2,
     )
     uv = cross(u, v)
-    return v + B[..., None] * uv + C[..., None] * cross(u, uv)
+    return v + B[..., None] * uv + C[..., None] * _cross_cross(u, v)
 
 
 def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None, coefficients: tuple | None = None) -> Array:
@@ -315,9 +323,9 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None, coefficients: 
     if terms == 1:
         return v - 0.5 * uv
     if terms == 2:
-        return v - 0.5 * uv + cross(u, uv) / 12.0
+        return v - 0.5 * uv + _cross_cross(u, v) / 12.0
     _, _, D = exp_coefficients(_sq(u)) if coefficients is None else coefficients
-    return v - 0.5 * uv + D[..., None] * cross(u, uv)
+    return v - 0.5 * uv + D[..., None] * _cross_cross(u, v)
 
 
 def to_quaternion(R: ArrayLike) -> Array:
