@@ -103,8 +103,9 @@ class RigidBodyWithEffects(AbstractProblem):
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
-        self.symmetry_axis = _symmetry_axis(inertia)
-        self.diagonal = _concrete_diagonal(inertia) is not None
+        diagonal = _concrete_diagonal(inertia)
+        self.diagonal = diagonal is not None
+        self.symmetry_axis = None if diagonal is None else _symmetry_axis(diagonal)
 
     @property
     def omega0(self) -> Array:
@@ -306,11 +307,9 @@ def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
     return None if np.any(I - np.diag(d)) else d
 
 
-def _symmetry_axis(inertia: Array) -> int | None:
-    """See `RigidBodyWithEffects.symmetry_axis`: exact equality to a few ulps."""
-    d = _concrete_diagonal(inertia)
-    if d is None:
-        return None
+def _symmetry_axis(d: np.ndarray) -> int | None:
+    """See `RigidBodyWithEffects.symmetry_axis`: the axis whose two companions
+    in the diagonal ``d`` ``(3,)`` are equal to a few ulps."""
     close = lambda a, b: abs(a - b) <= 4 * np.finfo(float).eps * max(abs(a), abs(b))  # noqa: E731
     for k in range(3):
         i, j = (k + 1) % 3, (k + 2) % 3

@@ -116,7 +116,11 @@ _PI_2_PARTS = {
     64: (2 * 7.85398125648498535156e-1, 2 * 3.77489470793079817668e-8, 2 * 2.69515142907905952645e-15),
     32: (2 * 0.78515625, 2 * 2.4187564849853515625e-4, 2 * 3.77489497744594108e-8),
 }
-_TERMS = 10  # on |x| <= pi/4 the first dropped term of each series is < 1e-20 relative
+# Taylor coefficients (in x^2) of sin(x)/x, cos(x) and (sin(x)/x - cos(x))/x^2;
+# 10 terms: on |x| <= pi/4 the first dropped term of each is < 1e-20 relative.
+_SIN_X = tuple((-1) ** k / math.factorial(2 * k + 1) for k in range(10))
+_COS = tuple((-1) ** k / math.factorial(2 * k) for k in range(10))
+_E = tuple((-1) ** k * (2 * k + 2) / math.factorial(2 * k + 3) for k in range(10))
 
 
 def _horner(coef, x2):
@@ -152,14 +156,10 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     """
     x2 = 0.25 * theta2
     near = x2 <= (0.25 * math.pi) ** 2
-    f = math.factorial
-    s_coef = [(-1) ** k / f(2 * k + 1) for k in range(_TERMS)]
-    c_coef = [(-1) ** k / f(2 * k) for k in range(_TERMS)]
-    e_coef = [(-1) ** k * (2 * k + 2) / f(2 * k + 3) for k in range(_TERMS)]
     # Near: the series in x^2 directly.  (Each branch sees only its own inputs,
     # so neither divides by zero and both have finite cotangents.)
     xn2 = jnp.where(near, x2, jnp.zeros_like(x2))
-    S_near, C_near, E_near = _horner(s_coef, xn2), _horner(c_coef, xn2), _horner(e_coef, xn2)
+    S_near, C_near, E_near = _horner(_SIN_X, xn2), _horner(_COS, xn2), _horner(_E, xn2)
     # Far: x = n pi/2 + r.
     xf2 = jnp.where(near, jnp.ones_like(x2), x2)
     x = jnp.sqrt(xf2)
@@ -167,8 +167,8 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     n = jnp.round(x * (2.0 / math.pi))
     # The clip only matters where x is so large that ulp(x) > pi (no angle left).
     r = jnp.clip(((x - n * p1) - n * p2) - n * p3, -0.786, 0.786)
-    sin_r = r * _horner(s_coef, r * r)
-    cos_r = _horner(c_coef, r * r)
+    sin_r = r * _horner(_SIN_X, r * r)
+    cos_r = _horner(_COS, r * r)
     q = n - 4.0 * jnp.floor(0.25 * n)  # quadrant, 0..3
     odd = (q == 1.0) | (q == 3.0)
     sin_x = jnp.where(odd, cos_r, sin_r)

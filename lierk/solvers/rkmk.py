@@ -123,8 +123,8 @@ class RKMK4(AbstractRKMK):
 
     which is all that order 4 needs (Munthe-Kaas 1999; stopping after the first
     commutator gives order 3).  Dropping the exact ``D(|u|)`` removes the
-    singularity of dexpinv at ``|u| = 2 pi`` and a division per stage.  `RKMK(tableaux.RK4)` is the same
-    method with exact dexpinv.
+    singularity of dexpinv at ``|u| = 2 pi`` and a division per stage.
+    `RKMK(tableaux.RK4)` is the same method with exact dexpinv.
     """
 
     tableau: ClassVar[ButcherTableau] = RK4
