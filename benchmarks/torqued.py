@@ -22,8 +22,9 @@ Programs, every one on both cores:
 
 - lierk (`lierk.RigidBodyWithEffects`): adaptive DOP853, DP54, RKF45 over
   ``rtol = atol``; fixed-step RKMK4, CF4, RKMK(DOP853) and, when lierk has
-  them, the splitting solvers Strang, Yoshida4, BlanesMoan4, Yoshida6 and
-  BlanesMoan6, over dt.  Jitted, vmapped, and split over the 2 XLA host
+  them, the splitting solvers Strang, Yoshida4, BlanesMoan4, Yoshida6,
+  BlanesMoan6, BlanesMoanRKN4 and BlanesMoanRKN6 (the last two refuse the
+  satellite's damping), over dt.  Jitted, vmapped, and split over the 2 XLA host
   devices with `jax.shard_map` (each device runs its half of the batch on its
   own, so an adaptive loop on one device does not wait for the other's).
 - diffrax Tsit5 and Dopri8, ``PIDController(rtol, atol)``, and Dopri8 with
@@ -110,7 +111,7 @@ CHECK_IDS = [0, 1]  # members on which SciPy cross-checks the reference
 MAX_STEPS = 1_000_000
 MUJOCO_THREADS = os.cpu_count() or 1
 MUJOCO_CHUNK = 2000  # steps per rollout call (bounds the state buffer)
-SPLITTING = ("Strang", "Yoshida4", "BlanesMoan4", "Yoshida6", "BlanesMoan6")
+SPLITTING = ("Strang", "Yoshida4", "BlanesMoan4", "Yoshida6", "BlanesMoan6", "BlanesMoanRKN4", "BlanesMoanRKN6")
 # A splitting's dt sweep (coarse to fine) stops after a call longer than this
 # (s): their steps cost 10 to 100 times an RKMK step, and the finest settings
 # would otherwise take most of the run.

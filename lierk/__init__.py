@@ -47,6 +47,8 @@ from .solvers import NaiveLieRK4 as NaiveLieRK4
 from .solvers import AbstractSplitting as AbstractSplitting
 from .solvers import BlanesMoan4 as BlanesMoan4
 from .solvers import BlanesMoan6 as BlanesMoan6
+from .solvers import BlanesMoanRKN4 as BlanesMoanRKN4
+from .solvers import BlanesMoanRKN6 as BlanesMoanRKN6
 from .solvers import Splitting as Splitting
 from .solvers import Strang as Strang
 from .solvers import Yoshida4 as Yoshida4

@@ -184,8 +184,20 @@ class RigidBodyWithEffects(AbstractProblem):
         if k is None:
             return exact.free_flow(self.inertia, m, h)
         moments = jnp.diagonal(self.inertia)
-        axis = jnp.eye(3, dtype=m.dtype)[k]
-        return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], axis, m, h)
+        return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], k, m, h)
+
+    @property
+    def kick_reads_momentum(self) -> tuple[str, ...]:
+        """The names of the effects whose torque reads the momentum (damping):
+        the Runge-Kutta-Nystrom splittings refuse them."""
+        return tuple(type(e).__name__ for e in self.effects if e.reads_momentum)
+
+    @property
+    def closed_form_drift(self) -> bool:
+        """Whether `drift` is the symmetric body's closed form (two rotations,
+        small to compile), rather than the elliptic-function flow: the
+        splitting solvers then unroll their stages."""
+        return self.symmetry_axis is not None
 
     def drift(self, R: Array, m: Array, h: Array) -> tuple[Array, Array]:
         """The exact torque-free flow over ``h`` (s) from ``(R, m)``: the

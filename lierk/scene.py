@@ -51,7 +51,8 @@ Schema (every table rejects keys it does not know)::
     [run]
     solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
                                 # RKMK4, CF4, Strang, Yoshida4, BlanesMoan4, Yoshida6,
-                                # BlanesMoan6 (fixed step), RKF45, DP54, DOP853 (adaptive)
+                                # BlanesMoan6, BlanesMoanRKN4, BlanesMoanRKN6 (fixed
+                                # step), RKF45, DP54, DOP853 (adaptive)
     t1 = 100.0                  # end time (s); runs start at t = 0
     dt = 0.01                   # exactly one of: dt, the fixed step (s);
     # rtol = 1e-8               #   rtol (and optional atol), adaptive solvers only;
@@ -121,6 +122,8 @@ SOLVERS: dict[str, type] = {
         _solvers.BlanesMoan4,
         _solvers.Yoshida6,
         _solvers.BlanesMoan6,
+        _solvers.BlanesMoanRKN4,
+        _solvers.BlanesMoanRKN6,
     )
 }
 """Solver names a scene may use, to their classes."""

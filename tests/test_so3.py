@@ -228,6 +228,17 @@ def test_rotate_equals_exp_times_x():
     np.testing.assert_allclose(so3.rotate(u, x), expected, atol=1e-14)
 
 
+@pytest.mark.parametrize("k", [0, 1, 2])
+def test_axis_turn_is_the_coordinate_axis_exp_from_the_right(k):
+    phi = np.array([0.0, -1e-8, 1e-3, -0.5, np.pi, 7.0, -15.0, 1e4])
+    X = np.random.default_rng(k).normal(size=(len(phi), 2, 3))
+    E = np.asarray(_so3.exp(np.eye(3)[k] * phi[:, None]))
+    turn = jax.jit(_so3.axis_turn, static_argnums=1)
+    np.testing.assert_allclose(turn(X, k, phi), X @ E, atol=1e-13)
+    # On a vector: the inverse rotation, exp(-phi e_k) x.
+    np.testing.assert_allclose(turn(X[:, 0], k, phi), np.einsum("nji,nj->ni", E, X[:, 0]), atol=1e-13)
+
+
 # --- log --------------------------------------------------------------------------------
 
 

@@ -15,6 +15,8 @@ from .rkmk import NaiveLieRK4 as NaiveLieRK4
 from .splitting import AbstractSplitting as AbstractSplitting
 from .splitting import BlanesMoan4 as BlanesMoan4
 from .splitting import BlanesMoan6 as BlanesMoan6
+from .splitting import BlanesMoanRKN4 as BlanesMoanRKN4
+from .splitting import BlanesMoanRKN6 as BlanesMoanRKN6
 from .splitting import Splitting as Splitting
 from .splitting import Strang as Strang
 from .splitting import Yoshida4 as Yoshida4

@@ -41,10 +41,29 @@ import jax
 import jax.numpy as jnp
 
 from .. import so3
-from ..tableaux import BLANES_MOAN4, BLANES_MOAN6, STRANG, YOSHIDA4, YOSHIDA6, SplittingScheme
+from ..tableaux import (
+    BLANES_MOAN4,
+    BLANES_MOAN6,
+    BLANES_MOAN_RKN4,
+    BLANES_MOAN_RKN6,
+    STRANG,
+    YOSHIDA4,
+    YOSHIDA6,
+    SplittingScheme,
+)
 from .base import AbstractSolver, Step
 
-__all__ = ["AbstractSplitting", "Splitting", "Strang", "Yoshida4", "Yoshida6", "BlanesMoan4", "BlanesMoan6"]
+__all__ = [
+    "AbstractSplitting",
+    "Splitting",
+    "Strang",
+    "Yoshida4",
+    "Yoshida6",
+    "BlanesMoan4",
+    "BlanesMoan6",
+    "BlanesMoanRKN4",
+    "BlanesMoanRKN6",
+]
 
 
 class AbstractSplitting(AbstractSolver):
@@ -73,18 +92,37 @@ class AbstractSplitting(AbstractSolver):
                 f"{self.name} splits off the exact torque-free flow, so it needs a problem with `drift` and "
                 f"`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), got {type(problem).__name__}"
             )
+        if self.scheme.nystrom and getattr(problem, "kick_reads_momentum", ()):
+            raise ValueError(
+                f"{self.name} is a Runge-Kutta-Nystrom splitting: its order holds only for torques of time and "
+                f"attitude, and these effects read the momentum: {', '.join(problem.kick_reads_momentum)}; use BlanesMoan4 or "
+                "BlanesMoan6 instead"
+            )
         a, b = self.scheme.a, self.scheme.b
 
-        def stage(carry, ab):
-            R, y, tk = carry
-            y = problem.kick(tk, R, y, ab[0] * h)
-            R, y = problem.drift(R, y, ab[1] * h)
-            return (R, y, tk + ab[1] * h), None
+        if getattr(problem, "closed_form_drift", False):
+            # A symmetric body's drift is two rotations: unrolled, XLA fuses
+            # each kick into the drift before it and the inner loop's
+            # bookkeeping goes (BlanesMoan6 on a heavy top: 0.68 -> 0.50 us
+            # per body-step).
+            tk = t
+            for ak, bk in zip(a[:-1], b):
+                y = problem.kick(tk, R, y, ak * h)
+                R, y = problem.drift(R, y, bk * h)
+                tk = tk + bk * h
+        else:
 
-        # A loop, not an unrolled sequence: the elliptic-function drift is a
-        # large program, and ten copies of it took up to 17 s to compile.
-        coeffs = jnp.asarray([a[:-1], b], dtype=R.dtype).T
-        (R, y, _), _ = jax.lax.scan(stage, (R, y, t), coeffs)
+            def stage(carry, ab):
+                R, y, tk = carry
+                y = problem.kick(tk, R, y, ab[0] * h)
+                R, y = problem.drift(R, y, ab[1] * h)
+                return (R, y, tk + ab[1] * h), None
+
+            # A loop, not an unrolled sequence: the elliptic-function drift
+            # is a large program, and ten copies of it took up to 17 s to
+            # compile.
+            coeffs = jnp.asarray([a[:-1], b], dtype=R.dtype).T
+            (R, y, _), _ = jax.lax.scan(stage, (R, y, t), coeffs)
         y = problem.kick(t + h, R, y, a[-1] * h)
         # The drifts' products leave R off SO(3) by rounding only: the same
         # float32 correction as every other solver's step.
@@ -131,3 +169,21 @@ class BlanesMoan6(AbstractSplitting):
     """Blanes and Moan's optimised order-6 splitting (S10): 10 drifts per step."""
 
     scheme: ClassVar[SplittingScheme] = BLANES_MOAN6
+
+
+class BlanesMoanRKN4(AbstractSplitting):
+    """Blanes and Moan's Runge-Kutta-Nystrom splitting SRKN_6^b: order 4,
+    6 drifts per step, for torques of time and attitude only (gravity, body
+    and space torques; not damping, which is refused).  About 10 times more
+    accurate than `BlanesMoan4` at the same step on a heavy top."""
+
+    scheme: ClassVar[SplittingScheme] = BLANES_MOAN_RKN4
+
+
+class BlanesMoanRKN6(AbstractSplitting):
+    """Blanes and Moan's Runge-Kutta-Nystrom splitting SRKN_11^b: order 6,
+    11 drifts per step, for torques of time and attitude only (gravity, body
+    and space torques; not damping, which is refused).  The fastest method
+    for a symmetric heavy top from 1e-4 to 1e-10 (``benchmarks/torqued.py``)."""
+
+    scheme: ClassVar[SplittingScheme] = BLANES_MOAN_RKN6
