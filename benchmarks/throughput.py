@@ -3,8 +3,9 @@
 For every fixed-step solver, batch sizes 1 ... 10000 and float64/float32, a
 jitted ``vmap`` over omega0 of ``lierk.solve(FreeRigidBody(tee_handle, omega0),
 solver, n*dt, dt=dt, max_steps=n)`` is compiled (timed separately), warmed up,
-and run ``--repeats`` times with ``block_until_ready``; the median run time
-gives ``batch * n / t`` body-steps per second.
+and run at least ``--repeats`` times with ``block_until_ready``, more until
+the runs add up to 0.5 s (``--quick``: no minimum); the median run time gives
+``batch * n / t`` body-steps per second.
 
 The CPU is split into ``--devices`` XLA host devices (default: one per core),
 which the script must set through ``XLA_FLAGS`` before jax is imported; the
@@ -21,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 _parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
 _parser.add_argument("--quick", action="store_true", help="tiny run: batches 1 and 1000, few steps, two solvers")
@@ -41,7 +41,6 @@ import jax  # noqa: E402
 jax.config.update("jax_enable_x64", True)
 
 import json  # noqa: E402
-import platform  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 
@@ -50,8 +49,12 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
+from common import machine_info, timed  # noqa: E402
 
 DT = 0.01
+# Runs of a few ms are repeated until they add up to this (common.timed): the
+# median of a handful of such runs moved 2x between two runs of this script.
+MIN_TIME = 0.0 if ARGS.quick else 0.5
 SOLVERS = [
     lierk.ExplicitEuler(),
     lierk.LieEuler(),
@@ -94,16 +97,8 @@ def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> d
     t = time.perf_counter()
     compiled = final_R.lower(omegas).compile()
     compile_s = time.perf_counter() - t
-    t = time.perf_counter()
-    out = compiled(omegas).block_until_ready()  # warm-up
-    first_s = time.perf_counter() - t
+    out, run_s, first_s = timed(compiled, omegas, repeats=repeats, min_time=MIN_TIME)
     assert out.dtype == dtype and bool(jnp.all(jnp.isfinite(out)))
-    runs = []
-    for _ in range(repeats):
-        t = time.perf_counter()
-        compiled(omegas).block_until_ready()
-        runs.append(time.perf_counter() - t)
-    run_s = float(np.median(runs))
     return {
         "solver": label(solver),
         "dtype": jnp.dtype(dtype).name,
@@ -113,23 +108,7 @@ def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> d
         "compile_s": compile_s,
         "first_run_s": first_s,
         "run_s_median": run_s,
-        "run_s_min": float(min(runs)),
         "body_steps_per_s": batch * n / run_s,
-    }
-
-
-def machine_info() -> dict:
-    return {
-        "cpu_count": os.cpu_count(),
-        "platform": platform.platform(),
-        "processor": platform.processor() or platform.machine(),
-        "python": sys.version.split()[0],
-        "jax": jax.__version__,
-        "jaxlib": getattr(__import__("jaxlib"), "__version__", "?"),
-        "backend": jax.default_backend(),
-        "device_count": jax.device_count(),
-        "xla_flags": os.environ.get("XLA_FLAGS", ""),
-        "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
     }
 
 
@@ -139,6 +118,7 @@ def main():
     solvers = [lierk.LieEuler(), lierk.RKMK4()] if quick else SOLVERS
     all_devices = jax.devices()
     info = machine_info()
+    info["device_count"] = len(all_devices)
     print(json.dumps(info))
     t_start = time.perf_counter()
     rows = []
@@ -178,8 +158,9 @@ def markdown(rows, info, batches) -> str:
         f"jax {info['jax']}, {info['cpu_count']} CPUs, {info['device_count']} XLA host device(s), "
         f"{info['platform']}.  Load average at start {info['load_average_at_start']}.",
         "",
-        "Median of repeated runs after compile and warm-up.  Batches that divide evenly among the",
-        "devices are sharded over all of them; `batch 1000 (1 dev)` is the same run on one device.",
+        f"Median of at least {ARGS.repeats} runs after compile and warm-up, more until they add up to {MIN_TIME} s.",
+        "Batches that divide evenly among the devices are sharded over all of them; `batch 1000 (1 dev)` is the",
+        "same run on one device.",
         "",
     ]
     for dtype in ("float64", "float32"):

@@ -640,7 +640,7 @@ def write_markdown(p):
         "",
         "## lierk best / best peer",
         "",
-        "Target: at most 0.3 at every level on each family. Best peer: the cheapest of diffrax (Tsit5, Dopri8), "
+        "Target: at most 0.3 at every level on each family. Best peer: the cheapest of diffrax (Tsit5 and Dopri8 adaptive, Dopri8 at constant step), "
         "MuJoCo RK4 and SciPy DOP853 (one body x N) at that level.",
         "",
         *ratio_table(p["families"]),

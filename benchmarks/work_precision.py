@@ -25,8 +25,9 @@ Programs:
 
 Everything runs in one process in float64.  Batched JAX methods are vmapped
 over the batch and jitted; compilation and a warm-up call are excluded and the
-median of repeated calls is reported (MuJoCo likewise: warm-up rollout, then
-the median of repeated rollouts into a preallocated state array).
+median of at least 3 calls is reported, more (up to 51) until they add up to
+0.25 s (MuJoCo likewise: warm-up rollout, then the median of repeated
+rollouts into a preallocated state array).
 
 Writes benchmarks/results/work_precision.{png,json,md}.
 Run: ``python benchmarks/work_precision.py`` (3 to 4 minutes on 2 idle cores).
@@ -83,6 +84,9 @@ MUJOCO_DTS = [0.04, 0.02, 0.01, 0.005]
 MUJOCO_THREADS = os.cpu_count() or 1  # one thread (and one MjData) per core
 LEVELS = [10.0**-k for k in range(4, 12)]
 REPEATS = 1 if QUICK else 3
+# Calls of a few ms are repeated until they add up to this (common.timed): a
+# median of 3 such calls is not robust on a shared machine.
+MIN_TIME = 0.0 if QUICK else 0.25
 # Members on which lierk.exact is checked against SciPy DOP853 at 1e-13.
 CHECK_IDS = [0, 1] if QUICK else [0, 1, 2, 3, 4]
 CHECK_TOL = 1e-13
@@ -264,7 +268,7 @@ def mujoco_batch(omegas_np, dt):
         mujoco.rollout.rollout(model, datas, init, nstep=n, state=state, persistent_pool=True)
         return state
 
-    state, seconds, first = timed(go, repeats=REPEATS)
+    state, seconds, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
     R, w, t = mujoco_final(model, state[:, -1])
     assert np.all(np.abs(t - T) <= 1e-9 * T), f"MuJoCo ended at t = {t.min()}..{t.max()}, not T = {T}"
     return R, w, t, seconds, first
@@ -325,7 +329,7 @@ def main():
     t = time.perf_counter()
     exact_batch = exact_batch.lower(omegas).compile()
     exact_compile_s = time.perf_counter() - t
-    R_ref, exact_s, _ = timed(exact_batch, omegas, repeats=REPEATS)
+    R_ref, exact_s, _ = timed(exact_batch, omegas, repeats=REPEATS, min_time=MIN_TIME)
     flips = np.asarray(jax.vmap(lambda w: lierk.exact.flip_interval(INERTIA, w))(omegas))
     # From near the x axis the first sign change of omega_x comes half a flip interval in.
     frac_flip = float(np.mean(flips / 2 < T))
@@ -369,18 +373,18 @@ def main():
     for solver in (lierk.RKF45(), lierk.DP54(), lierk.DOP853()):
         run = lierk_adaptive_fn(solver)
         for tol in LIERK_TOLS:
-            (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS)
+            (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
             add(f"lierk {solver.name}", "lierk", tol, R, s, steps, kind="tol", first=first,
                 note=f"results {np.bincount(np.asarray(res)).tolist()}")
     # The loop kind of the adjoint, measured without differentiating.
     for solver in (lierk.DOP853(),):
         run = lierk_adaptive_fn(solver, lierk.ForwardMode())
         for tol in LIERK_TOLS:
-            (R, steps, _), s, first = timed(run, omegas, tol, repeats=REPEATS)
+            (R, steps, _), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
             add(f"lierk {solver.name} (lax loop)", "lierk-lax", tol, R, s, steps, kind="tol", first=first)
     for solver in (lierk.RKMK4(), lierk.CF4()):
         for dt in DTS:
-            (R, steps), s, first = timed(lierk_fixed_fn(solver, dt), omegas, repeats=REPEATS)
+            (R, steps), s, first = timed(lierk_fixed_fn(solver, dt), omegas, repeats=REPEATS, min_time=MIN_TIME)
             add(f"lierk {solver.name} fixed", "lierk", dt, R, s, steps, kind="dt", first=first)
     # High-order tableaux with fixed steps.  Near the separatrix the error that
     # matters is the energy error made during the slow phases, where a Lie
@@ -389,23 +393,23 @@ def main():
     # uniform steps spend the work where the global error is made.
     for tableau, dts in ((lierk.tableaux.DOPRI54, HIGH_DTS[:4]), (lierk.tableaux.DOP853, HIGH_DTS)):
         for dt in dts:
-            (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas, repeats=REPEATS)
+            (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas, repeats=REPEATS, min_time=MIN_TIME)
             add(f"lierk RKMK({tableau.name}) fixed", "lierk", dt, R, s, steps, kind="dt", first=first)
 
     # The report's formulation (spatial L fixed, m = R^T L), same solvers.
     for dt in SPATIAL_DTS:
-        (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas, repeats=REPEATS)
+        (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas, repeats=REPEATS, min_time=MIN_TIME)
         add("lierk RKMK4 fixed (Spatial)", "lierk-spatial", dt, R, s, steps, kind="dt", first=first)
     run = lierk_adaptive_fn(lierk.DOP853(), problem=lierk.SpatialFreeRigidBody)
     for tol in SPATIAL_TOLS:
-        (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS)
+        (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
         add("lierk DOP853 (Spatial)", "lierk-spatial", tol, R, s, steps, kind="tol", first=first,
             note=f"results {np.bincount(np.asarray(res)).tolist()}")
 
     for solver in (diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()):
         run = diffrax_fn(solver)
         for tol in TOLS:
-            (R, steps), s, first = timed(run, omegas, tol, repeats=REPEATS)
+            (R, steps), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
             add(f"diffrax {type(solver).__name__}", "diffrax", tol, R, s, steps, kind="tol", first=first)
 
     frame_check = mujoco_frame_check(omegas_np[0])
@@ -468,7 +472,7 @@ def main():
         },
         "error": f"max over the batch of ||R(T) - R_ref(T)||_F (scipy and NumPy: member 0 only; "
         f"lierk.exact: against SciPy on members {CHECK_IDS})",
-        "timing": f"median of {REPEATS} calls after warm-up; scipy/NumPy: one trajectory x {N}",
+        "timing": f"median of at least {REPEATS} calls (more until they add up to {MIN_TIME} s) after warm-up; scipy/NumPy: one trajectory x {N}",
         "machine": machine,
         "total_runtime_s": total,
         "records": records,
