@@ -116,6 +116,29 @@ def test_nystrom_splittings_refuse_torques_that_read_the_momentum(solver):
         lierk.solve(body, solver, 1.0, dt=0.1)
 
 
+@pytest.mark.parametrize("solver,hs", [
+    (lierk.BlanesMoanRKN4(), [0.05, 0.025, 0.0125]),
+    (lierk.BlanesMoanRKN6(), [0.1, 0.08, 0.05]),
+], ids=lambda x: getattr(x, "name", ""))
+def test_nystrom_order_holds_for_every_torque_of_time_and_attitude(solver, hs):
+    """Gravity, a space torque, and body and space torques that vary in time:
+    none reads the momentum, so [K, [K, [K, D]]] = 0 still holds and the
+    Runge-Kutta-Nystrom order is kept (on the asymmetric top's elliptic drift)."""
+    t = TOPS["asymmetric"]
+    effects = (
+        lierk.Gravity(t["chi"], 1.0, 9.81),
+        lierk.SpaceTorque([0.2, -0.1, 0.3]),
+        lierk.TimedTorque(lambda s: jnp.stack([0.3 * jnp.sin(2.0 * s), 0.1 * s, 0.2]), frame="body"),
+        lierk.TimedTorque(lambda s: jnp.stack([0.1, 0.2 * jnp.cos(s), -0.1 * s]), frame="space"),
+    )
+    body = lierk.RigidBodyWithEffects(t["inertia"], t["omega0"], TILT, effects=effects)
+    ref = np.asarray(lierk.solve(body, lierk.DOP853(), T, rtol=1e-14, atol=1e-14, max_steps=100_000).R[-1])
+    errs = [np.linalg.norm(np.asarray(lierk.solve(body, solver, T, dt=h).R[-1]) - ref) for h in hs]
+    slope = order_fit(hs, errs)
+    assert min(errs) > 3e-13, errs
+    assert abs(slope - solver.order) <= 0.15, (slope, errs)
+
+
 def energy_error(problem, sol):
     E = np.asarray(problem.invariants(sol.R, sol.y)["energy"])
     return np.abs(E / E[0] - 1.0)
