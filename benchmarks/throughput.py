@@ -3,8 +3,9 @@
 For every fixed-step solver, batch sizes 1 ... 10000 and float64/float32, a
 jitted ``vmap`` over omega0 of ``lierk.solve(FreeRigidBody(tee_handle, omega0),
 solver, n*dt, dt=dt, max_steps=n)`` is compiled (timed separately), warmed up,
-and run at least ``--repeats`` times with ``block_until_ready``, more until
-the runs add up to 0.5 s (``--quick``: no minimum); the median run time gives
+and run at least ``--repeats`` times with ``block_until_ready``, more (up to
+51) until the runs add up to 0.5 s (``--quick``: no minimum); the median run
+time gives
 ``batch * n / t`` body-steps per second.
 
 The CPU is split into ``--devices`` XLA host devices (default: one per core),

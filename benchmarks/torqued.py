@@ -154,8 +154,10 @@ class Family:
     tau_s: tuple = (0.0, 0.0, 0.0)  # space-frame torque (N m)
     speed: tuple | None = None
     # step sizes (s), each dividing T
-    dts4: tuple = ()  # RKMK4, CF4, MuJoCo RK4, Strang and the order-4 splittings
-    dts8: tuple = ()  # RKMK(DOP853), the order-6 splittings
+    dts4: tuple = ()  # RKMK4, CF4, MuJoCo RK4, Strang, Yoshida4, BlanesMoan4
+    # RKMK(DOP853), the order-6 splittings and BlanesMoanRKN4 (order 4, but as
+    # accurate per step as BlanesMoan6 on the heavy tops)
+    dts8: tuple = ()
 
     @property
     def gravity(self) -> bool:

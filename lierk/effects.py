@@ -74,7 +74,9 @@ class AbstractEffect(eqx.Module):
         S = self.space_vectors()
         if S is None:
             raise NotImplementedError(f"{type(self).__name__} implements neither torque nor space_vectors/torque_from")
-        return self.torque_from(t, so3.compose(S, R), m, omega)
+        # In R's dtype: a function torque's vectors come in the default float
+        # type, which with x64 on would lift a float32 kick to float64.
+        return self.torque_from(t, so3.compose(jnp.asarray(S, R.dtype), R), m, omega)
 
     def space_vectors(self) -> Array | None:
         """The space-frame vectors ``s_j`` ``(k, 3)`` whose body-frame images

@@ -274,6 +274,7 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
     columns (`so3.axis_turn`), which is cheaper than a second `so3.exp` and a
     3x3 product (a Blanes-Moan step on a heavy top has ten such drifts).
     """
+    k = so3._axis_index(k, "symmetric_flow")
     phi = h * m[..., k] * (1.0 / I_3 - 1.0 / I_a)
     Q = so3.axis_turn(so3.exp((h / I_a) * m), k, phi)
     return so3.reorthonormalize(Q), so3.axis_turn(m, k, phi)

@@ -21,7 +21,7 @@ so its stages need no 3x3 products.  The rigid body with momentum as state
 from __future__ import annotations
 
 import warnings
-from typing import Any
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -218,6 +218,9 @@ class SpatialFreeRigidBody(AbstractProblem):
     def kick(self, t, R, y, h):
         """No torques: the splitting solvers' kick does nothing."""
         return y
+
+    # No torque reads the momentum (there are none): every splitting applies.
+    kick_reads_momentum: ClassVar[tuple] = ()
 
     def invariants(self, R, y):
         m = jnp.einsum("...ji,j->...i", R, self.L)

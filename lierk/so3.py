@@ -20,6 +20,7 @@ References:
 from __future__ import annotations
 
 import math
+import operator
 
 import jax.numpy as jnp
 from jax import Array
@@ -250,6 +251,18 @@ def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
     return reorthonormalize(R)
 
 
+def _axis_index(k, where: str) -> int:
+    """``k`` as a coordinate axis 0, 1 or 2 (a static int), or a ValueError
+    that names ``where`` and the bad value."""
+    try:
+        index = None if isinstance(k, bool) else operator.index(k)
+    except TypeError:
+        index = None
+    if index not in (0, 1, 2):
+        raise ValueError(f"{where}: k is the coordinate axis, 0, 1 or 2 (a static int), got {k!r}")
+    return index
+
+
 def axis_turn(X: ArrayLike, k: int, phi: ArrayLike) -> Array:
     """``X @ exp(phi hat(e_k))`` along the last axis: ``(..., 3)`` or
     ``(..., n, 3)``, with ``phi`` ``(...)`` -> the shape of ``X``.
@@ -260,6 +273,7 @@ def axis_turn(X: ArrayLike, k: int, phi: ArrayLike) -> Array:
     components with ``cos phi`` and ``sin phi`` (`exp_coefficients`, exact at
     every angle), so it is cheaper than a general `exp` and a 3x3 product.
     """
+    k = _axis_index(k, "axis_turn")
     X, phi = _float(X), _float(phi)
     A, B, _ = exp_coefficients(phi * phi)
     # The trailing axes are added after the coefficients, so that a matrix and

@@ -239,6 +239,17 @@ def test_axis_turn_is_the_coordinate_axis_exp_from_the_right(k):
     np.testing.assert_allclose(turn(X[:, 0], k, phi), np.einsum("nji,nj->ni", E, X[:, 0]), atol=1e-13)
 
 
+@pytest.mark.parametrize("k", [3, -1, 1.0, True, np.array([0.0, 0.0, 1.0])])
+def test_axis_turn_refuses_anything_but_a_coordinate_index(k):
+    with pytest.raises(ValueError, match="axis_turn: k is .* 0, 1 or 2"):
+        _so3.axis_turn(np.ones(3), k, 0.5)
+    # symmetric_flow took the axis as a unit vector before: say so, do not index.
+    from lierk import exact
+
+    with pytest.raises(ValueError, match="symmetric_flow: k is .* 0, 1 or 2"):
+        exact.symmetric_flow(5.0, 1.0, k, np.ones(3), 0.1)
+
+
 # --- log --------------------------------------------------------------------------------
 
 

@@ -77,6 +77,11 @@ class AbstractSplitting(AbstractSolver):
     `lierk.FreeRigidBody` and `lierk.SpatialFreeRigidBody`.  Fixed step only:
     ``lierk.solve(problem, solver, t1, dt=...)``; ``estimate_error=True`` and
     ``target_error`` work as for any fixed-step solver.
+
+    Two optional problem attributes steer it: ``closed_form_drift`` (True: the
+    drift is small, and the stages are unrolled instead of looped) and
+    ``kick_reads_momentum`` (the names of the torques that read ``m``; the
+    Runge-Kutta-Nystrom schemes need it, and need it empty).
     """
 
     scheme: eqx.AbstractClassVar[SplittingScheme]
@@ -95,10 +100,16 @@ class AbstractSplitting(AbstractSolver):
                 f"{self.name} splits off the exact torque-free flow, so it needs a problem with `drift` and "
                 f"`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), got {type(problem).__name__}"
             )
-        if self.scheme.nystrom and getattr(problem, "kick_reads_momentum", ()):
+        reads = getattr(problem, "kick_reads_momentum", None)
+        if self.scheme.nystrom and reads is None:
+            raise ValueError(
+                f"{self.name} is a Runge-Kutta-Nystrom splitting: it needs the problem to say which of its "
+                f"torques read the momentum (`kick_reads_momentum`), and {type(problem).__name__} does not"
+            )
+        if self.scheme.nystrom and reads:
             raise ValueError(
                 f"{self.name} is a Runge-Kutta-Nystrom splitting: its order holds only for torques of time and "
-                f"attitude, and these effects read the momentum: {', '.join(problem.kick_reads_momentum)}; use BlanesMoan4 or "
+                f"attitude, and these effects read the momentum: {', '.join(reads)}; use BlanesMoan4 or "
                 "BlanesMoan6 instead"
             )
         a, b = self.scheme.a, self.scheme.b
