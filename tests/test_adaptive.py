@@ -292,3 +292,34 @@ def test_dop853_needs_far_fewer_steps_at_tight_tolerance():
     assert frob(d8.R[-1], R_EXACT) <= 30 * 1e-12 and frob(dp.R[-1], R_EXACT) <= 30 * 1e-12
     assert int(d8.stats["num_steps"]) * 4 < int(dp.stats["num_steps"])
     assert int(d8.stats["num_fevals"]) * 3 < int(dp.stats["num_fevals"])
+
+
+def test_steps_turn_the_body_by_at_most_max_angle():
+    """dexpinv, applied at every RKMK stage, has its pole at 2 pi.  At a loose
+    tolerance on a fast top the error control alone proposed steps turning the
+    body by more than that and rejected them (measured on 256 tops spun at 30
+    to 120 rad/s, rtol 1e-4: 28% of attempts).  Every step now starts with
+    |omega| h <= max_angle (pi); without the bound this top takes steps past
+    pi (4.1 rad) and rejects 36 of them, with it none, at the same accuracy
+    (2.7e-4 and 3.0e-4; the batch's worst case improved 3x)."""
+    top = lierk.RigidBodyWithEffects(
+        [0.6, 0.8, 0.3], [1.0, -1.5, 110.0], lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
+        effects=lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),
+    )
+    ref = lierk.solve(top, lierk.DOP853(), 2.0, rtol=1e-13, atol=1e-13, max_steps=100_000).R[-1]
+
+    def run(max_angle):
+        c = lierk.Controller(1e-4, 1e-4, max_angle=max_angle)
+        sol = lierk.solve(top, lierk.DOP853(), 2.0, controller=c, saveat=lierk.SaveAt(t0=True, steps=True), max_steps=1000)
+        n = int(sol.stats["num_accepted_steps"])
+        turn = np.diff(np.asarray(sol.ts[:n + 1])) * np.linalg.norm(np.asarray(sol.omega(top)[:n]), axis=-1)
+        return turn, int(sol.stats["num_rejected_steps"]), frob(sol.R[n], ref)
+
+    turn, rejected, err = run(np.pi)
+    turn_free, rejected_free, err_free = run(np.inf)
+    assert turn.max() <= np.pi * (1 + 1e-9)
+    assert turn_free.max() > np.pi
+    assert rejected < rejected_free
+    assert err < 1.2 * err_free
+    with pytest.raises(ValueError, match="max_angle"):
+        lierk.Controller(1e-6, max_angle=0.0)
