@@ -57,9 +57,12 @@ class Controller(eqx.Module):
             always a floor.
         dtmax: largest allowed step (s).
         max_angle: largest body rotation ``|omega| h`` (rad) the controller
-            proposes for a step, pi by default.  Every RKMK stage applies
-            dexpinv, whose pole is at 2 pi: steps that turn the body by more
-            than about a half-turn fail their error test, and at loose
+            proposes for a step, with ``omega`` the body angular velocity
+            where the step starts (the rotation itself differs when omega
+            changes within the step); pi by default, ``inf`` for no bound.
+            Every RKMK stage applies dexpinv, whose pole is at 2 pi: steps
+            that turn the body by more than a half-turn often fail their
+            error test, and at loose
             tolerances the controller kept proposing them (on heavy tops
             spun at 30 to 120 rad/s, DOP853 at rtol 1e-4 rejected 28% of its
             attempts and took more steps than at 1e-5; with the bound it
@@ -113,12 +116,13 @@ class Controller(eqx.Module):
         )
 
     def largest_step(self, omega: Array) -> Array:
-        """The largest step (s) the controller proposes at body angular
-        velocity ``omega`` ``(3,)`` (rad/s): ``dtmax``, and at most
-        ``max_angle / |omega|``."""
-        speed = jax.lax.stop_gradient(jnp.sqrt(jnp.sum(omega * omega)))
+        """The largest step (s) the controller proposes when a step starts at
+        body angular velocity ``omega`` ``(..., 3)`` (rad/s): ``dtmax``, and
+        at most ``max_angle / |omega|``, but never below ``dtmin`` (a bound the
+        user set explicitly wins)."""
+        speed = jnp.sqrt(jnp.sum(omega * omega, axis=-1))
         turn = jnp.where(speed > 0, self.max_angle / jnp.where(speed > 0, speed, 1.0), jnp.inf)
-        return jnp.minimum(self.dtmax, turn)
+        return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, turn)))
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:

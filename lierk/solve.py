@@ -304,7 +304,8 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
         # (first step, controller) of the setting and of its finer twin; a
         # fixed step is dt0 with no controller.
         if adaptive:
-            c = Controller(s, s)
+            # In the problem's dtype, as `solve` casts a controller it is given.
+            c = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), Controller(s, s))
             twins = ((None, c), (None, _finer(c)))
         else:
             twins = ((s, None), (s / 2, None))
@@ -539,7 +540,13 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         calibration = jax.lax.stop_gradient(jnp.maximum(solver.tableau.tolerance_calibration, floor))
     R0, y0 = problem.R0, problem.y0
     f0 = None if fixed else _field_at(problem, t0, R0, y0)
-    h0 = _initial_step(problem, controller, tab_q, t0, t1, R0, y0, f0) if dt0 is None else dt0
+    if dt0 is None:
+        h0 = _initial_step(problem, controller, tab_q, t0, t1, R0, y0, f0)
+    elif fixed:
+        h0 = dt0
+    else:
+        # A given first step obeys the controller's bounds like every other.
+        h0 = jnp.minimum(dt0, controller.largest_step(f0[0]))
     dtype = R0.dtype
     eps = jnp.finfo(dtype).eps
     izero = jnp.asarray(0, dtype=jnp.int32)

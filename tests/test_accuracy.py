@@ -258,6 +258,17 @@ def test_target_error_is_met_near_the_axis(solver):
     assert run._cache_size() == 1  # eps is traced: one compilation for every target
 
 
+def test_target_error_in_float32_meets_it():
+    # The adaptive rounds build their controllers in the problem's dtype (with
+    # x64 on they were float64 and broke the float32 loop).
+    w0 = np.array([1.0, 0.1, 0.2], np.float32)
+    body = lierk.FreeRigidBody(np.array([1.0, 2.0, 3.0], np.float32), w0)
+    sol = lierk.solve(body, lierk.DOP853(), 2.0, target_error=1e-4)
+    exact = np.asarray(lierk.exact.free_rigid_body(np.array([1.0, 2.0, 3.0]), w0.astype(np.float64), 2.0)[0])
+    assert sol.R.dtype == jnp.float32 and int(sol.result) == lierk.RESULTS.successful
+    assert np.linalg.norm(np.asarray(sol.R[-1], np.float64) - exact) < 1e-4
+
+
 def test_target_error_unreachable_is_reported():
     b = lierk.FreeRigidBody(TEE, [1.0, 0.05, 0.3])
     sol = lierk.solve(b, lierk.DP54(), T, target_error=1e-18, throw=False)
