@@ -148,12 +148,13 @@ def symmetric_top_with_timed_torque(dtype):
     )
 
 
-@pytest.mark.parametrize("solver", SPLITTING_SOLVERS, ids=lambda s: s.name)
+@pytest.mark.parametrize("solver", [lierk.Strang(), lierk.BlanesMoan6(), lierk.BlanesMoanRKN6()], ids=lambda s: s.name)
 def test_float32_on_a_symmetric_top_with_a_timed_space_torque(solver):
     """The unrolled closed-form drift and the kicks stay in float32 (a function
     torque's space vectors once lifted the kick to float64 and broke the
     loop), and land within float32 rounding of the float64 run: 40 steps,
-    measured 1.5e-6 to 5.4e-6."""
+    measured 1.5e-6 to 5.4e-6 over all seven splittings (three run here: the
+    kick is the same code for all)."""
     R64 = np.asarray(lierk.solve(symmetric_top_with_timed_torque(np.float64), solver, T, dt=0.05).R[-1])
     R32 = lierk.solve(symmetric_top_with_timed_torque(np.float32), solver, T, dt=0.05).R[-1]
     assert R32.dtype == jnp.float32
