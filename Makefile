@@ -45,7 +45,6 @@ test: $(STAMP)
 	  if $(BIN)/python -m pytest -q {} > $$log 2>&1; then echo "== {}: $$(tail -n 1 $$log)"; \
 	  else echo "== {} FAILED:"; cat $$log; exit 1; fi'
 
-
 bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py

@@ -203,8 +203,6 @@ def solve(
             "estimate_error=True compares with a finer solve at the same saved times, and adaptive "
             "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
         )
-    # Tolerances given as Python floats become float64 under x64; compute in the problem's dtype.
-    controller = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=dtype), controller)
     eps = float(jnp.finfo(dtype).eps)
     if not _checks.is_traced(controller.rtol, controller.atol) and float(controller.rtol + controller.atol) < eps:
         raise ValueError(
@@ -304,8 +302,7 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
         # (first step, controller) of the setting and of its finer twin; a
         # fixed step is dt0 with no controller.
         if adaptive:
-            # In the problem's dtype, as `solve` casts a controller it is given.
-            c = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), Controller(s, s))
+            c = Controller(s, s)
             twins = ((None, c), (None, _finer(c)))
         else:
             twins = ((s, None), (s / 2, None))
@@ -531,6 +528,10 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
     fixed = controller is None
     tab_q = None if fixed else solver.error_order
     if not fixed:
+        # Tolerances given as Python floats become float64 under x64: every
+        # controller (given, or built by a target_error round) computes in the
+        # problem's dtype.
+        controller = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=problem.R0.dtype), controller)
         # The estimate is held to tol * tolerance_calibration, but never below
         # 50 eps: under that, rounding noise decides acceptance.  Such steps
         # only add rounding error, and a reverse-mode pass that recomputes them

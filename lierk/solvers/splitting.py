@@ -100,43 +100,41 @@ class AbstractSplitting(AbstractSolver):
                 f"{self.name} splits off the exact torque-free flow, so it needs a problem with `drift` and "
                 f"`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), got {type(problem).__name__}"
             )
-        reads = getattr(problem, "kick_reads_momentum", None)
-        if self.scheme.nystrom and reads is None:
-            raise ValueError(
-                f"{self.name} is a Runge-Kutta-Nystrom splitting: it needs the problem to say which of its "
-                f"torques read the momentum (`kick_reads_momentum`), and {type(problem).__name__} does not"
-            )
-        if self.scheme.nystrom and reads:
-            raise ValueError(
-                f"{self.name} is a Runge-Kutta-Nystrom splitting: its order holds only for torques of time and "
-                f"attitude, and these effects read the momentum: {', '.join(reads)}; use BlanesMoan4 or "
-                "BlanesMoan6 instead"
-            )
+        if self.scheme.nystrom:
+            reads = getattr(problem, "kick_reads_momentum", None)
+            if reads is None:
+                raise ValueError(
+                    f"{self.name} is a Runge-Kutta-Nystrom splitting: it needs the problem to say which of its "
+                    f"torques read the momentum (`kick_reads_momentum`), and {type(problem).__name__} does not"
+                )
+            if reads:
+                raise ValueError(
+                    f"{self.name} is a Runge-Kutta-Nystrom splitting: its order holds only for torques of time and "
+                    f"attitude, and these effects read the momentum: {', '.join(reads)}; use BlanesMoan4 or "
+                    "BlanesMoan6 instead"
+                )
         a, b = self.scheme.a, self.scheme.b
 
+        def stage(carry, ab):
+            R, y, tk = carry
+            y = problem.kick(tk, R, y, ab[0] * h)
+            R, y = problem.drift(R, y, ab[1] * h)
+            return (R, y, tk + ab[1] * h), None
+
+        carry = (R, y, t)
         if getattr(problem, "closed_form_drift", False):
             # A symmetric body's drift is two rotations: unrolled, XLA fuses
             # each kick into the drift before it and the inner loop's
             # bookkeeping goes (BlanesMoan6 on a heavy top: 0.68 -> 0.50 us
             # per body-step).
-            tk = t
-            for ak, bk in zip(a[:-1], b):
-                y = problem.kick(tk, R, y, ak * h)
-                R, y = problem.drift(R, y, bk * h)
-                tk = tk + bk * h
+            for ab in zip(a[:-1], b):
+                carry, _ = stage(carry, ab)
         else:
-
-            def stage(carry, ab):
-                R, y, tk = carry
-                y = problem.kick(tk, R, y, ab[0] * h)
-                R, y = problem.drift(R, y, ab[1] * h)
-                return (R, y, tk + ab[1] * h), None
-
             # A loop, not an unrolled sequence: the elliptic-function drift
             # is a large program, and ten copies of it took up to 17 s to
             # compile.
-            coeffs = jnp.asarray([a[:-1], b], dtype=R.dtype).T
-            (R, y, _), _ = jax.lax.scan(stage, (R, y, t), coeffs)
+            carry, _ = jax.lax.scan(stage, carry, jnp.asarray([a[:-1], b], dtype=R.dtype).T)
+        R, y, _ = carry
         y = problem.kick(t + h, R, y, a[-1] * h)
         # The drifts' products leave R off SO(3) by rounding only: the same
         # float32 correction as every other solver's step.
