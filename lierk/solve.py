@@ -24,6 +24,9 @@ from .solvers.base import AbstractSolver
 __all__ = ["solve"]
 
 _DEFAULT_ADAPTIVE_MAX_STEPS = 4096
+# Fixed-step runs of at least this many steps squared are checkpointed in
+# blocks for reverse mode (`_solve_fixed`).
+_CHECKPOINT_BLOCK_MIN = 32
 
 
 def solve(
@@ -118,7 +121,10 @@ def solve(
     saveat = SaveAt(t1=True) if saveat is None else saveat
     if not isinstance(saveat, SaveAt):
         raise ValueError(f"saveat must be a lierk.SaveAt, got {saveat!r}")
-    if max_steps is not None and not (isinstance(max_steps, (int, np.integer)) and max_steps >= 1):
+    # (A bool is an int to Python: max_steps=True would run one step.)
+    if max_steps is not None and not (
+        isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool) and max_steps >= 1
+    ):
         raise ValueError(f"max_steps must be a positive Python int, got {max_steps!r}")
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
@@ -437,8 +443,29 @@ def _solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solutio
         st = solver.step(problem, ta, tb - ta, R, y)
         return ((st.R, st.y), k + 1, taken + (tb > ta).astype(taken.dtype)), None
 
+    # In reverse mode each step keeps only its starting state and is
+    # recomputed in the backward pass: saved as they fall out of the step's
+    # fused arithmetic, its residuals were about a hundred small arrays, each
+    # written by a kernel of its own (the gradient cost 60 forward steps per
+    # step).  Outside reverse mode the checkpoint does nothing.
+    step = jax.checkpoint(one, prevent_cse=False)
+
+    def scan(carry, length):
+        return jax.lax.scan(step, carry, None, length=length)[0]
+
     def steps(carry, length):
-        return jax.lax.scan(one, carry, None, length=length)[0]
+        # Reverse mode through a plain scan keeps every step's residuals:
+        # 10^6 steps would hold gigabytes.  Blocks of about sqrt(length)
+        # steps, each recomputed from its start in the backward pass, hold
+        # O(sqrt(length)) instead, for one more forward pass.  Without reverse
+        # mode the checkpoint does nothing.
+        block = math.isqrt(length)
+        if block < _CHECKPOINT_BLOCK_MIN:
+            return scan(carry, length)
+        blocks, rem = divmod(length, block)
+        body = jax.checkpoint(lambda c, _: (scan(c, block), None), prevent_cse=False)
+        carry = jax.lax.scan(body, carry, None, length=blocks)[0]
+        return scan(carry, rem) if rem else carry
 
     state = (problem.R0, problem.y0)
     ts, states = [], []
@@ -490,6 +517,7 @@ class _Carry(NamedTuple):
     result: Array
     save_index: Array
     saved: Any  # (ts, R, y) buffers, or None
+    decisions: Any  # per-attempt record for reverse-mode replay (see _solve_adaptive), or None
 
 
 def _field_at(problem, t, R, y):
@@ -569,6 +597,29 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
     else:
         saved = None
 
+    # Reverse mode through the checkpointed loop recomputes the steps between
+    # checkpoints inside `jax.vjp`, a differently compiled body.  The error
+    # estimate, a sum of stage slopes that nearly cancels, then comes out
+    # different from bit-identical inputs (by up to 1.3e-7 relative at rtol
+    # 1e-11), and so does every step size after it: the recomputed steps
+    # drifted by up to 6e-9 s (rtol 1e-11) and 2e-7 s (1e-13) from the ones
+    # taken, and the backward pass chained the Jacobians of steps that were
+    # never taken, 2e-9 (1e-7) off the solve's derivative whenever the steps
+    # outnumbered the checkpoints (about sqrt(2 max_steps)).  So each
+    # attempt's decisions, the next step and (as its sign) whether it was
+    # accepted, go into a write-once equinox buffer (NaN: not decided yet),
+    # one slot per attempt.  The forward pass reads NaN and decides; the
+    # recomputation is handed the filled buffer (`checkpointed_while_loop`
+    # gives every replayed body the final buffers) and takes the recorded
+    # decisions, so it replays the steps taken.  This reads a slot before the
+    # forward pass writes it, outside equinox's documented buffer contract;
+    # tests/test_adaptive.py checks the replay.  8 bytes per max_steps, only
+    # for this adjoint: ForwardMode recomputes nothing, and DirectAdjoint's
+    # rematerialised scans recompute from carries whose buffer is not filled
+    # yet, so they are not helped (their jacrev is 4e-9 off, as before).
+    record = not fixed and adjoint.kind == "checkpointed"
+    decisions = jnp.full((max_steps,), jnp.nan, dtype) if record else None
+
     init = _Carry(
         t=t0,
         h=h0,
@@ -583,6 +634,7 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
         result=jnp.asarray(RESULTS.successful, jnp.int32),
         save_index=izero,
         saved=saved,
+        decisions=decisions,
     )
 
     def cond(c: _Carry):
@@ -630,6 +682,15 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             h_floor = jnp.maximum(controller.dtmin, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(t1)))
             # A step that does not move the clock (below its resolution) is stuck too.
             stuck = (~accept & (h_next < h_floor)) | (h <= 0)
+        h_out = jax.lax.stop_gradient(jnp.where(stuck, h, h_next))
+        decisions = c.decisions
+        if record:
+            # c.num_steps < max_steps inside the loop: one slot per attempt.
+            recorded = decisions[c.num_steps]
+            replay = ~jnp.isnan(recorded)
+            accept = jnp.where(replay, ~jnp.signbit(recorded), accept)
+            h_out = jnp.where(replay, jnp.abs(recorded), h_out)
+            decisions = decisions.at[c.num_steps].set(jnp.where(accept, h_out, -h_out))
 
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, z: jnp.where(accept, x, z), a, b)
@@ -656,7 +717,7 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
 
         return _Carry(
             t=jnp.where(accept, t_new, c.t),
-            h=jax.lax.stop_gradient(jnp.where(stuck, h, h_next)),
+            h=h_out,
             R=jnp.where(accept, st.R, c.R),
             y=pick(st.y, c.y),
             f=pick(f_new, c.f),
@@ -668,10 +729,17 @@ def _solve_adaptive(problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int
             result=jnp.where(stuck, RESULTS.dt_min_reached, c.result).astype(jnp.int32),
             save_index=save_index,
             saved=saved,
+            decisions=decisions,
         )
 
     final = eqxi.while_loop(
-        cond, body, init, max_steps=max_steps, kind=adjoint.kind, checkpoints=adjoint.checkpoints
+        cond,
+        body,
+        init,
+        max_steps=max_steps,
+        kind=adjoint.kind,
+        checkpoints=adjoint.checkpoints,
+        buffers=(lambda c: c.decisions) if record else None,
     )
     result = jnp.where(
         final.done & _finite((final.R, final.y)),

@@ -273,6 +273,7 @@ def test_R0_within_tolerance_accepted():
         (dict(t1=1.0, dt=0.1, rtol=1e-6), "rtol"),
         (dict(t1=1.0, dt=0.1, max_steps=0), "max_steps"),
         (dict(t1=1.0, dt=0.1, max_steps=2.5), "max_steps"),
+        (dict(t1=1.0, dt=0.1, max_steps=True), "max_steps must be a positive Python int, got True"),
     ],
 )
 def test_bad_solve_arguments_raise(kwargs, match):
