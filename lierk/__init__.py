@@ -34,6 +34,8 @@ from .solution import Solution as Solution
 from .batch import sweep as sweep
 from .batch import sweep_chunks as sweep_chunks
 from .solve import solve as solve
+from .sensitivity import Sensitivity as Sensitivity
+from .sensitivity import sensitivity as sensitivity
 from .solvers import CF4 as CF4
 from .solvers import DOP853 as DOP853
 from .solvers import DP54 as DP54

@@ -586,13 +586,12 @@ def sweep(args) -> int:
     import numpy as np
 
     from . import so3
-    from .adjoint import ForwardMode
     from ._progress import Progress
     from .batch import sweep_chunks
     from .store import ChunkStore, check_size
     from .rigid_body import FreeRigidBody
-    from .solution import SaveAt
-    from .solve import num_steps, solve
+    from .sensitivity import sensitivity
+    from .solve import num_steps
 
     if scene.target_error is not None:
         raise CLIError(
@@ -615,9 +614,6 @@ def sweep(args) -> int:
     if not scene.adaptive:
         # Under vmap/jit the step count cannot be read from t1 and dt.
         kw["max_steps"] = num_steps(0.0, t1, float(kw["dt"]), None)
-    else:
-        # Reverse mode cannot go through the adaptive while loop; forward can.
-        kw["adjoint"] = ForwardMode()
     exact = None
     if isinstance(problem, FreeRigidBody):
         try:
@@ -626,15 +622,13 @@ def sweep(args) -> int:
             exact = None
 
     def point(w):
-        def final(w):
-            sol = solve(problem.with_omega0(w), solver, t1, saveat=SaveAt(t1=True), throw=False, **kw)
-            return sol.R[-1], (sol.R[-1], sol.result)
-
-        J, (R, result) = jax.jacfwd(final, has_aux=True)(w)
+        s = sensitivity(problem.with_omega0(w), solver, t1, throw=False, **kw)
         out = {
-            "angle": jnp.linalg.norm(so3.log(R), axis=-1),
-            "sensitivity": jnp.sqrt(jnp.sum(J * J)),
-            "result": result,
+            "angle": jnp.linalg.norm(so3.log(s.R), axis=-1),
+            "sensitivity": jnp.sqrt(jnp.sum(s.jacobian_R**2)),
+            "sensitivity_error": s.error_estimate,
+            "lyapunov": s.lyapunov_exponent,
+            "result": s.result,
         }
         if exact is not None:
             out["flip_interval"] = exact(problem.inertia, w)
@@ -659,10 +653,12 @@ def sweep(args) -> int:
         "processes": jax.process_count(),
         "lierk": _version(),
     }
-    out_bytes = 5 * np.dtype(dtype).itemsize  # angle, sensitivity, flip interval, result, omega0 per point
+    # angle, sensitivity, its error, Lyapunov exponent, flip interval, result, omega0 per point
+    out_bytes = 7 * np.dtype(dtype).itemsize
     try:
-        # Per member: R(T) and its three tangents (jacfwd), a few copies each.
-        check_size(memory=args.chunk_size * 4 * 4 * scene.bytes_per_saved(), disk=2 * len(grid) * out_bytes,
+        # Per member: R(T) and its three tangents (jacfwd), a few copies each,
+        # for the solve and the finer one of the error estimate.
+        check_size(memory=args.chunk_size * 2 * 4 * 4 * scene.bytes_per_saved(), disk=2 * len(grid) * out_bytes,
                    directory=args.out, what=f"a sweep of {len(grid)} points")
         store = ChunkStore.open(args.out / f"{stem}_sweep.chunks", key=key, n_chunks=n_chunks)
     except ValueError as e:
@@ -704,7 +700,10 @@ def sweep(args) -> int:
     if failed.any():
         print(f"  {int(failed.sum())} points failed to integrate (NaN in the outputs)")
     s = res["sensitivity"]
-    print(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s")
+    print(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
+          f"(estimated error of it: up to {np.nanmax(res['sensitivity_error'] / s):.1g} relative)")
+    lam = res["lyapunov"]
+    print(f"  finite-time Lyapunov exponent: {np.nanmin(lam):.3g} .. {np.nanmax(lam):.3g} 1/s")
     if "flip_interval" in res:
         f = res["flip_interval"][np.isfinite(res["flip_interval"])]
         if f.size:
@@ -725,6 +724,8 @@ def _sweep_figure(res, axes, varied, omega0, title):
         panels.append(("flip_interval", "flip interval (exact) [s]", True))
     panels.append(("angle", "final attitude angle |log R(T)| [rad]", False))
     panels.append(("sensitivity", "sensitivity ||dR(T)/d$\\omega_0$||$_F$ [s]", True))
+    if "lyapunov" in res:
+        panels.append(("lyapunov", "finite-time Lyapunov exponent [1/s]", False))
     labels = [f"$\\omega_{{0,{'xyz'[k]}}}$ [rad/s]" for k in varied]
 
     if len(varied) == 1:

@@ -7,6 +7,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from PIL import Image
@@ -471,9 +473,19 @@ def test_sweep_on_two_devices_matches_exact_and_finite_differences(tmp_path):
     h = 1e-6
     J = np.stack([(_final_R(w + h * e) - _final_R(w - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
     assert data["sensitivity"][i, j] == pytest.approx(np.linalg.norm(J), rel=1e-6)
+    # The Jacobian's error estimate is its error against the exact flow's
+    # Jacobian (within the bounds lierk.sensitivity promises), and the
+    # Lyapunov exponent is read from the same Jacobian.
+    J_exact = np.asarray(jax.jacfwd(lambda v: lierk.exact.free_rigid_body(inertia, v, 1.0)[0])(jnp.asarray(w)))
+    J_solve = lierk.sensitivity(lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), 1.0, dt=0.01, estimate_error=False)
+    true = np.linalg.norm(np.asarray(J_solve.jacobian_R) - J_exact)
+    assert true / 10 <= data["sensitivity_error"][i, j] <= 100 * true
+    J_alg = np.einsum("ji,jkl->ikl", R, J)[[2, 0, 1], [1, 2, 0]]
+    lam = np.log(np.linalg.svd(J_alg, compute_uv=False)[0] / 1.0) / 1.0
+    assert data["lyapunov"][i, j] == pytest.approx(lam, rel=1e-6)
 
     with Image.open(out / "tee_test_sweep.png") as im:
-        assert im.size == (1380, 460)  # three 4.6 x 4.6 inch panels at 100 dpi
+        assert im.size == (1840, 460)  # four 4.6 x 4.6 inch panels at 100 dpi
 
 
 def test_sweep_along_one_component_and_default_grid(tmp_path, capsys):
@@ -487,7 +499,7 @@ def test_sweep_along_one_component_and_default_grid(tmp_path, capsys):
     assert data["angle"].shape == (4,)
     np.testing.assert_allclose(data["omega0"][:, :2], np.broadcast_to([1.0, 0.05], (4, 2)), atol=1e-14)
     with Image.open(out / "tee_test_sweep.png") as im:
-        assert im.size == (700, 800)  # three stacked line plots
+        assert im.size == (700, 1040)  # four stacked line plots
 
     # --grid N varies the two smallest components of omega0 over +-span.
     code, stdout, stderr = run_inprocess(

@@ -1,0 +1,277 @@
+"""`sensitivity`: the final state's Jacobian with respect to the inputs, with an error estimate.
+
+The attitude's Jacobian is read in the algebra: a change ``dp`` of an input
+moves the final attitude to ``R(t1) exp(hat(J dp))``, so ``J`` is the
+derivative of ``log(R(t1)^T R(t1; p + dp))`` at ``dp = 0``: three numbers per
+input direction instead of nine, and the form that the growth of
+perturbations (the finite-time Lyapunov exponent) and the flip's sensitivity
+are read from.  ``jacobian_R = R hat(J)`` gives ``dR(t1)/dp`` entry by entry.
+
+The Jacobian is the derivative of the solve that was run (its steps and, for
+adaptive solvers, its step-size decisions held fixed), by forward mode
+(`jax.jacfwd`, the default: one pass carries every input direction) or
+reverse mode (`jax.jacrev`: one pass per output, six of them).  Its own error,
+against the exact flow's Jacobian, is estimated like `solve`'s
+``estimate_error``: by Richardson's comparison with the Jacobian of a finer
+solve (``2 dt/3`` for fixed steps, tolerances divided by 10 for adaptive ones).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import so3
+from .adjoint import ForwardMode
+from .fields import AbstractProblem
+from .solution import RESULTS, SaveAt, raise_if_failed
+from .solve import _DEFAULT_ADAPTIVE_MAX_STEPS, _TOLERANCE_RATIO, solve
+from .solve import _finer as _finer_controller
+from .solvers.base import AbstractSolver
+
+__all__ = ["Sensitivity", "sensitivity"]
+
+_INPUTS = ("omega0", "R0", "inertia")
+
+
+class Sensitivity(eqx.Module):
+    """The final state of a solve and its Jacobian with respect to an input ``p``.
+
+    Attributes:
+        R: ``(3, 3)`` attitude at ``t1`` (body -> space).
+        y: the problem's extra state at ``t1`` (the body momentum ``m``,
+            kg m^2/s, for `RigidBodyWithEffects`), or None.
+        jacobian: the attitude's Jacobian in the algebra, a pytree like ``p``
+            whose leaves have shape ``(3,) + leaf.shape``: ``jacobian[i, ...]``
+            is the body-frame rotation vector component ``i`` (rad) per unit
+            of the input.  With respect to ``omega0``: ``(3, 3)``, in seconds.
+        jacobian_y: ``d y(t1) / d p``, leaves ``y.shape + leaf.shape`` (None
+            when the problem has no extra state).
+        error_estimate: estimated Frobenius norm of the error of
+            `jacobian_R` (all inputs together), against the exact flow's
+            Jacobian; NaN when not estimated, inf when the finer solve failed.
+            The algebra form's error is ``1/sqrt(2)`` of it.
+        result: `RESULTS` code of the solve (0 is success).
+        stats: the solve's statistics (`Solution.stats`).
+        t0, t1: the interval (s).
+    """
+
+    R: Array
+    y: Any
+    jacobian: Any
+    jacobian_y: Any
+    error_estimate: Array
+    result: Array
+    stats: dict
+    t0: Array
+    t1: Array
+
+    @property
+    def jacobian_R(self) -> Any:
+        """``dR(t1)/dp`` entry by entry: leaves ``(3, 3) + leaf.shape`` (after
+        any batch axes), ``R hat(jacobian)``."""
+        return jax.tree_util.tree_map(lambda J: _jacobian_R(self.R, J), self.jacobian)
+
+    @property
+    def lyapunov_exponent(self) -> Array:
+        """Finite-time Lyapunov exponent (1/s) of the attitude with respect to
+        ``omega0``: ``log(sigma_max(J) / T) / T`` with ``T = t1 - t0`` and
+        ``sigma_max`` the largest singular value of the ``(3, 3)`` algebra
+        Jacobian.  A body turning steadily (a sphere) has ``J = T I``, hence
+        0; perturbations that grow faster than the elapsed time (near the
+        intermediate axis) give a positive exponent.  Only for
+        ``wrt="omega0"`` (or another ``(3,)`` input)."""
+        J = self.jacobian
+        if not (isinstance(J, jax.Array | np.ndarray) and J.shape[-2:] == (3, 3)):
+            raise ValueError("lyapunov_exponent needs the Jacobian with respect to a (3,) input such as omega0")
+        T = self.t1 - self.t0
+        sigma = jnp.linalg.svd(J, compute_uv=False)[..., 0]
+        return jnp.log(sigma / T) / T
+
+
+def _jacobian_R(R: Array, J: Array) -> Array:
+    """``R hat(J)`` along J's component axis: ``R`` ``(*B, 3, 3)`` and ``J``
+    ``(*B, 3, *S)`` -> ``(*B, 3, 3, *S)``, with leading batch axes ``B`` (vmap)."""
+    nb = R.ndim - 2
+    H = so3.hat(jnp.moveaxis(J, nb, -1))  # (*B, *S, 3, 3)
+    R = R.reshape(R.shape[:nb] + (1,) * (H.ndim - nb - 2) + (3, 3))
+    return jnp.moveaxis(so3.compose(R, H), (-2, -1), (nb, nb + 1))
+
+
+def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], AbstractProblem]]:
+    """``(p0, rebuild)``: the input's value and the problem as a function of it."""
+    if callable(wrt) and not isinstance(wrt, str):
+        try:
+            p0 = wrt(problem)
+        except Exception as e:  # noqa: BLE001 - any failure of the user's selector is reported as such
+            raise ValueError(f"wrt=: the selector failed on the problem: {e}") from None
+        leaves = jax.tree_util.tree_leaves(p0)
+        if not leaves or not all(eqx.is_inexact_array(x) for x in leaves):
+            raise ValueError(
+                f"wrt= must select floating-point arrays of the problem (e.g. lambda p: p.effects[0].mass), got {p0!r}"
+            )
+        try:
+            eqx.tree_at(wrt, problem, p0)
+        except ValueError:
+            raise ValueError(
+                "wrt= selects something that is not an input of the problem (a derived value, such as a property, "
+                f"cannot be perturbed); select a field, or use one of {_INPUTS}"
+            ) from None
+        return p0, lambda p: eqx.tree_at(wrt, problem, p)
+    if wrt not in _INPUTS:
+        raise ValueError(f"wrt must be one of {_INPUTS} or a function selecting fields of the problem, got {wrt!r}")
+    if not hasattr(problem, "with_omega0"):
+        raise ValueError(f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}")
+    omega0 = problem.omega0
+    if wrt == "omega0":
+        return omega0, problem.with_omega0
+    if wrt == "R0":
+        # A turn of the initial attitude by exp(hat(p)) in the body frame,
+        # with the body angular velocity held fixed.
+        def turned(p):
+            return problem.restart(so3.compose(problem.R0, so3.exp(p)), problem.y0).with_omega0(omega0)
+
+        return jnp.zeros(3, problem.R0.dtype), turned
+
+    # The inertia with omega0 held fixed.  Rebuilt through the constructor:
+    # with a traced inertia the problem takes its general path (a concrete
+    # diagonal would read only the diagonal, and its derivative along the
+    # off-diagonal entries would be lost).
+    def weighed(inertia):
+        from .fields import SpatialFreeRigidBody
+        from .rigid_body import FreeRigidBody, RigidBodyWithEffects
+
+        if isinstance(problem, FreeRigidBody) or isinstance(problem, SpatialFreeRigidBody):
+            return type(problem)(inertia, omega0, problem.R0)
+        if isinstance(problem, RigidBodyWithEffects):
+            return RigidBodyWithEffects(inertia, omega0, problem.R0, problem.effects)
+        raise ValueError(f"wrt='inertia' is not defined for {type(problem).__name__}: select the field with wrt=lambda p: ...")
+
+    return problem.inertia, weighed
+
+
+def sensitivity(
+    problem: AbstractProblem,
+    solver: AbstractSolver,
+    t1: ArrayLike,
+    *,
+    wrt: str | Callable = "omega0",
+    mode: str = "forward",
+    estimate_error: bool = True,
+    throw: bool = True,
+    **solve_options: Any,
+) -> Sensitivity:
+    """The final state at ``t1`` and its Jacobian with respect to ``wrt``.
+
+    Args:
+        problem: e.g. `FreeRigidBody`.
+        solver: any lierk solver.
+        t1: final time (s).
+        wrt: the input: ``"omega0"`` (body angular velocity, rad/s, ``(3,)``),
+            ``"R0"`` (a body-frame turn ``R0 exp(hat(p))`` of the initial
+            attitude, ``(3,)`` rad, with ``omega0`` held fixed), ``"inertia"``
+            (the ``(3, 3)`` tensor, kg m^2, every entry on its own, with
+            ``omega0`` held fixed), or a function selecting array fields of the
+            problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``.
+        mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs; adaptive
+            solvers get ``adjoint=ForwardMode()`` unless another is given) or
+            ``"reverse"`` (`jax.jacrev`, six passes: for many inputs).
+        estimate_error: also take the Jacobian of a finer solve and fill
+            `Sensitivity.error_estimate` (about 2.5x the cost).
+        throw: raise if the solve fails; with False read `Sensitivity.result`.
+        **solve_options: passed to `solve`: ``dt=`` (and ``max_steps=``), or
+            ``rtol=``/``atol=``/``controller=``, ``t0=``, ``adjoint=``, ...
+
+    Returns:
+        A `Sensitivity`.
+
+    Raises:
+        ValueError: ``target_error=`` (a setting chosen per member is not
+            differentiable), ``saveat=``/``estimate_error=`` among the solve
+            options, an unknown ``mode``, or a ``wrt`` that is not an input.
+    """
+    if not isinstance(problem, AbstractProblem):
+        raise ValueError(f"problem must be a lierk problem such as FreeRigidBody, got {type(problem).__name__}")
+    if "target_error" in solve_options:
+        raise ValueError(
+            "sensitivity cannot use target_error=: it chooses a setting per solve, and that choice is not "
+            "differentiable. Solve with target_error= first, then take the sensitivity at the setting it chose "
+            "(dt=sol.stats['dt'] or rtol=sol.stats['rtol'])"
+        )
+    for name in ("saveat", "estimate_error"):
+        if name in solve_options:
+            raise ValueError(f"sensitivity takes the state at t1 and its own estimate_error=; {name}= cannot be given")
+    if mode not in ("forward", "reverse"):
+        raise ValueError(f"mode must be 'forward' or 'reverse', got {mode!r}")
+    if not isinstance(estimate_error, bool):
+        raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
+    fixed = solve_options.get("dt") is not None
+    if not fixed and mode == "forward" and solve_options.get("adjoint") is None:
+        solve_options = {**solve_options, "adjoint": ForwardMode()}
+    _input(problem, wrt)  # bad input raises here, before tracing
+    return _sensitivity(problem, solver, t1, wrt, mode, estimate_error, throw, solve_options)
+
+
+# One program for the solve, its Jacobian and the estimate's: traced op by op,
+# the few array operations around the solve would each be compiled on its own.
+# A `wrt` function is static: pass the same function to reuse the compilation.
+@eqx.filter_jit
+def _sensitivity(problem, solver, t1, wrt, mode, estimate_error, throw, solve_options) -> Sensitivity:
+    p0, rebuild = _input(problem, wrt)
+    jac = jax.jacfwd if mode == "forward" else jax.jacrev
+
+    def run(options):
+        def final(p):
+            sol = solve(rebuild(p), solver, t1, saveat=SaveAt(t1=True), throw=False, **options)
+            R, y = sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y)
+            # log(R_ref^T R) with R_ref held fixed: its derivative is
+            # vee(R^T dR), the attitude's tangent in the body frame.
+            xi = so3.vee(so3.compose(jnp.swapaxes(jax.lax.stop_gradient(R), -1, -2), R))
+            return (xi, y), (R, y, sol)
+
+        (J, Jy), (R, y, sol) = jac(final, has_aux=True)(p0)
+        return J, Jy, R, y, sol
+
+    J, Jy, R, y, sol = run(solve_options)
+    if estimate_error:
+        fine_options, ratio = _finer(solver, solve_options)
+        Jf, _, Rf, _, solf = run(fine_options)
+        gap = jax.tree_util.tree_map(lambda a, b: jnp.sum((_jacobian_R(R, a) - _jacobian_R(Rf, b)) ** 2), J, Jf)
+        est = jnp.sqrt(sum(jax.tree_util.tree_leaves(gap))) * (ratio / (ratio - 1.0))
+        est = jax.lax.stop_gradient(jnp.where(solf.result == RESULTS.successful, est, jnp.inf))
+    else:
+        est = jnp.full((), jnp.nan, R.dtype)
+    t0 = jnp.asarray(solve_options.get("t0", 0.0), R.dtype)
+    out = Sensitivity(R, y, J, Jy, est, sol.result, sol.stats, t0, jnp.asarray(t1, R.dtype))
+    if throw:
+        out = eqx.tree_at(lambda s: s.result, out, raise_if_failed(sol, True).result)
+    return out
+
+
+def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:
+    """The options of the finer solve of a Richardson estimate, and how much
+    more accurate it is expected to be (as `solve`'s ``estimate_error``)."""
+    fine = dict(options)
+    if options.get("dt") is not None:
+        dt = options["dt"]
+        fine["dt"] = (jax.lax.stop_gradient(dt) if eqx.is_array(dt) else float(dt)) * 2.0 / 3.0
+        if options.get("max_steps") is not None:
+            fine["max_steps"] = -(-3 * int(options["max_steps"]) // 2)
+        return fine, 1.5**solver.order
+    if options.get("controller") is not None:
+        fine["controller"] = _finer_controller(options["controller"])
+    else:
+        rtol = options.get("rtol")
+        if rtol is None:
+            raise ValueError(f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones")
+        atol = options.get("atol", rtol)
+        fine["rtol"], fine["atol"] = rtol / _TOLERANCE_RATIO, atol / _TOLERANCE_RATIO
+    fine["max_steps"] = 2 * (options.get("max_steps") or _DEFAULT_ADAPTIVE_MAX_STEPS)
+    return fine, _TOLERANCE_RATIO
+

@@ -1,0 +1,176 @@
+"""`lierk.sensitivity`: Jacobians of the final state against the exact flow's
+Jacobian and finite differences, forward against reverse mode, the error
+estimate's calibration, hard states, and bad input."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from helpers import TEE
+
+import lierk
+import lierk.exact
+
+BOX = np.array([1.0, 2.0, 3.0])  # a 1:2:3 box's principal moments (up to scale)
+
+
+def exact_jacobian(inertia, omega0, t1, R0=None):
+    """``dR(t1)/d omega0`` ``(3, 3, 3)`` of the closed form."""
+    return np.asarray(jax.jacfwd(lambda w: lierk.exact.free_rigid_body(inertia, w, t1, R0)[0])(jnp.asarray(omega0)))
+
+
+def near_axis(moments, n, seed=0):
+    """``(n, 3)`` angular velocities within ~11 degrees of the intermediate axis, |omega| in [1, 3]."""
+    axis = int(np.argsort(moments)[1])
+    rng = np.random.default_rng(seed)
+    d = rng.uniform(-0.2, 0.2, (n, 3))
+    d[:, axis] = 1.0
+    return rng.uniform(1.0, 3.0, n)[:, None] * d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize(
+    "inertia, omega0",
+    [(TEE, [1.0, 0.05, 0.3]), (BOX, [0.3, 1.0, 0.2])],
+    ids=["tee", "box"],
+)
+@pytest.mark.parametrize(
+    "solver, options, tol",
+    [
+        (lierk.RKMK4(), dict(dt=0.01), 1e-6),
+        (lierk.DP54(), dict(rtol=1e-10, atol=1e-10), 1e-6),
+        (lierk.Strang(), dict(dt=0.01), 1e-5),
+    ],
+    ids=["RKMK4", "DP54", "Strang"],
+)
+def test_jacobian_matches_the_exact_flow(inertia, omega0, solver, options, tol):
+    s = lierk.sensitivity(lierk.FreeRigidBody(inertia, omega0), solver, 5.0, **options)
+    J = exact_jacobian(inertia, omega0, 5.0)
+    err = np.linalg.norm(np.asarray(s.jacobian_R) - J) / np.linalg.norm(J)
+    assert err < tol
+    # The algebra form is R^T dR, and R(t1) is the solve's own.
+    np.testing.assert_allclose(np.asarray(s.R), lierk.solve(lierk.FreeRigidBody(inertia, omega0), solver, 5.0, **options).R[-1])
+    np.testing.assert_allclose(
+        np.asarray(s.jacobian), np.einsum("ji,jkl->ikl", np.asarray(s.R), J)[[2, 0, 1], [1, 2, 0]], atol=10 * tol * np.abs(J).max()
+    )
+    # The error estimate is the error, within the bounds the module promises.
+    true = np.linalg.norm(np.asarray(s.jacobian_R) - J)
+    assert true / 10 <= float(s.error_estimate) <= 100 * true
+
+
+def test_forward_and_reverse_modes_agree():
+    body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
+    for solver, options in [(lierk.RKMK4(), dict(dt=0.02)), (lierk.DP54(), dict(rtol=1e-9, atol=1e-9))]:
+        f = lierk.sensitivity(body, solver, 3.0, estimate_error=False, **options)
+        r = lierk.sensitivity(body, solver, 3.0, estimate_error=False, mode="reverse", **options)
+        np.testing.assert_allclose(np.asarray(r.jacobian), np.asarray(f.jacobian), rtol=1e-11, atol=1e-11)
+        np.testing.assert_allclose(np.asarray(r.jacobian_y), np.asarray(f.jacobian_y), rtol=1e-11, atol=1e-13)
+
+
+def test_error_estimate_is_calibrated_on_a_near_axis_batch():
+    """Within 10x of the true Jacobian error for at least 90% of members
+    whose error is above 1e-12, and never below 1/100 of it."""
+    omegas = near_axis(np.diag(TEE), 24)
+    body = lierk.FreeRigidBody(TEE, omegas[0])
+    J_exact = jax.vmap(lambda w: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(TEE, v, 10.0)[0])(w))(jnp.asarray(omegas))
+    for solver, options in [(lierk.RKMK4(), dict(dt=0.02)), (lierk.DP54(), dict(rtol=1e-8, atol=1e-8))]:
+        s = jax.vmap(lambda w: lierk.sensitivity(body.with_omega0(w), solver, 10.0, **options))(jnp.asarray(omegas))
+        true = np.sqrt(np.sum((np.asarray(s.jacobian_R) - np.asarray(J_exact)) ** 2, axis=(1, 2, 3)))
+        est = np.asarray(s.error_estimate)
+        keep = true > 1e-12
+        assert keep.sum() >= 20
+        ratio = est[keep] / true[keep]
+        assert np.mean((ratio > 0.1) & (ratio < 10)) >= 0.9, ratio
+        assert ratio.min() >= 0.01, ratio
+
+
+def test_vmap_matches_a_python_loop():
+    omegas = near_axis(BOX, 3, seed=1)
+    body = lierk.FreeRigidBody(BOX, omegas[0])
+    f = lambda w: lierk.sensitivity(body.with_omega0(w), lierk.RKMK4(), 2.0, dt=0.05, estimate_error=False)  # noqa: E731
+    batched = jax.vmap(f)(jnp.asarray(omegas))
+    for k, w in enumerate(omegas):
+        one = f(jnp.asarray(w))
+        np.testing.assert_allclose(np.asarray(batched.jacobian[k]), np.asarray(one.jacobian), rtol=1e-12, atol=1e-14)
+
+
+def test_other_inputs_against_finite_differences():
+    """R0 against the exact flow; the inertia and an effect's parameter against
+    central differences of the solve itself."""
+    w0 = np.array([0.3, 1.0, 0.2])
+    s = lierk.sensitivity(lierk.FreeRigidBody(BOX, w0), lierk.RKMK4(), 2.0, dt=0.01, wrt="R0")
+    J = jax.jacfwd(lambda p: lierk.exact.free_rigid_body(BOX, w0, 2.0, lierk.so3.exp(p))[0])(jnp.zeros(3))
+    assert np.linalg.norm(np.asarray(s.jacobian_R) - np.asarray(J)) < 1e-7 * np.linalg.norm(J)
+
+    def R_of(problem):
+        return np.asarray(lierk.solve(problem, lierk.RKMK4(), 2.0, dt=0.01).R[-1])
+
+    s = lierk.sensitivity(lierk.FreeRigidBody(BOX, w0), lierk.RKMK4(), 2.0, dt=0.01, wrt="inertia", estimate_error=False)
+    dI = np.array([[0.1, 0.02, 0.0], [0.02, -0.05, 0.03], [0.0, 0.03, 0.07]])
+    e = 1e-6
+    fd = (R_of(lierk.FreeRigidBody(np.diag(BOX) + e * dI, w0)) - R_of(lierk.FreeRigidBody(np.diag(BOX) - e * dI, w0))) / (2 * e)
+    np.testing.assert_allclose(np.einsum("ijkl,kl->ij", np.asarray(s.jacobian_R), dI), fd, atol=1e-8)
+
+    def top(mass):
+        return lierk.RigidBodyWithEffects(
+            BOX, [0.0, 0.5, 3.0], lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
+            effects=(lierk.Gravity([0.0, 0.1, 0.5], mass, 9.81),),
+        )
+
+    s = lierk.sensitivity(top(2.0), lierk.RKMK4(), 1.0, dt=0.005, wrt=lambda p: p.effects[0].mass, estimate_error=False)
+    sol = lambda m: np.asarray(lierk.solve(top(m), lierk.RKMK4(), 1.0, dt=0.005).R[-1])  # noqa: E731
+    fd = (sol(2.0 + e) - sol(2.0 - e)) / (2 * e)
+    np.testing.assert_allclose(np.asarray(s.jacobian_R), fd, atol=1e-7)
+
+
+@pytest.mark.parametrize(
+    "solver, options",
+    [(lierk.RKMK4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-9, atol=1e-9)), (lierk.Strang(), dict(dt=0.05))],
+    ids=["RKMK4", "DP54", "Strang"],
+)
+def test_hard_states(solver, options):
+    """At rest, a small perturbation turns the body steadily: J = T I exactly.
+    A sphere turns steadily at any spin: its Lyapunov exponent is 0.  Both
+    stay finite on the separatrix."""
+    T = 2.0
+    rest = lierk.sensitivity(lierk.FreeRigidBody(BOX, [0.0, 0.0, 0.0]), solver, T, **options)
+    np.testing.assert_allclose(np.asarray(rest.jacobian), T * np.eye(3), atol=1e-9)
+    sphere = lierk.sensitivity(lierk.FreeRigidBody([2.0, 2.0, 2.0], [0.3, -1.0, 0.5]), solver, T, **options)
+    assert abs(float(sphere.lyapunov_exponent)) < 1e-8
+    # On the separatrix of the 1:2:3 box: |m|^2 = 2 E I2.
+    m = np.array([1.0, 0.0, np.sqrt((2.0 - 1.0) / (3.0 - 2.0) * 3.0 / 1.0)])
+    sep = lierk.sensitivity(lierk.FreeRigidBody(BOX, m / BOX), solver, T, **options)
+    assert np.all(np.isfinite(np.asarray(sep.jacobian)))
+    # The reference: central differences of the closed form, whose branch on
+    # the separatrix itself does not see perturbations off it.
+    R_exact = lambda w: np.asarray(lierk.exact.free_rigid_body(BOX, w, T)[0])  # noqa: E731
+    e = 1e-6
+    J = np.stack([(R_exact(m / BOX + e * d) - R_exact(m / BOX - e * d)) / (2 * e) for d in np.eye(3)], -1)
+    assert np.linalg.norm(np.asarray(sep.jacobian_R) - J) < 1e-4 * np.linalg.norm(J)
+
+
+def test_float32():
+    w0 = np.array([0.3, 1.0, 0.2], np.float32)
+    s = lierk.sensitivity(lierk.FreeRigidBody(BOX.astype(np.float32), w0), lierk.RKMK4(), 2.0, dt=0.02)
+    assert s.jacobian.dtype == jnp.float32
+    J = exact_jacobian(BOX, w0.astype(float), 2.0)
+    err = np.linalg.norm(np.asarray(s.jacobian_R, float) - J) / np.linalg.norm(J)
+    assert err < 1e-4
+    assert np.isfinite(float(s.error_estimate))
+
+
+def test_bad_input_is_refused_with_a_reason():
+    body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
+    with pytest.raises(ValueError, match="target_error"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, target_error=1e-6)
+    with pytest.raises(ValueError, match="wrt must be one of"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt="omega")
+    with pytest.raises(ValueError, match="not an input"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt=lambda p: p.omega0)
+    with pytest.raises(ValueError, match="mode must be"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, mode="sideways")
+    with pytest.raises(ValueError, match="saveat"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, saveat=lierk.SaveAt(steps=True))
+    with pytest.raises(ValueError, match="lyapunov_exponent needs"):
+        lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt="inertia", estimate_error=False).lyapunov_exponent
