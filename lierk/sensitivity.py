@@ -88,7 +88,7 @@ class Sensitivity(eqx.Module):
         intermediate axis) give a positive exponent.  Only for
         ``wrt="omega0"`` (or another ``(3,)`` input)."""
         J = self.jacobian
-        if not (isinstance(J, jax.Array | np.ndarray) and J.shape[-2:] == (3, 3)):
+        if not (isinstance(J, jax.Array | np.ndarray) and J.ndim == self.R.ndim and J.shape[-2:] == (3, 3)):
             raise ValueError("lyapunov_exponent needs the Jacobian with respect to a (3,) input such as omega0")
         T = self.t1 - self.t0
         sigma = jnp.linalg.svd(J, compute_uv=False)[..., 0]
@@ -118,7 +118,7 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
             )
         try:
             eqx.tree_at(wrt, problem, p0)
-        except ValueError:
+        except (ValueError, TypeError):  # a derived value: tree_at finds no leaf, or a property fails on its wrappers
             raise ValueError(
                 "wrt= selects something that is not an input of the problem (a derived value, such as a property, "
                 f"cannot be perturbed); select a field, or use one of {_INPUTS}"
