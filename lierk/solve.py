@@ -24,9 +24,9 @@ from .solvers.base import AbstractSolver
 __all__ = ["solve"]
 
 _DEFAULT_ADAPTIVE_MAX_STEPS = 4096
-# Fixed-step runs of at least this many steps squared are checkpointed in
+# Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`_solve_fixed`).
-_CHECKPOINT_BLOCK_MIN = 32
+_CHECKPOINT_BLOCK_MIN = 16
 
 
 def solve(
