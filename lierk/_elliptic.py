@@ -23,7 +23,9 @@ Algorithms:
   series),
   ``dn(u) = pi/(2K') sum_n sech(pi (u - 2nK) / (2K'))``,
   ``cn(u) = pi/(2kK') sum_n (-1)^n sech(pi (u - 2nK) / (2K'))``,
-  and ``sn(u) = cn(K - u) / dn(K - u)``.  Near ``m = 1`` the A&S recursion
+  and ``sn(u) = pi/(2kK') [tanh(pi u/(2K')) + 4 sum_{n>=1} (-1)^n q'^(2n)
+  sinh(n pi u/K') / (1 + q'^(2n))]``, ``q' = exp(-pi K/K')``, whose derivative
+  in ``m`` stays accurate as ``m -> 1``.  Near ``m = 1`` the A&S recursion
   loses digits (its first step evaluates ``asin`` next to 1); the series does not,
   and at ``m1 = 0`` it reduces to ``sech``/``tanh``.  ``m1 == 0`` exactly is
   returned in closed form.
@@ -132,12 +134,13 @@ def _landen(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array]:
     """A&S 16.4 for moderate m: ``(sn, cn, dn)``; accurate for ``m <= 0.9``."""
     a = jnp.ones_like(m)
     b = jnp.sqrt(m1)
-    c = _safe_sqrt(m)
+    c2 = m  # c_0^2: m itself, not sqrt(m)^2, so the derivative in m is right at m = 0
     ratios = []
     for _ in range(_LANDEN_STEPS):
         a_new = 0.5 * (a + b)
         # c_{n+1} = (a_n - b_n)/2 = c_n^2 / (4 a_{n+1}) without the cancellation.
-        c = c * c / (4.0 * a_new)
+        c = c2 / (4.0 * a_new)
+        c2 = c * c
         b = jnp.sqrt(a * b)
         a = a_new
         ratios.append(c / a)
@@ -168,10 +171,51 @@ def _series(u: Array, m: Array, m1: Array, K: Array) -> tuple[Array, Array, Arra
         return scale * jnp.sum(alt * s, -1) / k, scale * jnp.sum(s, -1)
 
     cn, dn = cn_dn(u)
-    cn_c, dn_c = cn_dn(K - u)
     # dn > 0 everywhere, cn >= 0 on [-K, K]: rounding only in the last ulp.
     cn = jnp.maximum(cn, 0.0)
-    sn = cn_c / dn_c
+    # sn from its own series (the Fourier series of sc, DLMF 22.11, under
+    # Jacobi's imaginary transformation, DLMF table 22.6.1):
+    #   sn = scale/k [tanh(scale u) + 4 sum_{n>=1} (-1)^n q'^2n sinh(2 n scale u) / (1 + q'^2n)],
+    # q' = exp(-2 scale K), each product formed from exponents <= 0.  Not
+    # cn(K - u)/dn(K - u): equal in value, but there the derivative in m
+    # goes through dK/dm ~ 1/(2 m1) twice and cancels, leaving rounding/m1
+    # (0.1 at m1 = 1e-16, next to the rigid body's separatrix).
+    p = n[_SERIES_TERMS + 1 :]
+    alt_p = alt[_SERIES_TERMS + 1 :]
+    two = 2.0 * scale[..., None]
+    Kx, ux = K[..., None], u[..., None]
+    terms = 0.5 * (jnp.exp(two * p * (ux - 2.0 * Kx)) - jnp.exp(-two * p * (ux + 2.0 * Kx)))
+    terms = terms / (1.0 + jnp.exp(-2.0 * two * p * Kx))
+    sn = scale / k * (jnp.tanh(scale * u) + 4.0 * jnp.sum(alt_p * terms, -1))
+    return sn, cn, dn
+
+
+def _separatrix(u: Array, m1: Array) -> tuple[Array, Array, Array]:
+    """``sn, cn, dn`` at ``m = 1`` (``tanh, sech, sech``), with the derivative
+    in ``m1 = 1 - m`` of the functions themselves.
+
+    The values are exactly ``tanh u``, ``sech u``, ``sech u``; the first-order
+    terms of A&S 16.15.1-3,
+
+        sn = tanh u + m1/4 (tanh u - u sech^2 u),
+        cn = sech u - m1/4 tanh u (sinh u - u sech u),
+        dn = sech u + m1/4 tanh u (sinh u + u sech u),
+
+    are added multiplied by ``m1 - stop_gradient(m1)``, which is zero but has
+    the derivative of ``m1``: so jvp and vjp see ``d/dm1`` (without it the
+    separatrix of the rigid body got no derivative with respect to the
+    energy).  ``sinh`` is capped below overflow (the derivative there is
+    ~1e300 anyway), so the zero term never turns into ``0 * inf``.
+    """
+    eps = m1 - lax.stop_gradient(m1)
+    sech = _sech(u)
+    tanh = jnp.tanh(u)
+    cap = math.log(jnp.finfo(u.dtype).max) - 1.0
+    sinh = jnp.sinh(jnp.clip(u, -cap, cap))
+    usech = u * sech
+    sn = tanh + (0.25 * eps) * (tanh - usech * sech)
+    cn = sech - (0.25 * eps) * tanh * (sinh - usech)
+    dn = sech + (0.25 * eps) * tanh * (sinh + usech)
     return sn, cn, dn
 
 
@@ -203,10 +247,10 @@ def _ellipj_reduced(u: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None):
     sn_s, cn_s, dn_s = _series(ur, mS, m1S, K)
 
     us = jnp.where(sep, u, 0.0)
-    sech = _sech(us)
-    sn = jnp.where(sep, jnp.tanh(us), jnp.where(series, sn_s, sn_l))
-    cn = jnp.where(sep, sech, jnp.where(series, cn_s, cn_l))
-    dn = jnp.where(sep, sech, jnp.where(series, dn_s, dn_l))
+    sn_1, cn_1, dn_1 = _separatrix(us, jnp.where(sep, m1, 0.0))
+    sn = jnp.where(sep, sn_1, jnp.where(series, sn_s, sn_l))
+    cn = jnp.where(sep, cn_1, jnp.where(series, cn_s, cn_l))
+    dn = jnp.where(sep, dn_1, jnp.where(series, dn_s, dn_l))
     j = jnp.where(sep, 0.0, j)
     K = jnp.where(sep, jnp.inf, K)
     return sn, cn, dn, j, K

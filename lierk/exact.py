@@ -68,8 +68,10 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jax import Array
+from jax.custom_derivatives import SymbolicZero
 from jax.typing import ArrayLike
 
 from lierk import so3
@@ -167,7 +169,10 @@ def _working_constants(inertia: Array, omega0: Array):
     # choice of frame), so none loses digits to cancellation.
     P = x * x / J1 + y * y * r / J2
     Qv = y * y * (1.0 - r) / J2 + z * z / J3
-    d = jnp.maximum(z * z * r / J3 - x * x * (1.0 - r) / J1, 0.0)
+    # (A where, not jnp.maximum: on the separatrix, d = 0, the derivative must
+    # be that of the expression, not maximum's half of it.)
+    d = z * z * r / J3 - x * x * (1.0 - r) / J1
+    d = jnp.where(d >= 0, d, 0.0)
     rQ = r * Qv
 
     stat = (rQ <= 0) | ((x == 0) & (z == 0))
@@ -282,9 +287,159 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
 
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
     """`free_rigid_body` on inputs that are already checked."""
+    return _free_motion_ad(inertia, omega0, jnp.asarray(t, dtype=inertia.dtype), R0)
+
+
+@jax.custom_jvp
+def _free_motion_ad(inertia: Array, omega0: Array, t: Array, R0: Array) -> tuple[Array, Array]:
+    """`_closed_form` with the derivative of the flow at permanent rotations
+    (`_permanent_rotation_jvp`)."""
+    out, _ = _closed_form(inertia, omega0, t, R0)
+    return out
+
+
+def _free_motion_jvp(primals, tangents):
+    # Off the permanent rotations: differentiate the closed form.  Inputs
+    # without a tangent stay constants (instantiated zero tangents would send
+    # the inertia's zero through eigh's derivative, which is NaN for equal
+    # moments: symmetric bodies and the sphere).
+    live = [not isinstance(d, SymbolicZero) for d in tangents]
+
+    def closed(*args):
+        it = iter(args)
+        full = [next(it) if lv else p for p, lv in zip(primals, live)]
+        return _closed_form(*full)
+
+    (R, omega), (dR, domega), permanent = jax.jvp(
+        closed,
+        tuple(p for p, lv in zip(primals, live) if lv),
+        tuple(d for d, lv in zip(tangents, live) if lv),
+        has_aux=True,
+    )
+    # Within sqrt(eps) of a permanent rotation (m0 and omega0 at an angle
+    # below it: rounding in a rotated inertia, say) the closed form's
+    # derivative has lost about eps/angle to cancellation, and the
+    # linearisation is off by about the angle: it is taken from there on.
+    inertia, omega0 = primals[0], primals[1]
+    m0 = inertia @ omega0
+    tol = _NEAR_PERMANENT(R.dtype)
+    near = _norm(so3.cross(m0, omega0)) <= tol * _norm(m0) * _norm(omega0)
+    permanent = permanent | near
+    dense = [jnp.zeros_like(p) if not lv else d for p, d, lv in zip(primals, tangents, live)]
+    sR, somega = _permanent_rotation_jvp(*primals, R, *dense, permanent)
+    dR = jnp.where(permanent, sR, dR)
+    domega = jnp.where(permanent, somega, domega)
+    return (R, omega), (dR, domega)
+
+
+_free_motion_ad.defjvp(_free_motion_jvp, symbolic_zeros=True)
+
+
+def _NEAR_PERMANENT(dtype) -> float:
+    return math.sqrt(float(jnp.finfo(dtype).eps))
+
+
+def _norm(v: Array) -> Array:
+    return jnp.sqrt(jnp.sum(v * v, axis=-1))
+
+
+def _sinc_family(z: Array) -> tuple[Array, Array, Array]:
+    """``(sigma, rho, phi)`` of ``z = s t^2`` (any sign): the entire functions
+    ``sigma = sum (-z)^k/(2k+1)!``, ``rho = sum (-z)^k/(2k+2)!``,
+    ``phi = sum (-z)^k/(2k+3)!``, i.e. ``sin(r)/r``, ``(1 - cos r)/r^2`` and
+    ``(r - sin r)/r^3`` with ``r = sqrt(z)`` (``sinh`` and ``cosh`` for
+    ``z < 0``), by their series for ``|z| < 1``."""
+    small = jnp.abs(z) < 1.0
+    zs = jnp.where(small, z, 0.0)
+    sigma = rho = phi = jnp.zeros_like(z)
+    term = jnp.ones_like(z)
+    # 12 terms: the first omitted one of phi is 1/27! < 1e-28.
+    for k in range(12):
+        sigma = sigma + term * (1.0 / math.factorial(2 * k + 1))
+        rho = rho + term * (1.0 / math.factorial(2 * k + 2))
+        phi = phi + term * (1.0 / math.factorial(2 * k + 3))
+        term = term * (-zs)
+    pos = z > 0
+    zl = jnp.where(small, 1.0, jnp.abs(z))
+    r = jnp.sqrt(zl)
+    sin, half = jnp.where(pos, jnp.sin(r), jnp.sinh(r)), jnp.where(pos, jnp.sin(0.5 * r), jnp.sinh(0.5 * r))
+    sign = jnp.where(pos, 1.0, -1.0)
+    sigma_l = sin / r
+    rho_l = 2.0 * half * half / zl
+    phi_l = sign * (r - sin) / (zl * r)
+    return (jnp.where(small, sigma, sigma_l), jnp.where(small, rho, rho_l), jnp.where(small, phi, phi_l))
+
+
+def _permanent_rotation_jvp(inertia, omega0, t, R0, R, d_inertia, d_omega0, dt, dR0, permanent):
+    """Tangent of ``(R(t), omega(t))`` at a permanent rotation: ``m0`` an
+    eigenvector of the inertia (any ``m0`` of a sphere, ``m0 = 0`` too).
+
+    There the closed form is not differentiable in its own variables (the
+    phase of ``m`` about the axis, the amplitude ``|m_perp|``), although the
+    flow is smooth.  The tangent comes from the variational equation instead,
+    which has constant coefficients there (``omega = omega0`` and ``m = m0``
+    are constant).  With ``R -> R (1 + hat(xi))``, ``m -> m + dm`` and
+    ``f = d(I^-1) m0`` (the inertia's own tangent):
+
+        dm' = A dm + m0 x f,   A = hat(m0) I^-1 - hat(omega0),
+        xi' = -omega0 x xi + I^-1 dm + f.
+
+    ``A = |m0| N`` with ``N = hat(e) (I^-1 - 1/mu)``, ``e = m0/|m0|``,
+    ``I e = mu e``, and ``N^2 = -delta (1 - e e^T)`` (``N`` turns the plane
+    normal to ``e`` and kills ``e``), so ``exp(t A) = 1 + t sigma A + t^2 rho
+    A^2`` with the functions of ``z = |m0|^2 delta t^2`` of `_sinc_family`.
+    ``xi``'s component along ``e`` grows linearly; the rest follows from the
+    conservation of the spatial momentum, ``xi x m0 + dm(t) = exp(-t
+    hat(omega0)) dm(0)``, written so that nothing is divided by ``|m0|``: at
+    rest ``xi = t (I^-1 dm(0) + f)`` and ``dm(t) = dm(0)``.  Shapes as
+    `_closed_form`'s; the values at other states are finite and unused.
+    """
+    dtype = R.dtype
+    I = 0.5 * (inertia + inertia.T)
+    Iinv = jnp.linalg.inv(I)
+    m = inertia @ omega0
+    dm0 = d_inertia @ omega0 + inertia @ d_omega0
+    f = -Iinv @ (0.5 * (d_inertia + d_inertia.T)) @ omega0
+    G2 = jnp.sum(m * m)
+    pos = permanent & (G2 > 0)
+    G = jnp.where(pos, jnp.sqrt(jnp.where(pos, G2, 1.0)), 0.0)
+    e = jnp.where(pos, m / jnp.where(pos, G, 1.0), jnp.array([1.0, 0.0, 0.0], dtype))
+    E = so3.hat(e)
+    mu = e @ I @ e
+    N = E @ (Iinv - jnp.eye(3, dtype=dtype) / mu)
+    N2 = N @ N
+    delta = -0.5 * jnp.trace(N2)
+    w = G / mu
+
+    tt = t[..., None]
+    sig, rho, phi = _sinc_family(G2 * jnp.where(permanent, delta, 0.0) * t * t)
+    sig_w, rho_w, _ = _sinc_family((w * t) ** 2)
+    sig, rho, phi, sig_w, rho_w = (a[..., None] for a in (sig, rho, phi, sig_w, rho_w))
+    Ndm, N2dm = N @ dm0, N2 @ dm0
+    ef = jnp.cross(e, f)
+    Nef, N2ef = N @ ef, N2 @ ef
+    # exp(t A) dm0 - dm0 and int_0^t exp(s A) ds (m0 x f), both over |m0|.
+    growth = tt * sig * Ndm + tt**2 * rho * G * N2dm
+    forced = tt * ef + tt**2 * rho * G * Nef + tt**3 * phi * G2 * N2ef
+    dm_t = dm0 + G * (growth + forced)
+    # (exp(-t hat(omega0)) - 1) dm0 / |m0|.
+    Edm = E @ dm0
+    turn = -(tt * sig_w / mu) * Edm + (tt**2 * rho_w * w / mu) * (E @ Edm)
+    v = turn - growth - forced  # (xi x m0)/|m0|
+    xi = jnp.cross(e, v) + (tt * (e @ (Iinv @ dm0) + e @ f)) * e + dt[..., None] * omega0
+    # Q = R0^T R = exp(t hat(omega0)).
+    Ew = tt * sig_w * w
+    Q = jnp.eye(3, dtype=dtype) + Ew[..., None] * E + (tt**2 * rho_w * w * w)[..., None] * (E @ E)
+    dR = dR0 @ Q + R @ so3.hat(xi)
+    domega = dm_t @ Iinv.T + f
+    return dR, domega
+
+
+def _closed_form(inertia: Array, omega0: Array, t: Array, R0: Array):
+    """The closed form: ``((R, omega), permanent)``, ``permanent`` flagging
+    a permanent rotation (`_permanent_rotation_jvp`)."""
     c = _working_constants(inertia, omega0)
     dtype = c["dtype"]
-    t = jnp.asarray(t, dtype=dtype)
     J, W = c["J"], c["W"]
     J1, J2, J3 = J[0], J[1], J[2]
     x, y, z = c["x"], c["y"], c["z"]
@@ -351,7 +506,11 @@ def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Ar
     S0 = R0 @ W @ P0.T
     R = S0 @ _rz(psi) @ Pt @ W.T
     omega = (m_t / J) @ W.T
-    return R, omega
+    # m0 an eigenvector of the inertia: on the intermediate axis or in the
+    # plane of two equal moments (stat), along the working e3 (P = 0; this
+    # includes rest), or any m0 of a sphere (lam = 0).
+    permanent = stat | (c["P"] <= 0) | (lam == 0)
+    return (R, omega), permanent
 
 
 def flip_interval(inertia: ArrayLike, omega0: ArrayLike) -> Array:

@@ -58,6 +58,17 @@ def scipy_reference_R(inertia, omega0, t1, R0=None, rtol=1e-13):
     return sol.y[:, -1].reshape(3, 3)
 
 
+def fd_jacobian(f, x, h=1e-3):
+    """Fourth-order central differences of ``f`` at ``x`` ``(n,)``, one column
+    per input direction (the last axis): truncation ~h^4, rounding ~1e-16/h."""
+    x = np.asarray(x, dtype=float)
+    cols = []
+    for e in np.eye(x.size):
+        v = [np.asarray(f(x + k * h * e)) for k in (2, 1, -1, -2)]
+        cols.append((-v[0] + 8 * v[1] - 8 * v[2] + v[3]) / (12 * h))
+    return np.stack(cols, -1)
+
+
 def order_fit(hs, errs) -> float:
     """Slope of log(error) against log(h)."""
     return float(np.polyfit(np.log(hs), np.log(errs), 1)[0])

@@ -10,7 +10,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import ADAPTIVE_SOLVERS, OMEGA_GENERIC, TEE, scipy_reference_R
+from helpers import ADAPTIVE_SOLVERS, OMEGA_GENERIC, TEE, fd_jacobian, scipy_reference_R
 
 import lierk
 import lierk.exact
@@ -239,15 +239,6 @@ def final_R(omega, adjoint=None):
     body = lierk.FreeRigidBody(TEE, omega)
     # A small max_steps keeps the checkpointed reverse pass cheap (~20 steps needed).
     return lierk.solve(body, lierk.DOP853(), T_GRAD, rtol=1e-12, max_steps=200, adjoint=adjoint).R[-1]
-
-
-def fd_jacobian(f, x, eps=1e-3):
-    """Fourth-order central differences (columns = input directions)."""
-    cols = []
-    for i in range(x.shape[0]):
-        e = jnp.zeros_like(x).at[i].set(eps)
-        cols.append((-f(x + 2 * e) + 8 * f(x + e) - 8 * f(x - e) + f(x - 2 * e)) / (12 * eps))
-    return jnp.stack(cols, axis=-1)
 
 
 @pytest.fixture(scope="module")

@@ -19,6 +19,7 @@ from scipy.optimize import brentq  # noqa: E402
 
 from lierk import _elliptic as E  # noqa: E402
 from lierk import exact, so3  # noqa: E402
+from helpers import fd_jacobian  # noqa: E402
 
 # Jitted once at module level: each compiles once per shape/dtype and is then
 # reused by every test (the unjitted graph takes seconds per eager call).
@@ -303,6 +304,145 @@ def test_derivatives(name):
     assert np.abs(dR - np.asarray(R @ so3.hat(om))).max() < 1e-13
     fd = (np.asarray(frb(inertia, omega0, t + 1e-5)[0]) - np.asarray(frb(inertia, omega0, t - 1e-5)[0])) / 2e-5
     assert np.abs(fd - dR).max() < 1e-8
+
+
+jac_rev = jax.jit(jax.jacrev(_flat, argnums=1))
+
+
+flat = jax.jit(_flat)
+DIAG123 = np.diag([1.0, 2.0, 3.0])
+_Q_ROT = _rot(5)
+# Steady states, where the closed form's own variables (phase of m about the
+# axis, its amplitude, the modulus k) are singular although the flow is smooth.
+STEADY = {
+    "rest": (DIAG123, [0.0, 0.0, 0.0]),
+    "slow_spin_axis0": (DIAG123, [1e-3, 0.0, 0.0]),
+    "axis0": (DIAG123, [1.0, 0.0, 0.0]),
+    "axis1_intermediate": (DIAG123, [0.0, 1.0, 0.0]),
+    "axis2": (DIAG123, [0.0, 0.0, 1.0]),
+    "symmetric_about_its_axis": (np.diag([1.0, 1.0, 2.0]), [0.0, 0.0, 1.0]),
+    "symmetric_transverse": (np.diag([1.0, 1.0, 2.0]), [1.0, 0.0, 0.0]),
+    "symmetric_transverse_oblique": (np.diag([1.0, 1.0, 2.0]), [0.6, 0.8, 0.0]),
+    "sphere": (np.diag([2.0, 2.0, 2.0]), [0.3, -1.0, 2.0]),
+    "sphere_at_rest": (np.diag([2.0, 2.0, 2.0]), [0.0, 0.0, 0.0]),
+    # A rotated inertia: rounding puts omega0 = Q e_i ~1e-16 off the axis.
+    "rotated_axis0": (_Q_ROT @ DIAG123 @ _Q_ROT.T, _Q_ROT[:, 0]),
+    "rotated_axis1": (_Q_ROT @ DIAG123 @ _Q_ROT.T, _Q_ROT[:, 1]),
+    "rotated_at_rest": (_Q_ROT @ DIAG123 @ _Q_ROT.T, [0.0, 0.0, 0.0]),
+    # Exactly on the separatrix (d = 0 in floating point): diag(4, 6.5, 9)
+    # has r = 1/2 and m = (12, ., 18) gives m3^2 r/I3 = m1^2 (1 - r)/I1 = 18.
+    "separatrix": (np.diag([4.0, 6.5, 9.0]), [3.0, 0.5, 2.0]),
+    "separatrix_through_axis1": (np.diag([4.0, 6.5, 9.0]), [3.0, 0.0, 2.0]),
+}
+
+
+@pytest.mark.parametrize("name", list(STEADY))
+def test_jacobian_at_rest_steady_spin_and_separatrix(name):
+    """d(R(t), omega(t))/d omega0 by jacfwd and jacrev against finite
+    differences.  Before the fix: rest J = 0 (should be ~t), axis0 off by
+    3.2, slow spin |J| = 3000, the separatrix off by 1."""
+    inertia, w = STEADY[name]
+    w = np.asarray(w, float)
+    t = 2.0
+    ref = fd_jacobian(lambda v: flat(inertia, v, t), w)
+    scale = np.abs(ref).max()
+    for jac in (jac_fwd, jac_rev):
+        J = np.asarray(jac(inertia, jnp.asarray(w), t))
+        assert np.isfinite(J).all()
+        assert np.abs(J - ref).max() < 1e-7 * scale, (jac, np.abs(J - ref).max(), scale)
+    if name in ("rest", "sphere_at_rest", "rotated_at_rest"):
+        # At rest R(t) = exp(t hat(omega0)) to first order: dR/d omega0_k = t hat(e_k).
+        J = np.asarray(jac_fwd(inertia, jnp.asarray(w), t))[:9].reshape(3, 3, 3)
+        for k in range(3):
+            np.testing.assert_allclose(J[..., k], t * _hat(np.eye(3)[k]), atol=1e-13)
+
+
+def _flat_at_times(w, ts, R0):
+    R, om = exact.free_rigid_body(DIAG123, w, ts, R0)
+    return jnp.concatenate([R.reshape(-1), om.reshape(-1)])
+
+
+_flat_at_times_jit = jax.jit(_flat_at_times)
+# One program for the three derivatives (each Jacobian of the closed form
+# takes ~10 s to compile); jacrev is tested on the same states above.
+_at_times_jac = jax.jit(jax.jacfwd(_flat_at_times, argnums=(0, 1, 2)))
+
+
+def test_jacobian_at_steady_spin_with_times_and_attitude():
+    """Several times at once, a general R0, and the derivatives in t and R0
+    at a steady spin about the intermediate axis and at rest."""
+    R0 = np.asarray(so3.exp(jnp.array([0.3, -0.5, 0.2])))
+    ts = np.array([0.0, 0.7, 2.0])
+    for w in ([0.0, 1.0, 0.0], [0.0, 0.0, 0.0]):
+        w = np.asarray(w, float)
+        ref = fd_jacobian(lambda v: _flat_at_times_jit(v, ts, R0), w)
+        J, dt, dR0 = (np.asarray(a) for a in _at_times_jac(w, ts, R0))
+        assert np.abs(J - ref).max() < 1e-7 * np.abs(ref).max()
+        # d/dt: R hat(omega), and omega constant.
+        R, om = (np.asarray(a) for a in exact.free_rigid_body(DIAG123, w, ts, R0))
+        for i in range(len(ts)):
+            np.testing.assert_allclose(dt[:27].reshape(3, 3, 3, 3)[i, :, :, i], R[i] @ _hat(om[i]), atol=1e-13)
+        # d/dR0 is R0 -> R0 exp(t hat(omega0)), linear: at t = 2 (the last time).
+        g = dR0[:27].reshape(3, 3, 3, 3, 3)[2]
+        E = np.asarray(so3.exp(2.0 * jnp.asarray(w)))
+        np.testing.assert_allclose(g, np.einsum("ac,db->abcd", np.eye(3), E), atol=1e-12)
+
+
+def test_jacobian_in_float32_at_rest_steady_spin_and_separatrix():
+    """float32: finite, and right to float32's accuracy (measured worst 5e-7
+    of the Jacobian's size, on the separatrix)."""
+    for name in ("rest", "slow_spin_axis0", "axis1_intermediate", "symmetric_about_its_axis", "sphere", "separatrix"):
+        inertia, w = STEADY[name]
+        w = np.asarray(w, float)
+        ref = fd_jacobian(lambda v: flat(inertia, v, 2.0), w)
+        for jac in (jac_fwd, jac_rev):
+            J = jac(jnp.asarray(inertia, jnp.float32), jnp.asarray(w, jnp.float32), jnp.float32(2.0))
+            assert J.dtype == jnp.float32
+            J = np.asarray(J)
+            assert np.isfinite(J).all()
+            assert np.abs(J - ref).max() < 1e-5 * np.abs(ref).max(), (name, np.abs(J - ref).max())
+
+
+_U = np.array([0.0, 0.3, 1.15, 3.0, -2.0])
+
+
+def _sncndn_of_m1(m1):
+    return jnp.stack(E.ellipj(_U, 1.0 - m1, m1)[:3])
+
+
+_sncndn_jacfwd = jax.jit(jax.jacfwd(_sncndn_of_m1))
+_sncndn_jacrev = jax.jit(jax.jacrev(_sncndn_of_m1))
+
+
+@pytest.mark.parametrize("m1", [0.0, 1e-300, 4e-16, 1e-12, 1e-6, 1e-2])
+def test_ellipj_derivative_in_m_near_one(m1):
+    """d(sn, cn, dn)/dm at fixed u next to m = 1: smooth (A&S 16.15 gives the
+    limit), not the rounding/m1 of a derivative through K(m) ~ log(1/m1)."""
+    u = _U
+    d = np.asarray(_sncndn_jacfwd(m1))
+    dr = np.asarray(_sncndn_jacrev(m1))
+    if m1 < 1e-10:
+        th, sh = np.tanh(u), 1.0 / np.cosh(u)
+        ref = 0.25 * np.stack([th - u * sh * sh, -th * (np.sinh(u) - u * sh), th * (np.sinh(u) + u * sh)])
+        tol = 1e-12 + 10 * m1 * np.exp(2 * np.abs(u)).max()
+    else:
+        # Fourth-order differences with h = m1/100: truncation ~(h/m1)^4
+        # (the functions vary on the scale m1), rounding ~1e-16/h.
+        h = 1e-2 * m1
+        v = [np.stack(sp.ellipj(u, 1 - (m1 + k * h))[:3]) for k in (2, 1, -1, -2)]
+        ref = (-v[0] + 8 * v[1] - 8 * v[2] + v[3]) / (12 * h)
+        tol = 1e-7
+    assert np.abs(d - ref).max() < tol
+    assert np.abs(dr - d).max() < 1e-13
+
+
+def test_ellipj_derivative_in_m_at_zero():
+    """At m = 0 (a symmetric body's k) the Landen recursion's derivative in m
+    was zero: sqrt(m)^2 went through a sqrt with a zero derivative at 0.
+    A&S 16.13.1: sn = sin u - m/4 (u - sin u cos u) cos u + O(m^2)."""
+    u = np.linspace(-3.0, 3.0, 13)
+    d = np.asarray(jax.jit(jax.jacfwd(lambda m: E.ellipj(u, m)[0]))(0.0))
+    np.testing.assert_allclose(d, -0.25 * (u - np.sin(u) * np.cos(u)) * np.cos(u), atol=1e-14)
 
 
 def test_invariants():
