@@ -124,12 +124,10 @@ def test_other_inputs_against_finite_differences():
     np.testing.assert_allclose(np.asarray(s.jacobian_R), fd, atol=1e-7)
 
 
-# The splittings are not here: the exact free flow they drift with has a wrong
-# derivative at rest and in steady spin (issue 22, still open).
 @pytest.mark.parametrize(
     "solver, options",
-    [(lierk.RKMK4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-9, atol=1e-9))],
-    ids=["RKMK4", "DP54"],
+    [(lierk.RKMK4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-9, atol=1e-9)), (lierk.Strang(), dict(dt=0.01))],
+    ids=["RKMK4", "DP54", "Strang"],
 )
 def test_hard_states(solver, options):
     """At rest, a small perturbation turns the body steadily: J = T I exactly.
