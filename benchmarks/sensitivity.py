@@ -32,7 +32,8 @@ Programs:
 
 Compilation and a warm-up call are excluded; the median of at least 3 calls,
 more until they add up to 0.25 s.  Writes benchmarks/results/sensitivity.{json,md,png}.
-Run: ``python benchmarks/sensitivity.py`` (about 15 minutes on 2 idle cores);
+Run: ``python benchmarks/sensitivity.py`` (over an hour on 2 idle cores, mostly compiling; results are
+written after each part);
 ``--quick`` checks that it works (tiny batches, two settings each).
 """
 
@@ -377,16 +378,26 @@ def plot(p):
 
 def main():
     OUT.mkdir(parents=True, exist_ok=True)
-    machine = machine_info(diffrax=diffrax.__version__)
-    families = {}
-    for fam in (Tee(), Top()):
+    p = dict(machine=machine_info(diffrax=diffrax.__version__), families={}, reverse_memory=[])
+
+    def save():
+        # After every part: a run stopped part-way (the full one takes over
+        # an hour, mostly compiling) still leaves what it measured.
+        (OUT / "sensitivity.json").write_text(json.dumps(p, indent=1))
+        write_markdown(p)
+        plot(p)
+        print(f"wrote {OUT}/sensitivity.{{json,md,png}}", flush=True)
+
+    fams = [Tee(), Top()]
+    print(f"{fams[0].title}:", flush=True)
+    p["families"][fams[0].name] = run_family(fams[0])
+    save()
+    p["reverse_memory"] = reverse_memory()
+    save()
+    for fam in fams[1:]:
         print(f"{fam.title}:", flush=True)
-        families[fam.name] = run_family(fam)
-    p = dict(machine=machine, families=families, reverse_memory=reverse_memory())
-    (OUT / "sensitivity.json").write_text(json.dumps(p, indent=1))
-    write_markdown(p)
-    plot(p)
-    print(f"wrote {OUT}/sensitivity.{{json,md,png}}")
+        p["families"][fam.name] = run_family(fam)
+        save()
 
 
 if __name__ == "__main__":

@@ -8,7 +8,8 @@ says (`lierk.AbstractProblem.error_tolerance`): the rigid body measures its
 momentum relative to ``|m|``, so tolerances are dimensionless and mean the
 same for any body size.
 
-Tolerances are calibrated to mean global error.  Error-per-step control bounds
+Tolerances are local, calibrated to mean global error on one family only.
+Error-per-step control bounds
 each step's local error, and near the intermediate axis those errors are
 amplified on the way to the end of the run, so how far the global error lands
 from ``tol`` depends on the pair.  Each tableau therefore carries a measured
@@ -16,7 +17,10 @@ from ``tol`` depends on the pair.  Each tableau therefore carries a measured
 estimate is held to ``tol * tolerance_calibration``.  With it the largest
 attitude error on near-axis batches of four very different bodies stays
 between 1x and 10x of ``tol`` for ``tol`` from 1e-6 to 1e-12, for RKF45, DP54
-and DOP853 (``tests/test_accuracy.py``).  The global error estimate
+and DOP853 (``tests/test_accuracy.py``).  Off that family (fast bodies,
+long horizons, torqued bodies) the global error is up to ~1e4 ``tol``
+(``benchmarks/results/tolerance_scope.md``): ``solve(..., target_error=)``
+asks for a global accuracy, and the global error estimate
 (``solve(..., estimate_error=True)``) reports what was actually reached.  All controller arithmetic runs under
 `jax.lax.stop_gradient`: step sizes are not differentiated (otherwise
 ``0 * inf`` turns into NaN on the backward pass).

@@ -297,3 +297,28 @@ def test_target_error_refuses_conflicting_settings():
         lierk.solve(b, lierk.RKMK4(), 1.0, target_error=1e-6, saveat=lierk.SaveAt(steps=True))
     with pytest.raises(ValueError, match="SaveAt"):
         lierk.solve(b, lierk.DP54(), 1.0, rtol=1e-6, estimate_error=True, saveat=lierk.SaveAt(steps=True))
+
+
+def test_float32_target_error_never_claims_a_miss():
+    """float32, near rounding: a result of success means the true error is at
+    most 2x the target, and a target below float32's reach is reported as
+    not reached.  Before: DOP853 at target 3e-6 returned success with a true
+    error of 2.2e-5 and an estimate of 9.8e-7 (the search settled on an rtol
+    below eps, where the finer solve of each pair was the same solve)."""
+    rng = np.random.default_rng(1)
+    bodies = [(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]))]
+    bodies += [(np.diag(rng.uniform(1, 3, 3)), rng.normal(size=3)) for _ in range(2)]
+    T = 10.0
+    for inertia, w in bodies:
+        I32, w32 = inertia.astype(np.float32), w.astype(np.float32)
+        ref = np.asarray(lierk.exact.free_rigid_body(I32.astype(float), w32.astype(float), T)[0])
+        for solver in (lierk.DOP853(), lierk.DP54()):
+            for target in (1e-5, 3e-6, 1e-6):
+                sol = lierk.solve(lierk.FreeRigidBody(I32, w32), solver, T, target_error=target, throw=False)
+                err = np.linalg.norm(np.asarray(sol.R[-1], float) - ref)
+                if int(sol.result) == lierk.RESULTS.successful:
+                    assert err <= 2 * target, (solver.name, target, err, float(sol.error_estimate[-1]))
+                else:
+                    assert int(sol.result) == lierk.RESULTS.target_error_not_reached
+    sol = lierk.solve(lierk.FreeRigidBody(I32, w32), lierk.DOP853(), T, target_error=1e-7, throw=False)
+    assert int(sol.result) == lierk.RESULTS.target_error_not_reached
