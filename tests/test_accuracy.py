@@ -322,3 +322,16 @@ def test_float32_target_error_never_claims_a_miss():
                     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
     sol = lierk.solve(lierk.FreeRigidBody(I32, w32), lierk.DOP853(), T, target_error=1e-7, throw=False)
     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
+
+
+def test_float32_error_estimate_below_the_local_error_floor():
+    """float32, rtol under the 50-eps local-error floor: the estimate's finer
+    solve must really be finer.  Before: both solves of the pair were the
+    same solve, and DOP853 at rtol 1e-5 estimated 4.8e-6 for a true 1.15e-5."""
+    I32, w32 = np.diag([1.0, 2.0, 3.0]).astype(np.float32), np.array([0.3, 1.0, 0.2], np.float32)
+    ref = np.asarray(lierk.exact.free_rigid_body(I32.astype(float), w32.astype(float), 10.0)[0])
+    for solver in (lierk.DOP853(), lierk.DP54()):
+        for tol in (1e-5, 1e-6):
+            sol = lierk.solve(lierk.FreeRigidBody(I32, w32), solver, 10.0, rtol=tol, atol=tol, estimate_error=True)
+            err = np.linalg.norm(np.asarray(sol.R[-1], float) - ref)
+            assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (solver.name, tol, err)
