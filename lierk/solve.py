@@ -374,9 +374,10 @@ def _solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoi
     # and where rounding does, too (their rounding errors are independent).
     # So the larger of twice the gap (two random errors can nearly cancel:
     # the gap alone was 4x low in one of 48 float32 cases) and Richardson's
-    # estimate holds in both regimes.  The twin runs only within reach of rounding (an estimate
-    # below 1e4 eps: always in float32 at useful targets, in float64 below
-    # ~2e-12); under vmap a member that needs it makes the batch pay for it.
+    # estimate holds in both regimes.  The twin runs only within reach of
+    # rounding (an estimate below 1e4 eps: always in float32 at useful
+    # targets, in float64 below ~2e-12); under vmap a member that needs it
+    # makes the batch pay for it.
     def rounding_checked(est):
         s_fine = jnp.abs(s) / (ratio if adaptive else 2.0)
         if adaptive:
