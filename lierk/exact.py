@@ -322,7 +322,7 @@ def _free_motion_jvp(primals, tangents):
     # linearisation is off by about the angle: it is taken from there on.
     inertia, omega0 = primals[0], primals[1]
     m0 = inertia @ omega0
-    tol = _NEAR_PERMANENT(R.dtype)
+    tol = _near_permanent_tolerance(R.dtype)
     near = _norm(so3.cross(m0, omega0)) <= tol * _norm(m0) * _norm(omega0)
     permanent = permanent | near
     dense = [jnp.zeros_like(p) if not lv else d for p, d, lv in zip(primals, tangents, live)]
@@ -335,7 +335,9 @@ def _free_motion_jvp(primals, tangents):
 _free_motion_ad.defjvp(_free_motion_jvp, symbolic_zeros=True)
 
 
-def _NEAR_PERMANENT(dtype) -> float:
+def _near_permanent_tolerance(dtype) -> float:
+    """The sine of the angle between m0 and omega0 below which a state counts
+    as a permanent rotation (see `_free_motion_jvp`): sqrt(eps)."""
     return math.sqrt(float(jnp.finfo(dtype).eps))
 
 
