@@ -323,7 +323,9 @@ def _free_motion_jvp(primals, tangents):
     inertia, omega0 = primals[0], primals[1]
     m0 = inertia @ omega0
     tol = _near_permanent_tolerance(R.dtype)
-    near = _norm(so3.cross(m0, omega0)) <= tol * _norm(m0) * _norm(omega0)
+    # (Norms, not squares: squared products of small momenta underflow in float32.)
+    size = lambda v: jnp.sqrt(so3._sq(v))  # noqa: E731
+    near = size(so3.cross(m0, omega0)) <= tol * size(m0) * size(omega0)
     permanent = permanent | near
     dense = [jnp.zeros_like(p) if not lv else d for p, d, lv in zip(primals, tangents, live)]
     sR, somega = _permanent_rotation_jvp(*primals, R, *dense, permanent)
@@ -339,10 +341,6 @@ def _near_permanent_tolerance(dtype) -> float:
     """The sine of the angle between m0 and omega0 below which a state counts
     as a permanent rotation (see `_free_motion_jvp`): sqrt(eps)."""
     return math.sqrt(float(jnp.finfo(dtype).eps))
-
-
-def _norm(v: Array) -> Array:
-    return jnp.sqrt(jnp.sum(v * v, axis=-1))
 
 
 def _sinc_family(z: Array) -> tuple[Array, Array, Array]:
