@@ -312,11 +312,15 @@ def axis_turn(X: ArrayLike, k: int, phi: ArrayLike) -> Array:
     # a vector turned by the same phi share one evaluation (XLA merges equal
     # expressions; on (..., 1) arrays it made a heavy-top step 3.6x slower).
     extra = (1,) * (X.ndim - 1 - phi.ndim)
-    s, c = (A * phi).reshape(phi.shape + extra), (1.0 - B * phi * phi).reshape(phi.shape + extra)
+    s, c1 = (A * phi).reshape(phi.shape + extra), (-B * phi * phi).reshape(phi.shape + extra)
     i, j = (k + 1) % 3, (k + 2) % 3
     xi, xj = X[..., i], X[..., j]
     out = [X[..., k]] * 3
-    out[i], out[j] = c * xi + s * xj, c * xj - s * xi
+    # x + (turned x - x), with cos phi - 1 formed directly: a turn by the same
+    # phi over and over (a symmetric body's drift, whose phi is set by
+    # conserved quantities) would otherwise scale x by the same rounded
+    # cos^2 + sin^2 every time, a drift of |x| linear in the number of turns.
+    out[i], out[j] = xi + (c1 * xi + s * xj), xj + (c1 * xj - s * xi)
     return jnp.stack(out, axis=-1)
 
 
