@@ -259,19 +259,21 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     ``inertia`` ``(3, 3)`` (kg m^2) and the body momentum ``m`` ``(3,)``
     (kg m^2/s) are taken as valid (no checks: this is a solver's inner step;
     `free_rigid_body` is the checked entry point).  ``Q`` is ``(3, 3)``.
-    ``m_h`` is ``m`` plus the closed form's change over ``h``, so that many
-    drifts in a row conserve the energy and ``|m|`` up to a random walk of
-    roundings (about 1 ulp a drift), without a drift of one sign.
+    ``m_h`` is ``m`` plus the closed form's change over ``h``, so that the
+    rounding of the closed form's constants, the same in every drift, does
+    not add up drift after drift (see the comment in the body).
     """
     omega0 = jnp.linalg.solve(inertia, m)
     # The flow is evaluated at 0 and h, and m moves by the difference.  The
     # closed form's constants (amplitudes, modulus) are functions of the
     # invariants, which hardly change from one drift to the next, so their
     # rounding is the same in every drift: m_h taken from the closed form
-    # itself would drift in energy linearly with the number of drifts (BlanesMoan4 on a
-    # free body: 0.4 ulp a step, all of one sign).  In the difference that
-    # common error cancels, and what is left is the rounding of one addition,
-    # which changes sign from drift to drift (a random walk: Brouwer's law).
+    # itself drifted in energy linearly with the number of drifts (BlanesMoan4
+    # on free bodies: 0.4 to 0.7 ulp a step, of one sign per run).  In the
+    # difference that common error cancels.  What is left is the rounding of
+    # the two evaluations, about 0.7 ulp a drift with a mean of 0.01 to 0.04
+    # ulp (measured on four bodies): 10 to 40 times less drift, but still a
+    # drift over 10^6 steps (benchmarks/results/long_horizon_brouwer.md).
     Q, omega = _free_motion(inertia, omega0, jnp.stack([jnp.zeros_like(h), h]), jnp.eye(3, dtype=m.dtype))
     return Q[1], m + inertia @ (omega[1] - omega[0])
 
