@@ -547,7 +547,7 @@ def run_brouwer(out: Path, T: float = BROUWER_T):
         def energies(w, problem=problem, solver=solver):
             q = problem.with_omega0(w)
             sol = lierk.solve(q, solver, T, dt=BROUWER_DT, saveat=lierk.SaveAt(t0=True, steps=n // BROUWER_SAVES))
-            E = jax.vmap(lambda R, y: q.invariants(R, y)["energy"])(sol.R, sol.y)
+            E = sol.invariants(q)["energy"]
             return sol.ts, E / E[0] - 1.0, sol.result
 
         start = time.perf_counter()
