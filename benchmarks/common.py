@@ -142,6 +142,20 @@ def machine_info(**versions) -> dict:
     }
 
 
+def git_commit() -> str | None:
+    """The commit of the working tree (with "+changes" if it differs), or
+    None outside a git checkout: which code a stored row was measured with."""
+    import subprocess
+
+    here = Path(__file__).resolve().parent
+    try:
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "../lierk"], cwd=here, capture_output=True, text=True)
+    except (OSError, subprocess.CalledProcessError):
+        return None
+    return rev.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
+
+
 # --- MuJoCo states -------------------------------------------------------------
 #
 # One body on a ball joint: qpos is the body -> world quaternion (w, x, y, z),

@@ -522,7 +522,7 @@ def brouwer_bodies():
     ]
 
 
-def run_brouwer(out: Path, T: float = BROUWER_T):
+def run_brouwer(out: Path, T: float = BROUWER_T, only: tuple[str, ...] | None = None):
     """The rounding-walk part: long_horizon_brouwer.{json,md,png}.
 
     dt = 1e-3 s, where the truncation error is below float64 rounding
@@ -534,15 +534,30 @@ def run_brouwer(out: Path, T: float = BROUWER_T):
     each saved time, whose first/last-tenth ratio is sqrt(10) = 3.2 for a
     random walk and 10 for a drift, and the mean of E/E0 - 1 at the end in
     units of its standard error (a drift shows as a mean many standard errors
-    from zero; a walk as a few at most)."""
+    from zero; a walk as a few at most).
+
+    ``only`` (body keys) reruns those bodies and keeps the other rows of the
+    stored JSON (same T), each row with the lierk commit it was measured at;
+    every row stores its curves, and the figure is drawn from the rows."""
     machine = common.machine_info(matplotlib=matplotlib.__version__)
     n = round(T / BROUWER_DT)
-    rng = np.random.default_rng(0)
     bodies = brouwer_bodies()
-    fig, axes = plt.subplots(1, len(bodies), figsize=(4.2 * len(bodies), 4.2), squeeze=False)
-    rows = []
-    for col, (key, description, problem, solver, draws) in enumerate(bodies):
+    unknown = set(only or ()) - {b[0] for b in bodies}
+    if unknown:
+        raise SystemExit(f"unknown body {sorted(unknown)}; bodies: {[b[0] for b in bodies]}")
+    stored = {}
+    path = out / "long_horizon_brouwer.json"
+    if only and path.exists():
+        data = json.loads(path.read_text())
+        if data["meta"]["T"] == T:
+            stored = {r["body"]: r for r in data["rows"]}
+    commit = common.git_commit()
+    rng = np.random.default_rng(0)
+    for key, description, problem, solver, draws in bodies:
+        # Drawn for every body in order, so a rerun of some sees a full run's draws.
         omega0 = np.asarray(problem.omega0) * (1.0 + BROUWER_SPREAD * rng.standard_normal((draws, 3)))
+        if only and key not in only:
+            continue
 
         def energies(w, problem=problem, solver=solver):
             q = problem.with_omega0(w)
@@ -566,6 +581,7 @@ def run_brouwer(out: Path, T: float = BROUWER_T):
             solver=solver.name,
             steps=n,
             draws=draws,
+            commit=commit,
             seconds=round(seconds, 1),
             first_tenth_max=np.abs(dE[:, first]).max(1).tolist(),
             last_tenth_max=np.abs(dE[:, last]).max(1).tolist(),
@@ -577,31 +593,27 @@ def run_brouwer(out: Path, T: float = BROUWER_T):
             end_std=float(end.std(ddof=1)),
             end_mean_in_standard_errors=float(end.mean() / (end.std(ddof=1) / np.sqrt(draws))),
             max_error=float(np.abs(dE).max()),
+            curves=_curves(t, dE, rms),
         )
         row["meets"] = brouwer_meets(row)
-        rows.append(row)
+        stored[key] = row
         print(
             f"[brouwer] {key}: {seconds:.0f} s; ratio per draw {np.round(ratios, 2).tolist()}, RMS ratio "
             f"{row['rms_ratio']:.2f}, RMS exponent {row['rms_exponent']:.2f}, end mean {row['end_mean']:.1e} "
             f"({row['end_mean_in_standard_errors']:+.1f} standard errors)",
             flush=True,
         )
-        ax = axes[0, col]
-        for d in range(draws):
-            ax.loglog(t[1:], np.abs(dE[d, 1:]), color="0.75", lw=0.5)
-        ax.loglog(t[1:], rms[1:], "C0", lw=1.4, label="RMS over draws")
-        ref = rms[last].max() * np.sqrt(t[1:] / T)
-        ax.loglog(t[1:], ref, "k:", lw=0.9, label="~ t^0.5 (random walk)")
-        ax.loglog(t[1:], rms[last].max() * t[1:] / T, "k--", lw=0.9, label="~ t (drift)")
-        ax.set_title(f"{key}, {solver.name}, {draws} draws\nRMS last/first tenth {row['rms_ratio']:.2f}", fontsize=9)
-        ax.set_xlabel("t (s)")
-        ax.set_ylim(1e-17, None)
-        ax.grid(True, which="both", alpha=0.3)
-        if col == 0:
-            ax.set_ylabel("|E(t)/E(0) - 1|")
-            ax.legend(fontsize=7, loc="lower right")
-        _write_brouwer(out, fig, rows, machine, T)
-    return rows
+        rows = [stored[b[0]] for b in bodies if b[0] in stored]
+        _write_brouwer(out, rows, machine, T)
+    return [stored[b[0]] for b in bodies if b[0] in stored]
+
+
+def _curves(t, dE, rms, points: int = 150) -> dict:
+    """The figure's curves for the JSON: ~``points`` log-spaced saved times
+    (t > 0), each draw's |E/E0 - 1| and the RMS, to 3 digits."""
+    idx = np.unique(np.geomspace(1, len(t) - 1, points).astype(int))
+    short = lambda a: [float(f"{v:.3g}") for v in np.ravel(a)]  # noqa: E731
+    return dict(t=short(t[idx]), abs_error=[short(np.abs(d[idx])) for d in dE], rms=short(rms[idx]))
 
 
 def brouwer_meets(row) -> bool:
@@ -612,15 +624,42 @@ def brouwer_meets(row) -> bool:
     return bool(row["ratio_median"] <= BROUWER_RATIO_LIMIT and row["rms_exponent"] <= 0.75)
 
 
-def _write_brouwer(out: Path, fig, rows, machine, T):
-    """Write what is done so far (a long run keeps its finished bodies)."""
-    out.mkdir(parents=True, exist_ok=True)
+def _brouwer_figure(rows, T):
+    """One panel per row with stored curves: each draw's |E/E0 - 1| and their RMS."""
+    rows = [r for r in rows if "curves" in r]
+    fig, axes = plt.subplots(1, max(len(rows), 1), figsize=(4.2 * max(len(rows), 1), 4.2), squeeze=False)
+    for col, row in enumerate(rows):
+        c = row["curves"]
+        t, rms = np.asarray(c["t"]), np.asarray(c["rms"])
+        ax = axes[0, col]
+        for err in c["abs_error"]:
+            ax.loglog(t, err, color="0.75", lw=0.5)
+        ax.loglog(t, rms, "C0", lw=1.4, label="RMS over draws")
+        top = rms[t >= 0.9 * T].max()
+        ax.loglog(t, top * np.sqrt(t / T), "k:", lw=0.9, label="~ t^0.5 (random walk)")
+        ax.loglog(t, top * t / T, "k--", lw=0.9, label="~ t (drift)")
+        ax.set_title(f"{row['body']}, {row['solver']}, {row['draws']} draws\nRMS last/first tenth {row['rms_ratio']:.2f}",
+                     fontsize=9)
+        ax.set_xlabel("t (s)")
+        ax.set_ylim(1e-17, None)
+        ax.grid(True, which="both", alpha=0.3)
+        if col == 0:
+            ax.set_ylabel("|E(t)/E(0) - 1|")
+            ax.legend(fontsize=7, loc="lower right")
     fig.suptitle(
         f"float64, dt = {BROUWER_DT:g} s, {round(T / BROUWER_DT):.0e} steps, draws of omega0 "
         f"(grey: each draw; blue: their RMS)"
     )
     fig.tight_layout()
+    return fig
+
+
+def _write_brouwer(out: Path, rows, machine, T):
+    """Write what is done so far (a long run keeps its finished bodies)."""
+    out.mkdir(parents=True, exist_ok=True)
+    fig = _brouwer_figure(rows, T)
     fig.savefig(out / "long_horizon_brouwer.png", dpi=110)
+    plt.close(fig)
     machine = dict(machine, load_average_at_end=os.getloadavg() if hasattr(os, "getloadavg") else None)
     meta = dict(
         dt=BROUWER_DT, T=T, omega0_spread=BROUWER_SPREAD,
@@ -629,7 +668,7 @@ def _write_brouwer(out: Path, fig, rows, machine, T):
         "the RMS over draws grows like t^p with p <= 0.75 over [T/10, T]",
         machine=machine,
     )
-    (out / "long_horizon_brouwer.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
+    (out / "long_horizon_brouwer.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
     (out / "long_horizon_brouwer.md").write_text("\n".join(brouwer_markdown(meta, rows)) + "\n")
 
 
@@ -670,6 +709,8 @@ def main(argv=None):
                         help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*); "
                         "brouwer: the energy's rounding walk over draws (long_horizon_brouwer.*)")
     parser.add_argument("--brouwer-T", type=float, default=BROUWER_T, help="horizon of the brouwer part (s); dt is 1e-3")
+    parser.add_argument("--brouwer-bodies", default=None,
+                        help="comma-separated body keys to rerun in the brouwer part, keeping the other stored rows")
     parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
     args = parser.parse_args(argv)
     out = Path(args.out) if args.out else RESULTS
@@ -678,7 +719,8 @@ def main(argv=None):
     if args.part in ("heavy_top", "all"):
         run_heavy_top(out)
     if args.part in ("brouwer", "all"):
-        run_brouwer(out, T=args.brouwer_T)
+        run_brouwer(out, T=args.brouwer_T,
+                    only=tuple(args.brouwer_bodies.split(",")) if args.brouwer_bodies else None)
     if args.part == "brouwer-md":
         # Rewrite long_horizon_brouwer.md from its JSON (after a change of wording).
         data = json.loads((out / "long_horizon_brouwer.json").read_text())

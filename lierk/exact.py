@@ -259,23 +259,91 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     ``inertia`` ``(3, 3)`` (kg m^2) and the body momentum ``m`` ``(3,)``
     (kg m^2/s) are taken as valid (no checks: this is a solver's inner step;
     `free_rigid_body` is the checked entry point).  ``Q`` is ``(3, 3)``.
-    ``m_h`` is ``m`` plus the closed form's change over ``h``, so that the
-    rounding of the closed form's constants, the same in every drift, does
-    not add up drift after drift (see the comment in the body).
+    ``m_h`` is ``m`` plus its change over ``h`` from Jacobi's addition
+    theorems (`_momentum_change`), so that rounding does not add up to a
+    drift of the energy over many drifts.
     """
     omega0 = jnp.linalg.solve(inertia, m)
-    # The flow is evaluated at 0 and h, and m moves by the difference.  The
-    # closed form's constants (amplitudes, modulus) are functions of the
-    # invariants, which hardly change from one drift to the next, so their
-    # rounding is the same in every drift: m_h taken from the closed form
-    # itself drifted in energy linearly with the number of drifts (BlanesMoan4
-    # on free bodies: 0.4 to 0.7 ulp a step, of one sign per run).  In the
-    # difference that common error cancels.  What is left is the rounding of
-    # the two evaluations, about 0.7 ulp a drift with a mean of 0.01 to 0.04
-    # ulp (measured on four bodies): 10 to 40 times less drift, but still a
-    # drift over 10^6 steps (benchmarks/results/long_horizon_brouwer.md).
-    Q, omega = _free_motion(inertia, omega0, jnp.stack([jnp.zeros_like(h), h]), jnp.eye(3, dtype=m.dtype))
-    return Q[1], m + inertia @ (omega[1] - omega[0])
+    Q, _ = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
+    return Q, m + _momentum_change(inertia, m, h)
+
+
+def _momentum_change_by_difference(inertia: Array, m: Array, h: Array) -> Array:
+    """``m(h) - m(0)`` ``(3,)`` as the difference of two closed-form values:
+    the derivative of `_momentum_change`."""
+    omega0 = jnp.linalg.solve(inertia, m)
+    t = jnp.stack([jnp.zeros_like(h), h])
+    _, omega = _free_motion(inertia, omega0, t, jnp.eye(3, dtype=m.dtype))
+    return inertia @ (omega[1] - omega[0])
+
+
+@jax.custom_jvp
+def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
+    """The change ``m(h) - m(0)`` ``(3,)`` (kg m^2/s, body frame) of a free
+    body's momentum over ``h`` (s), with an error of order eps times the
+    change, not eps times ``m``.
+
+    Why: a drift that rebuilds ``m(h)`` from the closed form rounds the
+    closed form's constants (amplitudes, modulus: functions of the
+    invariants, which hardly change from one drift to the next) the same way
+    in every drift, and the energy drifts linearly with the number of drifts
+    (0.4 to 0.7 ulp a step with BlanesMoan4, one sign per run).  The
+    difference of the closed form at 0 and h cancels that common part but
+    keeps the rounding of two evaluations (a bias of 0.01 to 0.04 ulp a
+    drift, still a drift over 10^6 steps).  Here the state enters directly:
+    with ``(x, y, z) = (A1 cn a, A2 sn a, A3 dn a)`` in the working frame and
+    ``b = lam h``, the addition theorems (DLMF 22.8.1-3) give each component's
+    change as products of ``x, y, z`` with functions of ``b`` that are
+    ``O(b)``, so every rounding is relative to the change.  Its derivative is
+    that of the same function written as a difference of closed forms
+    (`_momentum_change_by_difference`, with the closed form's treatment of
+    permanent rotations)."""
+    c = _working_constants(inertia, jnp.linalg.solve(inertia, m))
+    J1, J2, J3 = c["J"][0], c["J"][1], c["J"][2]
+    x, y, z = c["x"], c["y"], c["z"]
+    k2, r, stat = c["k2"], c["r"], c["stat"]
+    sn_b, cn_b, dn_b, j, _ = _ellipj_reduced(c["lam"] * h, k2, c["k2c"])
+    sign = 1.0 - 2.0 * jnp.mod(j, 2.0)
+    sb, cb, db = sign * sn_b, sign * cn_b, dn_b
+    # cn b - 1 and dn b - 1 without cancellation for small b (dn b >= k' > 0).
+    near = cb > 0
+    cbm1 = jnp.where(near, -sb * sb / (1.0 + jnp.where(near, cb, 0.0)), cb - 1.0)
+    dbm1 = -k2 * sb * sb / (1.0 + db)
+    # sn a = y/A2, dn a = z/A3; A2 = 0 or A3 = 0 only at a permanent rotation.
+    A2, A3 = c["A2"], c["A3"]
+    sa = jnp.where(A2 > 0, y / jnp.where(A2 > 0, A2, 1.0), 0.0)
+    da = jnp.where(A3 > 0, z / jnp.where(A3 > 0, A3, 1.0), 1.0)
+    ks = k2 * (sa * sb) ** 2
+    # 1 - k^2 sn^2 a sn^2 b = dn^2 a + k^2 sn^2 a cn^2 b: two non-negative terms.
+    D = da * da + k2 * (sa * cb) ** 2
+    # A1/(A2 A3), A2/(A1 A3) and k^2 A3/(A1 A2), from the invariants: s is
+    # 1/sqrt(J1 J2 J3 r Qv), so that lam = +-(J3 - J1) r Qv s.
+    s = jax.lax.rsqrt(J1 * J2 * J3 * jnp.where(stat, 1.0, r * c["Qv"]))
+    dw = jnp.stack([
+        x * (cbm1 + ks) - (r * J1 * s) * y * z * sb * db,
+        y * (cbm1 * db + dbm1 + ks) + (J2 * s) * x * z * sb,
+        z * (dbm1 + ks) - ((1.0 - r) * J3 * s) * x * y * sb * cb,
+    ]) / jnp.where(D > 0, D, 1.0)
+    dw = jnp.where(stat | (D <= 0), 0.0, dw)
+    return c["W"] @ dw
+
+
+def _momentum_change_jvp(primals, tangents):
+    live = [not isinstance(d, SymbolicZero) for d in tangents]
+
+    def by_difference(*args):
+        it = iter(args)
+        return _momentum_change_by_difference(*[next(it) if lv else p for p, lv in zip(primals, live)])
+
+    _, dout = jax.jvp(
+        by_difference,
+        tuple(p for p, lv in zip(primals, live) if lv),
+        tuple(d for d, lv in zip(tangents, live) if lv),
+    )
+    return _momentum_change(*primals), dout
+
+
+_momentum_change.defjvp(_momentum_change_jvp, symbolic_zeros=True)
 
 
 def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[Array, Array]:
