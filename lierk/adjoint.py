@@ -12,7 +12,8 @@ works (the same trade-off as diffrax's adjoints, built on
   supported.
 - `ForwardMode`: a plain `lax.while_loop`; `jax.jvp`/`jax.jacfwd` only.
 - `DirectAdjoint`: a bounded loop of nested scans; both modes, at a run-time
-  cost that grows with ``max_steps`` (every member runs the bounded loop).
+  cost that grows with ``max_steps`` (every member runs the bounded loop),
+  plus one forward solve that decides the steps the loop replays.
 """
 
 from __future__ import annotations
@@ -50,6 +51,13 @@ class ForwardMode(AbstractAdjoint):
 
 
 class DirectAdjoint(AbstractAdjoint):
-    """Both modes, through a bounded loop of nested scans."""
+    """Both modes, through a bounded loop of nested scans.
+
+    An adaptive solve with this adjoint runs twice: an undifferentiated solve
+    decides the steps (sizes, accepted or rejected), and the differentiated
+    loop replays those decisions, so every recomputation in its backward pass
+    takes the steps that were taken.  Cost: one more forward solve, plus the
+    bounded loop's ``max_steps`` iterations per member.
+    """
 
     kind: ClassVar[str] = "bounded"

@@ -623,6 +623,35 @@ def _initial_step(problem, controller: Controller, q: int, t0, t1, R0, y0, f0):
 def _solve_adaptive(
     problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: Controller | None, adjoint, floor_eps: float = 50.0
 ):
+    replay = None
+    if controller is not None and adjoint.kind == "bounded":
+        # DirectAdjoint's scans rematerialise steps from carries, and a step
+        # recomputed in a differently compiled body can decide differently
+        # (see `_adaptive_loop`): its jacrev was 4e-9 off at rtol 1e-11 and
+        # changed with max_steps.  So an undifferentiated solve takes the
+        # decisions first (one more forward solve), and the differentiated
+        # loop only replays them: every pass of it takes the same steps.
+        def still(tree):
+            return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
+
+        _, replay = _adaptive_loop(
+            still(problem), solver, still(t0), still(t1), still(dt0), saveat, max_steps, still(controller),
+            ForwardModeAdjoint(), floor_eps, record=True,
+        )
+    return _adaptive_loop(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, floor_eps, replay=replay)[0]
+
+
+def _adaptive_loop(
+    problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: Controller | None, adjoint,
+    floor_eps: float, record: bool = False, replay: Array | None = None,
+) -> tuple[Solution, Array | None]:
+    """The adaptive (or, ``controller=None``, variable-count fixed-step) loop:
+    ``(Solution, decisions)``.  ``decisions`` ``(max_steps,)`` holds each
+    attempt's next step, negative if the attempt was rejected (NaN after the
+    last attempt), when they are recorded: always with the checkpointed
+    adjoint, and when ``record``.  ``replay`` (decisions recorded by an
+    earlier solve of the same problem) makes the loop take those decisions
+    instead of its own."""
     # controller=None: fixed steps of dt0 in this loop, whose trip count may
     # differ per batch member (a traced step size needs no static step count).
     fixed = controller is None
@@ -692,8 +721,9 @@ def _solve_adaptive(
     # tests/test_adaptive.py checks the replay.  8 bytes per max_steps, only
     # for this adjoint: ForwardMode recomputes nothing, and DirectAdjoint's
     # rematerialised scans recompute from carries whose buffer is not filled
-    # yet, so they are not helped (their jacrev is 4e-9 off, as before).
-    record = not fixed and adjoint.kind == "checkpointed"
+    # yet, so `_solve_adaptive` records their decisions in a solve of its own
+    # and hands them over as ``replay``.
+    record = not fixed and replay is None and (record or adjoint.kind == "checkpointed")
     decisions = jnp.full((max_steps,), jnp.nan, dtype) if record else None
 
     init = _Carry(
@@ -760,12 +790,13 @@ def _solve_adaptive(
             stuck = (~accept & (h_next < h_floor)) | (h <= 0)
         h_out = jax.lax.stop_gradient(jnp.where(stuck, h, h_next))
         decisions = c.decisions
-        if record:
+        if record or replay is not None:
             # c.num_steps < max_steps inside the loop: one slot per attempt.
-            recorded = decisions[c.num_steps]
-            replay = ~jnp.isnan(recorded)
-            accept = jnp.where(replay, ~jnp.signbit(recorded), accept)
-            h_out = jnp.where(replay, jnp.abs(recorded), h_out)
+            recorded = (decisions if replay is None else replay)[c.num_steps]
+            known = ~jnp.isnan(recorded)
+            accept = jnp.where(known, ~jnp.signbit(recorded), accept)
+            h_out = jnp.where(known, jnp.abs(recorded), h_out)
+        if record:
             decisions = decisions.at[c.num_steps].set(jnp.where(accept, h_out, -h_out))
 
         def pick(a, b):
@@ -815,7 +846,7 @@ def _solve_adaptive(
         max_steps=max_steps,
         kind=adjoint.kind,
         checkpoints=adjoint.checkpoints,
-        buffers=(lambda c: c.decisions) if record else None,
+        buffers=(lambda c: c.decisions) if record and adjoint.kind == "checkpointed" else None,
     )
     result = jnp.where(
         final.done & _finite((final.R, final.y)),
@@ -847,4 +878,4 @@ def _solve_adaptive(
         "num_rejected_steps": final.num_rejected,
         "num_fevals": fevals_setup + final.num_steps * fevals_per_attempt,
     }
-    return Solution(jnp.concatenate(ts), R, y, jnp.asarray(n_saved), stats, result)
+    return Solution(jnp.concatenate(ts), R, y, jnp.asarray(n_saved), stats, result), final.decisions

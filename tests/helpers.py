@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import numpy as np
 from scipy.integrate import solve_ivp
@@ -67,6 +68,27 @@ def fd_jacobian(f, x, h=1e-3):
         v = [np.asarray(f(x + k * h * e)) for k in (2, 1, -1, -2)]
         cols.append((-v[0] + 8 * v[1] - 8 * v[2] + v[3]) / (12 * h))
     return np.stack(cols, -1)
+
+
+def final_attitudes(problem, solver, t1, dts) -> np.ndarray:
+    """``R(t1)`` ``(len(dts), 3, 3)`` of fixed-step solves of ``problem``,
+    one per step ``dt`` (s) in ``dts``: one program for all, a vmap over dt
+    with ``max_steps`` the largest count (the steps past ``t1`` are no-ops),
+    where a solve per dt would compile once per step count."""
+    dts = np.asarray(dts, dtype=float)
+    n = int(np.ceil(t1 / dts.min()))
+    R, results = _final_attitudes(problem, solver, np.float64(t1), dts, n)
+    assert np.all(np.asarray(results) == 0), results
+    return np.asarray(R)
+
+
+@eqx.filter_jit
+def _final_attitudes(problem, solver, t1, dts, n):
+    def one(dt):
+        sol = lierk.solve(problem, solver, t1, dt=dt, max_steps=n)
+        return sol.R[-1], sol.result
+
+    return jax.vmap(one)(dts)
 
 
 def order_fit(hs, errs) -> float:

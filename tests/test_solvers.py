@@ -7,7 +7,7 @@ from typing import ClassVar
 import jax
 import numpy as np
 import pytest
-from helpers import ADAPTIVE_SOLVERS, LIE_SOLVERS, OMEGA_GENERIC, TEE, order_fit, reference_R
+from helpers import ADAPTIVE_SOLVERS, LIE_SOLVERS, OMEGA_GENERIC, TEE, final_attitudes, order_fit, reference_R
 from scipy.spatial.transform import Rotation
 
 import lierk
@@ -21,23 +21,9 @@ def tee_reference():
     return reference_R(TEE, OMEGA_GENERIC, T1)
 
 
-_RUNNERS: dict = {}
-
-
 def _final_R_for_steps(solver, inertia, omega0, t1, Ns):
-    """R(t1) for each step count in Ns: one compiled vmap over dt (steps past t1 are
-    no-ops, so max_steps = max(Ns) serves all), reused across problems."""
-    key = (solver, int(max(Ns)))
-    if key not in _RUNNERS:
-        _RUNNERS[key] = jax.jit(
-            jax.vmap(
-                lambda inertia, omega0, t1, dt: lierk.solve(
-                    lierk.FreeRigidBody(inertia, omega0), solver, t1, dt=dt, max_steps=key[1]
-                ).R[-1],
-                in_axes=(None, None, None, 0),
-            )
-        )
-    return np.asarray(_RUNNERS[key](inertia, omega0, t1, t1 / np.asarray(Ns, dtype=float)))
+    """R(t1) of the free body for each step count in Ns."""
+    return final_attitudes(lierk.FreeRigidBody(inertia, omega0), solver, t1, t1 / np.asarray(Ns, dtype=float))
 
 
 class _RK4FirstCommutator(lierk.solvers.AbstractRKMK):
