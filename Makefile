@@ -55,6 +55,7 @@ bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/error_estimate.py
 	$(BIN)/python benchmarks/long_horizon.py
 	$(BIN)/python benchmarks/scene_overhead.py
+	$(BIN)/python benchmarks/latency.py
 
 docs: $(DOCS_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site

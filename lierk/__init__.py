@@ -8,6 +8,7 @@ from . import accuracy as accuracy
 from . import adjoint as adjoint
 from . import batch as batch
 from . import body as body
+from . import cache as cache
 from . import effects as effects
 from . import exact as exact
 from . import inertia as inertia
@@ -18,6 +19,7 @@ from . import tableaux as tableaux
 from .adjoint import DirectAdjoint as DirectAdjoint
 from .adjoint import ForwardMode as ForwardMode
 from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
+from .cache import compilation_cache_dir as compilation_cache_dir
 from .controller import Controller as Controller
 from .effects import BodyTorque as BodyTorque
 from .effects import Damping as Damping

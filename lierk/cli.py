@@ -115,6 +115,13 @@ def _add_common(parser: argparse.ArgumentParser, default) -> None:
         "sweeps are sharded across devices",
     )
     g.add_argument("--quiet", action="store_true", default=default(False), help="no progress bar on stderr")
+    g.add_argument(
+        "--no-cache",
+        action="store_true",
+        default=default(False),
+        help="compile everything afresh and keep nothing (default: compiled programs are kept in the user's cache "
+        "directory, or $LIERK_CACHE_DIR, and reused by later runs; LIERK_NO_CACHE=1 also turns this off)",
+    )
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -292,6 +299,85 @@ def _configure(args) -> None:
             distributed.initialize(args.coordinator_address, args.num_processes, args.process_id)
         except ValueError as e:
             raise CLIError(_one_line(e)) from None
+
+
+class _CacheUse:
+    """What the persistent compilation cache did in this run: the directory
+    (None: off), programs loaded and programs compiled and saved, and entries
+    JAX could not read or write (each recompiled or left unsaved)."""
+
+    def __init__(self):
+        self.path = None
+        self.counts = {"hits": 0, "misses": 0, "unreadable": 0, "unwritable": 0}
+
+    def listen(self, event: str, **_) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            self.counts["hits"] += 1
+        elif event == "/jax/compilation_cache/cache_misses":
+            self.counts["misses"] += 1
+
+    def swallow(self, message) -> bool:
+        """Count JAX's warning about one unreadable or unwritable entry
+        (a corrupted file, a full disk) instead of printing it."""
+        text = str(message)
+        for key, start in (("unreadable", "Error reading persistent compilation cache"),
+                           ("unwritable", "Error writing persistent compilation cache")):
+            if text.startswith(start):
+                self.counts[key] += 1
+                return True
+        return False
+
+    def summary(self) -> str | None:
+        if self.path is None:
+            return None
+        c = self.counts
+        line = f"compiled programs: {c['hits']} loaded from the cache, {c['misses']} compiled and saved ({self.path})"
+        if c["unreadable"]:
+            line += f"; {c['unreadable']} cached programs could not be read and were compiled again"
+        if c["unwritable"]:
+            line += f"; {c['unwritable']} could not be saved"
+        return line
+
+
+@contextlib.contextmanager
+def _use_cache(args, use: _CacheUse):
+    """Keep compiled programs between runs (`lierk.cache`), unless turned off,
+    for the duration of one command; the settings are restored after it
+    (``main`` can be called in a process that goes on).
+
+    The command line owns its process, so, as with ``--devices``, it sets
+    process-wide options the library leaves alone.  A directory the user gave
+    JAX (``JAX_COMPILATION_CACHE_DIR``) is kept with its own settings;
+    otherwise every program is kept, however quickly it compiled: a command's
+    many small programs add up to seconds."""
+    import jax
+
+    names = ("jax_enable_compilation_cache", "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = {name: getattr(jax.config, name) for name in names}
+    listening = False
+    try:
+        if args.no_cache or os.environ.get("LIERK_NO_CACHE", "") not in ("", "0"):
+            jax.config.update("jax_enable_compilation_cache", False)
+        elif before["jax_enable_compilation_cache"]:
+            from . import cache
+
+            path = before["jax_compilation_cache_dir"]
+            if not path:
+                path = cache.compilation_cache_dir()  # None (warned once): not writable, run uncached
+                if path is not None:
+                    jax.config.update("jax_compilation_cache_dir", str(path))
+                    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+            if path is not None:
+                use.path = str(path)
+                jax.monitoring.register_event_listener(use.listen)
+                listening = True
+        yield
+    finally:
+        if listening:
+            jax.monitoring.unregister_event_listener(use.listen)
+        for name, value in before.items():
+            if getattr(jax.config, name) != value:
+                jax.config.update(name, value)
 
 
 def _load(args):
@@ -854,14 +940,25 @@ def main(argv=None) -> int:
         print("lierk: error: a command is required: simulate, sweep or accuracy (see lierk --help)", file=sys.stderr)
         return 2
     prog = f"lierk {args.command}"
+
+    use = _CacheUse()
+
+    def show(message, *a, **k):
+        if not use.swallow(message):
+            print(f"{prog}: warning: {' '.join(str(message).split())}", file=sys.stderr)
+
     with warnings.catch_warnings():
-        warnings.showwarning = lambda message, *a, **k: print(
-            f"{prog}: warning: {' '.join(str(message).split())}", file=sys.stderr
-        )
-        return _dispatch(args, prog)
+        warnings.showwarning = show
+        # Every unreadable entry counts, not only the first of each name.
+        warnings.filterwarnings("always", message="Error (reading|writing) persistent compilation cache")
+        code = _dispatch(args, prog, use)
+    summary = use.summary()
+    if summary and code == 0 and not args.quiet:
+        print(f"{prog}: {summary}", file=sys.stderr)
+    return code
 
 
-def _dispatch(args, prog: str) -> int:
+def _dispatch(args, prog: str, use: _CacheUse) -> int:
     try:
         _check_out(args.out)
         _configure(args)
@@ -869,7 +966,7 @@ def _dispatch(args, prog: str) -> int:
 
         # The command line is an application: it picks its precision, scoped to
         # this call, and leaves the global config alone.
-        with jax.enable_x64(not args.float32):
+        with _use_cache(args, use), jax.enable_x64(not args.float32):
             return {"simulate": simulate, "sweep": sweep, "accuracy": accuracy}[args.command](args)
     except CLIError as e:
         print(f"{prog}: error: {e}", file=sys.stderr)

@@ -1,0 +1,132 @@
+"""The persistent compilation cache (`lierk.cache`) and the command line's use of it.
+
+Claims: a second run of a command loads every program from the cache and
+compiles none, with bit-identical results; corrupted entries are compiled
+again, never loaded, and the run's results are unchanged; a cache directory
+that cannot be written costs one warning line and nothing else; the
+directory is keyed by a machine fingerprint; ``--no-cache`` turns JAX's
+cache off for one command and the settings come back after it.
+"""
+
+import os
+import re
+import subprocess
+import sys
+from argparse import Namespace
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+from helpers import write
+
+import lierk
+import lierk.exact
+from lierk import cli
+
+LIERK = str(Path(sys.executable).parent / "lierk")
+
+SCENE = """
+name = "cached"
+[body]
+kind = "tee_handle"
+[initial]
+omega = [1.0, 0.05, 0.3]
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 0.5
+save_every = 5
+"""
+COUNTS = re.compile(r"compiled programs: (\d+) loaded from the cache, (\d+) compiled and saved")
+
+
+def simulate(tmp_path, root, name):
+    """``lierk simulate`` in a fresh process with the cache under ``root``
+    (JAX's own cache settings, which the tests set, removed):
+    ``(stderr, saved R)``."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}
+    env["LIERK_CACHE_DIR"] = str(root)
+    out = tmp_path / name
+    scene = write(tmp_path, SCENE)
+    p = subprocess.run([LIERK, "simulate", scene, "--out", out, "--no-gif"], env=env, capture_output=True,
+                       text=True, timeout=600)
+    assert p.returncode == 0, p.stderr
+    with np.load(out / "cached.npz") as f:
+        return p.stderr, f["R"]
+
+
+def counts(stderr):
+    m = COUNTS.search(stderr)
+    assert m, stderr
+    return int(m.group(1)), int(m.group(2))
+
+
+def entries(root):
+    return [p for p in (root / lierk.cache.machine_fingerprint()).iterdir() if p.is_file() and not p.name.startswith(".")]
+
+
+def test_a_second_run_compiles_nothing_and_corrupted_entries_are_compiled_again(tmp_path):
+    """Cold, warm, then with every entry overwritten by random bytes.  (One
+    test: JAX's keys depend on the cache directory, so a copied cache would
+    not be read at all.)"""
+    root = tmp_path / "cache"
+    stderr, R = simulate(tmp_path, root, "cold")
+    loaded, compiled = counts(stderr)
+    assert compiled >= 10 and len(entries(root)) >= compiled  # the many small programs are kept too
+
+    stderr, R_warm = simulate(tmp_path, root, "warm")
+    loaded_warm, compiled_warm = counts(stderr)
+    assert compiled_warm == 0 and loaded_warm >= compiled, stderr
+    np.testing.assert_array_equal(R_warm, R)
+
+    rng = np.random.default_rng(0)
+    for p in entries(root):
+        p.write_bytes(rng.bytes(max(p.stat().st_size, 64)))
+    stderr, R_again = simulate(tmp_path, root, "corrupted")
+    m = re.search(r"(\d+) cached programs could not be read and were compiled again", stderr)
+    assert m and int(m.group(1)) >= compiled and counts(stderr)[0] == 0, stderr
+    assert "warning" not in stderr  # counted in one line, not one warning per entry
+    np.testing.assert_array_equal(R_again, R)
+
+
+def test_an_unwritable_cache_is_one_warning_and_a_normal_run(tmp_path):
+    not_a_dir = tmp_path / "file"
+    not_a_dir.write_text("")
+    stderr, R2 = simulate(tmp_path, not_a_dir, "out")
+    warnings = [line for line in stderr.splitlines() if "warning" in line]
+    assert len(warnings) == 1 and "compilation cache off" in warnings[0] and str(not_a_dir) in warnings[0], stderr
+    assert not COUNTS.search(stderr)
+    assert R2.shape == (11, 3, 3) and np.abs(R2[-1] - lierk.exact.free_rigid_body(lierk.inertia.tee_handle(), [1.0, 0.05, 0.3], 0.5)[0]).max() < 1e-9
+
+
+def test_the_directory_is_keyed_by_the_machine(tmp_path):
+    fp = lierk.cache.machine_fingerprint()
+    assert re.fullmatch(r"[0-9a-f]{16}", fp) and fp == lierk.cache.machine_fingerprint()
+    path = lierk.compilation_cache_dir(tmp_path)
+    assert path == tmp_path / fp and path.is_dir() and not list(path.iterdir())  # the write probe is gone
+    plain = tmp_path / "plain"
+    plain.write_text("")
+    with pytest.warns(UserWarning, match="compilation cache off"):
+        assert lierk.compilation_cache_dir(plain) is None
+
+
+def test_no_cache_turns_jax_s_cache_off_for_the_command_only(monkeypatch):
+    before = jax.config.jax_enable_compilation_cache
+    use = cli._CacheUse()
+    with cli._use_cache(Namespace(no_cache=True), use):
+        assert jax.config.jax_enable_compilation_cache is False
+    assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
+    monkeypatch.setenv("LIERK_NO_CACHE", "1")
+    with cli._use_cache(Namespace(no_cache=False), use):
+        assert jax.config.jax_enable_compilation_cache is False
+    assert jax.config.jax_enable_compilation_cache == before
+
+
+def test_default_root_follows_the_environment(monkeypatch, tmp_path):
+    monkeypatch.setenv("LIERK_CACHE_DIR", str(tmp_path / "mine"))
+    assert lierk.cache.default_cache_root() == tmp_path / "mine"
+    monkeypatch.delenv("LIERK_CACHE_DIR")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
+    if sys.platform.startswith("linux"):
+        assert lierk.cache.default_cache_root() == tmp_path / "xdg" / "lierk"
