@@ -552,6 +552,10 @@ def run_brouwer(out: Path, T: float = BROUWER_T, only: tuple[str, ...] | None = 
         if data["meta"]["T"] == T:
             stored = {r["body"]: r for r in data["rows"]}
     commit = common.git_commit()
+
+    def in_order():
+        return [stored[b[0]] for b in bodies if b[0] in stored]
+
     rng = np.random.default_rng(0)
     for key, description, problem, solver, draws in bodies:
         # Drawn for every body in order, so a rerun of some sees a full run's draws.
@@ -603,9 +607,8 @@ def run_brouwer(out: Path, T: float = BROUWER_T, only: tuple[str, ...] | None = 
             f"({row['end_mean_in_standard_errors']:+.1f} standard errors)",
             flush=True,
         )
-        rows = [stored[b[0]] for b in bodies if b[0] in stored]
-        _write_brouwer(out, rows, machine, T)
-    return [stored[b[0]] for b in bodies if b[0] in stored]
+        _write_brouwer(out, in_order(), machine, T)
+    return in_order()
 
 
 def _curves(t, dE, rms, points: int = 150) -> dict:

@@ -329,17 +329,7 @@ def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
 
 
 def _momentum_change_jvp(primals, tangents):
-    live = [not isinstance(d, SymbolicZero) for d in tangents]
-
-    def by_difference(*args):
-        it = iter(args)
-        return _momentum_change_by_difference(*[next(it) if lv else p for p, lv in zip(primals, live)])
-
-    _, dout = jax.jvp(
-        by_difference,
-        tuple(p for p, lv in zip(primals, live) if lv),
-        tuple(d for d, lv in zip(tangents, live) if lv),
-    )
+    _, dout = _jvp_of_live(_momentum_change_by_difference, primals, tangents)
     return _momentum_change(*primals), dout
 
 
@@ -379,24 +369,29 @@ def _free_motion_ad(inertia: Array, omega0: Array, t: Array, R0: Array) -> tuple
     return out
 
 
-def _free_motion_jvp(primals, tangents):
-    # Off the permanent rotations: differentiate the closed form.  Inputs
-    # without a tangent stay constants (instantiated zero tangents would send
-    # the inertia's zero through eigh's derivative, which is NaN for equal
-    # moments: symmetric bodies and the sphere).
+def _jvp_of_live(f, primals, tangents, has_aux: bool = False):
+    """`jax.jvp` of ``f`` in the inputs that have a tangent, the others held
+    constant: an instantiated zero tangent would send the inertia's zero
+    through eigh's derivative, which is NaN for equal moments (symmetric
+    bodies and the sphere).  ``tangents`` may hold `SymbolicZero`s."""
     live = [not isinstance(d, SymbolicZero) for d in tangents]
 
-    def closed(*args):
+    def of_live(*args):
         it = iter(args)
-        full = [next(it) if lv else p for p, lv in zip(primals, live)]
-        return _closed_form(*full)
+        return f(*[next(it) if lv else p for p, lv in zip(primals, live)])
 
-    (R, omega), (dR, domega), permanent = jax.jvp(
-        closed,
+    return jax.jvp(
+        of_live,
         tuple(p for p, lv in zip(primals, live) if lv),
         tuple(d for d, lv in zip(tangents, live) if lv),
-        has_aux=True,
+        has_aux=has_aux,
     )
+
+
+def _free_motion_jvp(primals, tangents):
+    # Off the permanent rotations: differentiate the closed form.
+    live = [not isinstance(d, SymbolicZero) for d in tangents]
+    (R, omega), (dR, domega), permanent = _jvp_of_live(_closed_form, primals, tangents, has_aux=True)
     # Within sqrt(eps) of a permanent rotation (m0 and omega0 at an angle
     # below it: rounding in a rotated inertia, say) the closed form's
     # derivative has lost about eps/angle to cancellation, and the

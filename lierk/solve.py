@@ -268,10 +268,12 @@ _ROUNDING_CHECK = 1e4
 _DIAGNOSTIC_FLOOR_EPS = 5.0
 
 
-def _frozen(problem):
-    """The problem with its array leaves out of the gradient: the estimate's
-    finer solve is a diagnostic and would double the cost of a backward pass."""
-    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, problem)
+def _frozen(tree):
+    """A pytree (a problem, a controller, times) with its array leaves out of
+    the gradient: the estimate's finer solve is a diagnostic and would double
+    the cost of a backward pass, and DirectAdjoint's deciding solve is not
+    differentiated at all."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
 
 
 def _finer(controller: Controller) -> Controller:
@@ -631,11 +633,8 @@ def _solve_adaptive(
         # changed with max_steps.  So an undifferentiated solve takes the
         # decisions first (one more forward solve), and the differentiated
         # loop only replays them: every pass of it takes the same steps.
-        def still(tree):
-            return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
-
         _, replay = _adaptive_loop(
-            still(problem), solver, still(t0), still(t1), still(dt0), saveat, max_steps, still(controller),
+            _frozen(problem), solver, _frozen(t0), _frozen(t1), _frozen(dt0), saveat, max_steps, _frozen(controller),
             ForwardModeAdjoint(), floor_eps, record=True,
         )
     return _adaptive_loop(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, floor_eps, replay=replay)[0]
