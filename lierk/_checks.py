@@ -40,6 +40,11 @@ def asarray(x, dtype=None, name: str = "value"):
     return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 
+def all_finite(tree) -> jax.Array:
+    """Whether every entry of every array leaf of ``tree`` is finite (a traced bool)."""
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
+
+
 def is_traced(*xs) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
 

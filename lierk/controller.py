@@ -29,6 +29,7 @@ asks for a global accuracy, and the global error estimate
 from __future__ import annotations
 
 import math
+from typing import Any, ClassVar, NamedTuple
 
 import equinox as eqx
 import jax
@@ -37,15 +38,75 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from . import _checks
+from .solvers.base import field_at
 
-__all__ = ["Controller"]
+__all__ = ["AbstractStepController", "Controller", "ConstantStep", "Decision"]
 
 
 def _leaves(tree) -> list[Array]:
     return [jnp.ravel(x) for x in jax.tree_util.tree_leaves(tree)]
 
 
-class Controller(eqx.Module):
+class Decision(NamedTuple):
+    """A controller's verdict on one attempted step (`AbstractStepController.adapt`).
+
+    Attributes:
+        accept: whether the step is taken.
+        h_next: the next attempt's step (s), before the loop clips it to a
+            save time or ``t1``.
+        stuck: the solve cannot go on (`RESULTS.dt_min_reached`).
+        end: the solve ends here without being stuck (a non-finite fixed step,
+            reported as `RESULTS.nonfinite`).
+        fsal: the field at the new point, or None when the controller does not
+            need it.
+    """
+
+    accept: Array
+    h_next: Array
+    stuck: Array
+    end: Array
+    fsal: Any
+
+
+class AbstractStepController(eqx.Module):
+    """How the while loop of an adaptive solve (`lierk.solve`) chooses its
+    steps, in diffrax's shape: `init` once, `adapt` after every attempt.
+
+    Class attributes:
+        decides: the steps depend on error tests, so reverse mode must replay
+            the recorded decisions (see `lierk.loops`).
+    """
+
+    decides: ClassVar[bool]
+
+    def init(self, problem, solver, t0, t1, dt0, floor_eps: float) -> tuple[Any, Array, Any]:
+        """``(state, first step (s), field at t0 or None)``; ``state`` is what
+        `adapt` needs besides ``self``."""
+        raise NotImplementedError
+
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last) -> Decision:
+        """Judge step ``st`` from ``(t, y)`` to ``t_new = t + h`` (``f`` the
+        field at ``t``); ``h_proposed`` was the attempt's step before it was
+        clipped to a save time or t1 (``clipped``)."""
+        raise NotImplementedError
+
+
+class ConstantStep(AbstractStepController):
+    """Steps of the given ``dt0``, every one taken; for a fixed-step solve
+    whose step count is not static (a traced step size under `vmap`).  A
+    non-finite step ends the solve."""
+
+    decides: ClassVar[bool] = False
+
+    def init(self, problem, solver, t0, t1, dt0, floor_eps):
+        return None, dt0, None
+
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last):
+        finite = _checks.all_finite((st.R, st.y))
+        return Decision(jnp.asarray(True), h_proposed, h <= 0, ~finite, None)
+
+
+class Controller(AbstractStepController):
     """Error-per-step controller ``h_new = h min(facmax, max(facmin, safety err^(-1/(q+1))))``.
 
     Every field is an array leaf, so sweeping tolerances never recompiles.
@@ -72,6 +133,8 @@ class Controller(eqx.Module):
             attempts and took more steps than at 1e-5; with the bound it
             rejects none, takes 38% fewer, and is 3x more accurate).
     """
+
+    decides: ClassVar[bool] = True
 
     rtol: Array
     atol: Array
@@ -145,3 +208,69 @@ class Controller(eqx.Module):
         fac = jnp.where(err > 0, self.safety * safe ** (-1.0 / (error_order + 1)), self.facmax)
         facmax = jnp.where(after_reject, 1.0, self.facmax)
         return jnp.clip(jnp.where(jnp.isfinite(fac), fac, self.facmin), self.facmin, facmax)
+
+    def init(self, problem, solver, t0, t1, dt0, floor_eps):
+        # Tolerances given as Python floats become float64 under x64: every
+        # controller (given, or built by a target_error round) computes in the
+        # problem's dtype.
+        ctrl = jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype=problem.R0.dtype), self)
+        # The estimate is held to tol * tolerance_calibration, but never below
+        # 50 eps: under that, rounding noise decides acceptance.  Such steps
+        # only add rounding error, and a reverse-mode pass that recomputes them
+        # from checkpoints could decide differently from the forward pass, so
+        # the gradient would depend on max_steps.
+        # (The finer solves behind error estimates, which are not
+        # differentiated, use a smaller floor: at 50 eps both solves of a pair
+        # were the same solve in float32 below rtol ~1e-5, and their gap said
+        # nothing.)
+        floor = floor_eps * jnp.finfo(problem.R0.dtype).eps / (ctrl.rtol + ctrl.atol)
+        calibration = jax.lax.stop_gradient(jnp.maximum(solver.tableau.tolerance_calibration, floor))
+        f0 = field_at(problem, t0, problem.R0, problem.y0)
+        if dt0 is None:
+            h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0)
+        else:
+            # A given first step obeys the controller's bounds like every other.
+            h0 = jnp.minimum(dt0, ctrl.largest_step(f0[0]))
+        return (ctrl, calibration), h0, f0
+
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last):
+        ctrl, calibration = state
+        tol_y = problem.error_tolerance(y, st.y, ctrl.rtol, ctrl.atol)
+        err = solver.error_norm(st.error, lambda e_u, e_y: ctrl.norm(e_u, e_y, tol_y))
+        err = jax.lax.stop_gradient(err / calibration)
+        f_new = st.fsal if st.fsal is not None else field_at(problem, t_new, st.R, st.y)
+        finite = _checks.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
+        accept = finite & (err <= 1.0)
+        # The turn bound reads omega where the next step starts.
+        largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]))
+        h_next = jnp.minimum(h * ctrl.factor(err, solver.error_order, rejected_last), largest)
+        # Keep the proposed step when only a save time or t1 shortened it.
+        h_next = jnp.where(accept & clipped, jnp.maximum(h_next, jnp.minimum(h_proposed, largest)), h_next)
+        eps = jnp.finfo(h.dtype).eps
+        h_floor = jnp.maximum(ctrl.dtmin, 16 * eps * jnp.maximum(jnp.abs(t), jnp.abs(t1)))
+        # A step that does not move the clock (below its resolution) is stuck too.
+        stuck = (~accept & (h_next < h_floor)) | (h <= 0)
+        return Decision(accept, h_next, stuck, jnp.asarray(False), f_new)
+
+    def _initial_step(self, problem, q: int, t0, t1, f0):
+        """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""
+        R0, y0 = problem.R0, problem.y0
+        omega0, ydot0 = f0
+        sg = jax.lax.stop_gradient
+        tol = problem.error_tolerance(y0, y0, self.rtol, self.atol)
+        # The attitude's size is 1 (entries of R are O(1)); y's is its own.
+        d0 = sg(self.norm(jnp.ones_like(omega0), y0, tol))
+        d1 = sg(self.norm(omega0, ydot0, tol))
+        big = (d0 > 1e-5) & (d1 > 1e-5)
+        h0 = jnp.where(big, 0.01 * d0 / jnp.where(big, d1, 1.0), 1e-6)
+        y1 = jax.tree_util.tree_map(lambda a, b: a + h0 * b, y0, ydot0)
+        omega1, ydot1 = problem.local(problem.base(t0, R0, y0), t0 + h0, h0 * omega0, y1)
+        d2 = sg(self.norm(omega1 - omega0, jax.tree_util.tree_map(lambda a, b: a - b, ydot1, ydot0), tol) / h0)
+        dmax = jnp.maximum(d1, d2)
+        safe = jnp.where(dmax > 0, dmax, 1.0)
+        h1 = jnp.where(dmax > 1e-15, (0.01 / safe) ** (1.0 / (q + 1)), jnp.maximum(1e-6, h0 * 1e-3))
+        # A field that is exactly zero (omega0 = 0 and no forcing) is solved by any
+        # step: take the whole interval.
+        span = t1 - t0
+        h = jnp.where(dmax == 0, span, jnp.minimum(100 * h0, h1))
+        return sg(jnp.clip(h, 0, self.largest_step(omega0)))

@@ -31,8 +31,8 @@ from . import so3
 from .adjoint import ForwardMode
 from .fields import AbstractProblem
 from .solution import RESULTS, SaveAt, raise_if_failed
-from .solve import _DEFAULT_ADAPTIVE_MAX_STEPS, _TOLERANCE_RATIO, solve
-from .solve import _finer as _finer_controller
+from .global_error import TOLERANCE_RATIO, finer
+from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, solve
 from .solvers.base import AbstractSolver
 
 __all__ = ["Sensitivity", "sensitivity"]
@@ -265,13 +265,13 @@ def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:
             fine["max_steps"] = -(-3 * int(options["max_steps"]) // 2)
         return fine, 1.5**solver.order
     if options.get("controller") is not None:
-        fine["controller"] = _finer_controller(options["controller"])
+        fine["controller"] = finer(options["controller"])
     else:
         rtol = options.get("rtol")
         if rtol is None:
             raise ValueError(f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones")
         atol = options.get("atol", rtol)
-        fine["rtol"], fine["atol"] = rtol / _TOLERANCE_RATIO, atol / _TOLERANCE_RATIO
-    fine["max_steps"] = 2 * (options.get("max_steps") or _DEFAULT_ADAPTIVE_MAX_STEPS)
-    return fine, _TOLERANCE_RATIO
+        fine["rtol"], fine["atol"] = rtol / TOLERANCE_RATIO, atol / TOLERANCE_RATIO
+    fine["max_steps"] = 2 * (options.get("max_steps") or DEFAULT_ADAPTIVE_MAX_STEPS)
+    return fine, TOLERANCE_RATIO
 

@@ -15,8 +15,10 @@ class Step(NamedTuple):
     Attributes:
         R: ``(3, 3)`` attitude at ``t + h``.
         y: extra state at ``t + h`` (pytree or None).
-        error: ``(e_u, e_y)`` embedded error estimate in the algebra and in y,
-            or None for a method without one.
+        error: the embedded error estimates, a tuple of ``(e_u, e_y)`` pairs
+            (in the algebra, rad, and in y), or None for a method without
+            one.  Most pairs give one estimate; `AbstractSolver.error_norm`
+            turns them into the single norm step control uses.
         fsal: field value at the new point, reusable as the next step's first
             stage (``(omega, dy/dt)``), or None.
     """
@@ -44,9 +46,21 @@ class AbstractSolver(eqx.Module):
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
 
+    def error_norm(self, error: tuple, norm) -> Array:
+        """One scaled error norm from `Step.error`, with ``norm(e_u, e_y)``
+        the controller's (RMS over the scaled components).  One estimate:
+        its norm."""
+        return norm(*error[0])
+
     @property
     def name(self) -> str:
         return type(self).__name__
+
+
+def field_at(problem, t, R, y):
+    """The field ``(omega, dy/dt)`` at ``(t, R, y)``: body angular velocity
+    ``(3,)`` (rad/s) and the extra state's rate."""
+    return problem.at(problem.base(t, R, y), t, y)
 
 
 def combine(x, h, coeffs, ks):

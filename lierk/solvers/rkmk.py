@@ -100,10 +100,20 @@ class AbstractRKMK(AbstractSolver):
         sums = [unravel(x) for x in _stage_sums(h, rows, ks)]
         u1, dy1 = sums[0]
         y1 = _add(y, dy1)
-        error = None
-        if tab.b_error is not None:
-            error = tuple(sums[1]) + tuple(sums[2:])
+        error = None if tab.b_error is None else tuple(tuple(e) for e in sums[1:])
         return Step(so3.right_exp(R, u1), y1, error, (omega, ydot) if tab.fsal else None)
+
+
+    def error_norm(self, error, norm):
+        if len(error) == 1:
+            return norm(*error[0])
+        # DOP853's 5th- and 3rd-order estimates, blended so that the norm
+        # behaves like O(h^8) (Hairer, Norsett, Wanner I, II.10).
+        err, e3 = norm(*error[0]), norm(*error[1])
+        denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
+        blend = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
+        # A rejected stage (inf) must stay inf: inf/inf would be NaN.
+        return jnp.where(jnp.isfinite(err) & jnp.isfinite(e3), blend, jnp.inf)
 
 
 class RKMK(AbstractRKMK):
