@@ -478,9 +478,7 @@ def _run_settings(scene, sol=None) -> str:
         text = f"target_error = {kw['target_error']:g}"
         if sol is None:
             return text
-        from ._pieces import chosen
-
-        return f"{text} (chose {chosen(sol)})"
+        return f"{text} (chose {sol.chosen_setting()})"
     return f"rtol = {kw['rtol']:g}, atol = {kw['atol']:g}"
 
 
@@ -499,7 +497,7 @@ def simulate(args) -> int:
     import numpy as np
 
     from . import plot
-    from ._pieces import N_PIECES, chosen
+    from .segments import N_PIECES
     from .body import angular_momentum
     from .store import check_size
 
@@ -590,7 +588,7 @@ def simulate(args) -> int:
     if scene.target_error is not None:
         est = np.asarray(sol.error_estimate)
         print(
-            f"  target_error {scene.target_error:.3g}: chose {chosen(sol)} "
+            f"  target_error {scene.target_error:.3g}: chose {sol.chosen_setting()} "
             f"after {st['num_solves']} solves (steps above: the last, finest solve); "
             f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
         )

@@ -275,7 +275,7 @@ class Scene:
         unknown = set(overrides) - {"throw"}
         if unknown:
             raise ValueError(f"a scene solved in pieces takes only throw= as an override, got {', '.join(sorted(unknown))}")
-        from ._pieces import N_PIECES, solve_in_pieces
+        from .segments import N_PIECES, solve_in_pieces
 
         return solve_in_pieces(self, N_PIECES if n_pieces is None else int(n_pieces), progress,
                                overrides.get("throw", True))

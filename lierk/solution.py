@@ -122,6 +122,16 @@ class Solution(eqx.Module):
 
         return to_euler(self.R, convention)
 
+    def chosen_setting(self) -> str | None:
+        """The setting a ``target_error=`` solve chose, as text (``"dt = 0.01
+        s"`` or ``"rtol = atol = 1e-08"``); None for other solves.  Reads
+        concrete values: call it outside `jax.jit`, on one solve."""
+        if "dt" in self.stats:
+            return f"dt = {float(self.stats['dt']):.4g} s"
+        if "rtol" in self.stats:
+            return f"rtol = atol = {float(self.stats['rtol']):.3g}"
+        return None
+
     @property
     def orthogonality_error(self) -> Array:
         """``||R^T R - I||`` at each saved point: ``(..., n_save)``."""

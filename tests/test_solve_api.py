@@ -307,3 +307,14 @@ def test_bad_traced_values_raise_at_run_time():
         run(np.nan, OMEGA_GENERIC)
     with pytest.raises(Exception, match="omega0"):
         run(0.1, np.array([np.nan, 0.0, 1.0]))
+
+
+def test_chosen_setting_names_the_setting_target_error_chose():
+    body = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    fixed = lierk.solve(body, lierk.RKMK4(), 1.0, target_error=1e-6)
+    assert fixed.chosen_setting() == f"dt = {float(fixed.stats['dt']):.4g} s"
+    # The chosen step is the one the returned (finer) solution took.
+    assert int(fixed.stats["num_steps"]) == int(np.ceil(1.0 / float(fixed.stats["dt"]) - 1e-9))
+    adaptive = lierk.solve(body, lierk.DP54(), 1.0, target_error=1e-6)
+    assert adaptive.chosen_setting() == f"rtol = atol = {float(adaptive.stats['rtol']):.3g}"
+    assert lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.1).chosen_setting() is None

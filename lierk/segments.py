@@ -1,4 +1,5 @@
-"""A scene solved in pieces, with progress: `lierk.scene.Scene.solve`'s ``n_pieces``."""
+"""A scene solved in segments ("pieces"), with progress between them:
+`lierk.scene.Scene.solve`'s ``n_pieces``."""
 
 from __future__ import annotations
 
@@ -19,13 +20,6 @@ N_PIECES = 20
 """Pieces of a `Scene.solve(progress=True)` when ``n_pieces`` is not given."""
 
 
-def chosen(sol: Solution) -> str:
-    """The setting a target_error solve chose, from its stats."""
-    if "dt" in sol.stats:
-        return f"dt = {float(sol.stats['dt']):.4g} s"
-    return f"rtol = atol = {float(sol.stats['rtol']):.3g}"
-
-
 def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Solution:
     """``scene.solve()`` in ``n_pieces`` pieces; see `Scene.solve`."""
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
@@ -44,7 +38,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
             worst = float(np.max(np.asarray(sol.error_estimate)))
             raise RuntimeError(
                 f"target_error = {scene.target_error:g} was not reached: the best estimate was {worst:.2g} "
-                f"(last tried {chosen(sol)}); loosen it or use another solver"
+                f"(last tried {sol.chosen_setting()}); loosen it or use another solver"
             )
         _check(code, 0.0, t1, throw)
         bar.update(t1)
