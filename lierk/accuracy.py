@@ -218,18 +218,11 @@ def work_precision(
             settings that are not finite numbers > 0.
         RuntimeError: the reference solve failed.
     """
-    import jax
     import jax.numpy as jnp
-
-    from . import exact
-    from .scene import SOLVERS
-    from .solution import RESULTS, SaveAt
-    from .solve import solve
-    from .solvers.base import AbstractSolver
 
     problem, t1 = scene.problem, float(scene.t1)
     dtype = problem.R0.dtype
-    eps = float(jnp.finfo(dtype).eps)
+    eps = float(np.finfo(dtype).eps)
     if not (isinstance(n_times, int) and n_times >= 2):
         raise ValueError(f"n_times must be an int >= 2, got {n_times!r}")
     if not (isinstance(max_steps, int) and max_steps >= 1):
@@ -237,6 +230,55 @@ def work_precision(
     if max_settings is not None and not (isinstance(max_settings, int) and max_settings >= 1):
         raise ValueError(f"max_settings must be a positive int or None, got {max_settings!r}")
     n_max = _DEFAULT_MAX_SETTINGS if max_settings is None else max_settings
+    chosen = _solvers_to_run(solvers)
+    settings = _checked_settings(settings, chosen)
+
+    ts_np = np.linspace(0.0, t1, n_times)
+    ts = jnp.asarray(ts_np, dtype)
+    plan = _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps)
+    numerical = getattr(problem, "effects", None) != ()
+    bar = Progress("accuracy", sum(len(v) for _, v, _ in plan) + (2 if numerical else 1), " runs", quiet=not progress)
+    done = [0]
+
+    def tick(n=1):
+        done[0] += n
+        bar.update(done[0])
+
+    bar.update(0)
+    rtols = [v for s, values, _ in plan if s.adaptive for v in values]
+    ref = _reference(problem, t1, ts, rtols, numerical, max_steps, tick)
+    # Defaults stop once a run is below what the decades (or the reference) can resolve.
+    stop_level = max(min(DECADES) / 10, max(ref.error, ref.disagreement or 0.0) / 10)
+
+    rows: list[Row] = []
+    for solver, values, is_default in plan:
+        previous = None
+        for i, v in enumerate(values):
+            row = _run(problem, solver, v, t1, ts, ts_np, max_steps, repeats, ref.R)
+            rows.append(row)
+            tick()
+            if is_default and _stop(row, previous, stop_level):
+                tick(len(values) - i - 1)
+                break
+            previous = row if row.ok else previous
+
+    return AccuracyReport(
+        scene=scene.name,
+        t1=t1,
+        ts=ts_np,
+        rows=tuple(rows),
+        reference=ref.reference,
+        reference_error=ref.error,
+        check=ref.check,
+        check_disagreement=ref.disagreement,
+        dtype=str(np.dtype(dtype)),
+    )
+
+
+def _solvers_to_run(solvers) -> list:
+    """Solver instances from names (as in `lierk.scene.SOLVERS`) or instances."""
+    from .scene import SOLVERS
+    from .solvers.base import AbstractSolver
 
     chosen = []
     for s in DEFAULT_SOLVERS if solvers is None else solvers:
@@ -250,6 +292,10 @@ def work_precision(
         chosen.append(s)
     if not chosen:
         raise ValueError("no solvers to run")
+    return chosen
+
+
+def _checked_settings(settings, chosen) -> dict:
     settings = dict(settings or {})
     unknown = set(settings) - {s.name for s in chosen}
     if unknown:
@@ -257,12 +303,12 @@ def work_precision(
     for name, values in settings.items():
         if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) and v > 0 for v in values):
             raise ValueError(f"settings[{name!r}] must be a non-empty list of finite numbers > 0, got {values!r}")
+    return settings
 
+
+def _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps) -> list[tuple[Any, list[float], bool]]:
+    """``(solver, values, defaults?)`` per solver; default ranges stop early."""
     interval = t1 / (n_times - 1)
-    ts_np = np.linspace(0.0, t1, n_times)
-    ts = jnp.asarray(ts_np, dtype)
-
-    # Settings per solver: (values, explicit?).  Defaults stop early.
     rtol_floor = max(1e-12, 100 * eps)
     default_rtols = [10.0**-k for k in range(3, 13) if 10.0**-k >= rtol_floor * (1 - 1e-9)]
     if len(default_rtols) > n_max:
@@ -283,127 +329,117 @@ def work_precision(
         else:
             ms = [m0 * 2**k for k in range(n_max) if (n_times - 1) * m0 * 2**k <= max_steps]
             plan.append((s, [interval / m for m in ms] or [interval / m0], True))
+    return plan
 
-    rtols = [v for s, values, _ in plan if s.adaptive for v in values]
-    numerical = getattr(problem, "effects", None) != ()
-    bar = Progress("accuracy", sum(len(v) for _, v, _ in plan) + (2 if numerical else 1), " runs", quiet=not progress)
-    done = 0
-    bar.update(done)
 
-    def finish(sol):
-        return jax.block_until_ready(sol)
+@dataclasses.dataclass(frozen=True)
+class _Reference:
+    R: np.ndarray  # (n_times, 3, 3)
+    reference: str
+    error: float
+    check: str | None
+    disagreement: float | None
 
-    # --- the reference --------------------------------------------------------
-    def frob(R, R_ref):
-        return float(np.max(np.linalg.norm(np.asarray(R, dtype=float) - R_ref, axis=(-2, -1))))
 
-    def adaptive_solve(solver, rtol, steps, **kw):
-        return finish(
-            solve(problem, solver, t1, rtol=rtol, saveat=SaveAt(ts=ts), max_steps=steps, throw=False, **kw)
-        )
+def _max_gap(R, R_ref) -> float:
+    return float(np.max(np.linalg.norm(np.asarray(R, dtype=float) - R_ref, axis=(-2, -1))))
 
+
+def _adaptive_solve(problem, solver, t1, ts, rtol, steps, **kw):
+    import jax
+
+    from .solution import SaveAt
+    from .solve import solve
+
+    return jax.block_until_ready(
+        solve(problem, solver, t1, rtol=rtol, saveat=SaveAt(ts=ts), max_steps=steps, throw=False, **kw)
+    )
+
+
+def _reference(problem, t1, ts, rtols, numerical, max_steps, tick) -> _Reference:
+    """The closed form for a torque-free body, else DOP853 cross-checked by DP54."""
+    from . import exact
+    from .solution import RESULTS
+
+    eps = float(np.finfo(problem.R0.dtype).eps)
     if not numerical:
         R_ref = np.asarray(exact.free_rigid_body(problem.inertia, problem.omega0, ts, problem.R0)[0], dtype=float)
+        omega = float(np.linalg.norm(np.asarray(problem.omega0)))
+        tick()
         # Its rounding grows with the angle turned: ~1e-12 after 100 periods in float64.
-        reference_error = 10 * eps * max(1.0, omega * t1)
-        reference = "lierk.exact.free_rigid_body (closed form)"
-        check, disagreement = None, None
-        done += 1
-        bar.update(done)
-    else:
-        from .solvers import DOP853, DP54
+        return _Reference(R_ref, "lierk.exact.free_rigid_body (closed form)", 10 * eps * max(1.0, omega * t1), None, None)
+    from .solvers import DOP853, DP54
 
-        rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
-        # The rows' max_steps first (same compilation as the DOP853 rows), then more room.
-        for steps in (max_steps, 16 * max_steps):
-            ref = adaptive_solve(DOP853(), rtol_ref, steps, estimate_error=True)
-            if int(ref.result) == RESULTS.successful:
-                break
-        if int(ref.result) != RESULTS.successful:
-            raise RuntimeError(
-                f"the reference solve (DOP853, rtol = {rtol_ref:.0e}) failed: {RESULTS.message(int(ref.result))}"
-            )
-        R_ref = np.asarray(ref.R, dtype=float)
-        reference = f"DOP853, rtol = atol = {rtol_ref:.0e}, {int(ref.stats['num_steps'])} steps"
-        reference_error = float(np.max(np.asarray(ref.error_estimate)))
-        done += 1
-        bar.update(done)
-        for steps in (max_steps, 16 * max_steps):
-            chk = adaptive_solve(DP54(), rtol_ref, steps)
-            if int(chk.result) == RESULTS.successful:
-                break
-        check = f"DP54, rtol = atol = {rtol_ref:.0e}"
+    rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
+    # The rows' max_steps first (same compilation as the DOP853 rows), then more room.
+    for steps in (max_steps, 16 * max_steps):
+        ref = _adaptive_solve(problem, DOP853(), t1, ts, rtol_ref, steps, estimate_error=True)
+        if int(ref.result) == RESULTS.successful:
+            break
+    if int(ref.result) != RESULTS.successful:
+        raise RuntimeError(
+            f"the reference solve (DOP853, rtol = {rtol_ref:.0e}) failed: {RESULTS.message(int(ref.result))}"
+        )
+    R_ref = np.asarray(ref.R, dtype=float)
+    reference = f"DOP853, rtol = atol = {rtol_ref:.0e}, {int(ref.stats['num_steps'])} steps"
+    tick()
+    for steps in (max_steps, 16 * max_steps):
+        chk = _adaptive_solve(problem, DP54(), t1, ts, rtol_ref, steps)
         if int(chk.result) == RESULTS.successful:
-            check += f", {int(chk.stats['num_steps'])} steps"
-            disagreement = frob(chk.R, R_ref)
-        else:
-            check += f": failed ({RESULTS.message(int(chk.result))})"
-            disagreement = None
-        done += 1
-        bar.update(done)
+            break
+    check = f"DP54, rtol = atol = {rtol_ref:.0e}"
+    if int(chk.result) == RESULTS.successful:
+        check += f", {int(chk.stats['num_steps'])} steps"
+        disagreement = _max_gap(chk.R, R_ref)
+    else:
+        check += f": failed ({RESULTS.message(int(chk.result))})"
+        disagreement = None
+    tick()
+    return _Reference(R_ref, reference, float(np.max(np.asarray(ref.error_estimate))), check, disagreement)
 
-    # Defaults stop once a run is below what the decades (or the reference) can resolve.
-    stop_level = max(min(DECADES) / 10, max(reference_error, disagreement or 0.0) / 10)
 
-    # --- the runs ---------------------------------------------------------------
-    rows: list[Row] = []
-    for solver, values, is_default in plan:
-        previous = None
-        for i, v in enumerate(values):
-            if solver.adaptive:
-                run = lambda est, v=v: adaptive_solve(solver, v, max_steps, estimate_error=est)  # noqa: E731
-            else:
-                m = max(1, round(interval / v))
-                n_steps = (n_times - 1) * m
-                run = lambda est, v=v, m=m, n=n_steps: finish(  # noqa: E731
-                    solve(problem, solver, t1, dt=v, saveat=SaveAt(t0=True, steps=m), max_steps=n,
-                          estimate_error=est, throw=False)
-                )
-            sol = run(True)  # compiles both solves; the plain one is the one timed
-            if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
-                raise AssertionError(f"{solver.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
-            run(False)  # warm-up of the timed call
-            best, spent = math.inf, 0.0
-            for _ in range(max(1, repeats)):
-                start = time.perf_counter()
-                run(False)
-                took = time.perf_counter() - start
-                best, spent = min(best, took), spent + took
-                if spent > 0.5:
-                    break
-            result = int(sol.result)
-            err = frob(sol.R, R_ref) if result == RESULTS.successful else math.nan
-            est = float(np.max(np.asarray(sol.error_estimate))) if result == RESULTS.successful else math.nan
-            row = Row(
-                solver=solver.name,
-                setting="rtol" if solver.adaptive else "dt",
-                value=float(v),
-                time=best,
-                error=err,
-                error_estimate=est,
-                num_steps=int(sol.stats["num_steps"]),
-                num_fevals=int(sol.stats["num_fevals"]),
-                result=result,
-            )
-            rows.append(row)
-            done += 1
-            bar.update(done)
-            if is_default and _stop(row, previous, stop_level):
-                done += len(values) - i - 1
-                bar.update(done)
-                break
-            previous = row if row.ok else previous
+def _run(problem, solver, v, t1, ts, ts_np, max_steps, repeats, R_ref) -> Row:
+    """One setting ``v`` of ``solver``: timed, and measured against ``R_ref``."""
+    import jax
 
-    return AccuracyReport(
-        scene=scene.name,
-        t1=t1,
-        ts=ts_np,
-        rows=tuple(rows),
-        reference=reference,
-        reference_error=reference_error,
-        check=check,
-        check_disagreement=disagreement,
-        dtype=str(np.dtype(dtype)),
+    from .solution import RESULTS, SaveAt
+    from .solve import solve
+
+    eps = float(np.finfo(problem.R0.dtype).eps)
+    if solver.adaptive:
+        run = lambda est: _adaptive_solve(problem, solver, t1, ts, v, max_steps, estimate_error=est)  # noqa: E731
+    else:
+        interval = t1 / (len(ts_np) - 1)
+        m = max(1, round(interval / v))
+        n_steps = (len(ts_np) - 1) * m
+        run = lambda est: jax.block_until_ready(  # noqa: E731
+            solve(problem, solver, t1, dt=v, saveat=SaveAt(t0=True, steps=m), max_steps=n_steps,
+                  estimate_error=est, throw=False)
+        )
+    sol = run(True)  # compiles both solves; the plain one is the one timed
+    if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
+        raise AssertionError(f"{solver.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
+    run(False)  # warm-up of the timed call
+    best, spent = math.inf, 0.0
+    for _ in range(max(1, repeats)):
+        start = time.perf_counter()
+        run(False)
+        took = time.perf_counter() - start
+        best, spent = min(best, took), spent + took
+        if spent > 0.5:
+            break
+    result = int(sol.result)
+    ok = result == RESULTS.successful
+    return Row(
+        solver=solver.name,
+        setting="rtol" if solver.adaptive else "dt",
+        value=float(v),
+        time=best,
+        error=_max_gap(sol.R, R_ref) if ok else math.nan,
+        error_estimate=float(np.max(np.asarray(sol.error_estimate))) if ok else math.nan,
+        num_steps=int(sol.stats["num_steps"]),
+        num_fevals=int(sol.stats["num_fevals"]),
+        result=result,
     )
 
 

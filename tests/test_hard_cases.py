@@ -162,7 +162,10 @@ def test_fast_spin_fixed_steps_stay_on_so3(solver):
     equations far outside any explicit method's stability region, and must
     say so rather than return a number."""
     sol = lierk.solve(lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20), throw=False)
-    assert int(sol.result) in (lierk.RESULTS.successful, lierk.RESULTS.invariant_drift)
+    # A splitting composes exact flows (any step is right); the Lie-group
+    # Runge-Kutta methods lose the energy at 10 rad per step and must say so.
+    splitting = isinstance(solver, lierk.AbstractSplitting)
+    assert int(sol.result) == (lierk.RESULTS.successful if splitting else lierk.RESULTS.invariant_drift)
     R = np.asarray(sol.R)
     orth = float(np.asarray(sol.orthogonality_error).max())
     print(f"{solver.name}: max orth {orth:.2e}")
@@ -192,7 +195,8 @@ def test_fast_spin_adaptive_chooses_small_steps(solver):
     # (507, 0.20 rad), DOP853 5.6e-6 (102, 0.98 rad).  The error is that of a
     # 100 rad rotation at rtol 1e-8 (time-rescaling: the same as 100 s at 1 rad/s).
     assert err < 3e-4
-    assert 1e-3 < mean_angle < 3.0
+    # The controller's steps follow the rotation: within 2x of the measured range.
+    assert 0.09 < mean_angle < 2.0
 
 
 def test_rkmk4_million_steps():
