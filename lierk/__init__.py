@@ -1,7 +1,8 @@
 """lierk: Lie-group integrators for rigid-body rotation, in JAX.
 
 The public API is re-exported here; each concept lives in its own module.
-Data flows one way: problem (``fields``) -> ``solve(solver)`` -> `Solution`.
+Data flows one way: scene -> problem (``problems``) -> ``solve(solver)`` ->
+`Solution` -> plot/CLI.
 """
 
 from . import accuracy as accuracy
@@ -11,7 +12,9 @@ from . import body as body
 from . import cache as cache
 from . import effects as effects
 from . import exact as exact
+from . import fields as fields
 from . import inertia as inertia
+from . import problems as problems
 from . import rigid_body as rigid_body
 from . import scene as scene
 from . import so3 as so3
@@ -21,15 +24,16 @@ from .adjoint import ForwardMode as ForwardMode
 from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .cache import compilation_cache_dir as compilation_cache_dir
 from .controller import Controller as Controller
-from .effects import BodyTorque as BodyTorque
-from .effects import Damping as Damping
-from .effects import Gravity as Gravity
-from .effects import SpaceTorque as SpaceTorque
-from .effects import TimedTorque as TimedTorque
-from .fields import AbstractProblem as AbstractProblem
-from .fields import SpatialFreeRigidBody as SpatialFreeRigidBody
-from .rigid_body import FreeRigidBody as FreeRigidBody
-from .rigid_body import RigidBodyWithEffects as RigidBodyWithEffects
+from .problems import AbstractProblem as AbstractProblem
+from .problems import AbstractRigidBody as AbstractRigidBody
+from .problems import FreeRigidBody as FreeRigidBody
+from .problems import RigidBodyWithEffects as RigidBodyWithEffects
+from .problems import SpatialFreeRigidBody as SpatialFreeRigidBody
+from .problems.effects import BodyTorque as BodyTorque
+from .problems.effects import Damping as Damping
+from .problems.effects import Gravity as Gravity
+from .problems.effects import SpaceTorque as SpaceTorque
+from .problems.effects import TimedTorque as TimedTorque
 from .solution import RESULTS as RESULTS
 from .solution import SaveAt as SaveAt
 from .solution import Solution as Solution

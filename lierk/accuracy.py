@@ -19,7 +19,7 @@ fits between two saved times, and adaptive solves hit the times exactly
 
 The reference ``R_ref``:
 
-- a torque-free body (``problem.effects == ()``): the closed form
+- a torque-free body (``problem.torque_free``): the closed form
   `lierk.exact.free_rigid_body`;
 - otherwise a `DOP853` solve two orders of magnitude tighter than the
   tightest tolerance (and than 1e-12, the smallest decade), but not below
@@ -103,7 +103,9 @@ class Row:
     @property
     def ok(self) -> bool:
         """The solve succeeded and its error is finite."""
-        return self.result == 0 and math.isfinite(self.error)
+        from .solution import RESULTS
+
+        return self.result == RESULTS.successful and math.isfinite(self.error)
 
     @property
     def label(self) -> str:
@@ -236,7 +238,7 @@ def work_precision(
     ts_np = np.linspace(0.0, t1, n_times)
     ts = jnp.asarray(ts_np, dtype)
     plan = _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps)
-    numerical = getattr(problem, "effects", None) != ()
+    numerical = not problem.torque_free
     bar = Progress("accuracy", sum(len(v) for _, v, _ in plan) + (2 if numerical else 1), " runs", quiet=not progress)
     done = [0]
 
@@ -445,7 +447,9 @@ def _run(problem, solver, v, t1, ts, ts_np, max_steps, repeats, R_ref) -> Row:
 
 def _stop(row: Row, previous: Row | None, stop_level: float) -> bool:
     """Whether a default range of settings can end after ``row``."""
-    if row.setting == "rtol" and row.result == 1:
+    from .solution import RESULTS
+
+    if row.setting == "rtol" and row.result == RESULTS.max_steps_reached:
         return True  # max_steps reached: tighter tolerances need still more steps
     if not row.ok:
         return False  # e.g. a fixed step too coarse to stay finite: finer ones may work

@@ -498,7 +498,7 @@ def simulate(args) -> int:
 
     from . import plot
     from .segments import N_PIECES
-    from .body import angular_momentum
+    from .problems.kinematics import angular_momentum
     from .store import check_size
 
     if args.target_error is not None:
@@ -549,9 +549,9 @@ def simulate(args) -> int:
         np.savez(npz, **data)
         # Tops precess and nutate: their classical Z-X-Z angles show that apart
         # from the spin, where Z-Y-X angles ramp with it.
-        from .effects import Gravity
+        from .problems.effects import Gravity
 
-        convention = "zxz" if any(isinstance(e, Gravity) for e in getattr(problem, "effects", ())) else "zyx"
+        convention = "zxz" if any(isinstance(e, Gravity) for e in problem.effects) else "zyx"
         flips = _flip_times(problem, sol)
         figures = {
             "components": plot.components(sol, title, flips=flips),
@@ -592,7 +592,7 @@ def simulate(args) -> int:
             f"after {st['num_solves']} solves (steps above: the last, finest solve); "
             f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
         )
-    conserved = problem.conserved() if hasattr(problem, "conserved") else tuple(inv)
+    conserved = problem.conserved()
     for k, v in drift.items():
         note = "" if k in conserved else "  (not conserved by this scene)"
         print(f"  max relative change of {k}: {v:.2e}{note}")
@@ -627,9 +627,7 @@ def _flip_times(problem, sol):
 def _flip_interval(problem):
     """`lierk.exact.flip_interval` of a torque-free body (``inf``: it never
     flips), else None."""
-    from .rigid_body import FreeRigidBody
-
-    if not isinstance(problem, FreeRigidBody):
+    if not problem.torque_free:
         return None
     try:
         from .exact import flip_interval
@@ -673,7 +671,6 @@ def sweep(args) -> int:
     from ._progress import Progress
     from .batch import sweep_chunks
     from .store import ChunkStore, check_size
-    from .rigid_body import FreeRigidBody
     from .sensitivity import sensitivity
     from .solve import num_steps
 
@@ -699,7 +696,7 @@ def sweep(args) -> int:
         # Under vmap/jit the step count cannot be read from t1 and dt.
         kw["max_steps"] = num_steps(0.0, t1, float(kw["dt"]), None)
     exact = None
-    if isinstance(problem, FreeRigidBody):
+    if problem.torque_free:
         try:
             from .exact import flip_interval as exact
         except ImportError:

@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import _checks
+from . import validation
 from .solvers.base import field_at
 
 __all__ = ["AbstractStepController", "Controller", "ConstantStep", "Decision"]
@@ -102,7 +102,7 @@ class ConstantStep(AbstractStepController):
         return None, dt0, None
 
     def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last):
-        finite = _checks.all_finite((st.R, st.y))
+        finite = validation.all_finite((st.R, st.y))
         return Decision(jnp.asarray(True), h_proposed, h <= 0, ~finite, None)
 
 
@@ -157,19 +157,19 @@ class Controller(AbstractStepController):
         dtmax: ArrayLike = float("inf"),
         max_angle: ArrayLike = math.pi,
     ):
-        # Checks run on NumPy values while they are known (see `lierk._checks`);
+        # Checks run on NumPy values while they are known (see `lierk.validation`);
         # everything becomes a JAX array only at the end.
         def bounded(name, x, ok, what):
-            x = _checks.asarray(x, name=name)
+            x = validation.asarray(x, name=name)
             if x.ndim != 0:
                 raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}")
-            return _checks.check(x, ok, f"{name} must be {what}, got {{value}}")
+            return validation.check(x, ok, f"{name} must be {what}, got {{value}}")
 
         inf = float("inf")
         rtol = bounded("rtol", rtol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
         atol = bounded("atol", atol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
         # Keep every checked value: a traced check whose result is dropped is dead code to XLA.
-        rtol = _checks.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0")
+        rtol = validation.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0")
         # Outside these bounds the step-size update cannot converge: a solve
         # would spin until max_steps.
         safety = bounded("safety", safety, lambda v: (v > 0) & (v <= 1), "in (0, 1]")
@@ -239,7 +239,7 @@ class Controller(AbstractStepController):
         err = solver.error_norm(st.error, lambda e_u, e_y: ctrl.norm(e_u, e_y, tol_y))
         err = jax.lax.stop_gradient(err / calibration)
         f_new = st.fsal if st.fsal is not None else field_at(problem, t_new, st.R, st.y)
-        finite = _checks.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
+        finite = validation.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
         accept = finite & (err <= 1.0)
         # The turn bound reads omega where the next step starts.
         largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]))

@@ -43,7 +43,7 @@ integral has no pole.  All elliptic functions and integrals are evaluated by
 (no cancellation near the separatrix).
 
 Inputs are validated as `lierk.FreeRigidBody` validates them
-(`lierk.fields.rigid_body_state`): the inertia is ``(3, 3)`` symmetric
+(`lierk.validation.rigid_body_state`): the inertia is ``(3, 3)`` symmetric
 positive definite or ``(3,)`` principal moments, ``omega0`` is a finite
 ``(3,)`` vector and ``R0`` a rotation matrix.  Concrete values raise
 `ValueError` naming the value; traced values (under ``jit``/``vmap``/``grad``)
@@ -76,7 +76,7 @@ from jax.typing import ArrayLike
 
 from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
-from lierk.fields import rigid_body_state
+from lierk.validation import rigid_body_state
 
 __all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "sphere", "principal_frame"]
 

@@ -16,7 +16,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import _checks
+from .validation import check_inertia as tensor
 
 __all__ = [
     "tensor",
@@ -31,58 +31,6 @@ __all__ = [
 ]
 
 _AXES = {"x": 0, "y": 1, "z": 2}
-
-
-def tensor(inertia: ArrayLike) -> Array:
-    """Validate an inertia tensor and return it as a ``(3, 3)`` array.
-
-    Args:
-        inertia: ``(3, 3)`` symmetric positive-definite matrix, or ``(3,)``
-            principal moments (kg m^2).
-
-    Raises:
-        ValueError: wrong shape, NaN/inf, not symmetric, or not positive
-            definite (checked at run time with `eqx.error_if` when traced).
-    """
-    inertia = _checks.asarray(inertia, name="inertia")
-    xp = np if isinstance(inertia, np.ndarray) else jnp
-    if inertia.shape == (3,):
-        inertia = xp.diag(inertia)
-    if inertia.shape != (3, 3):
-        raise ValueError(f"inertia must have shape (3, 3) or (3,), got shape {inertia.shape}")
-    inertia = _checks.check(
-        inertia, lambda I: (I == I).all() & (abs(I) < float("inf")).all(), "inertia has NaN or inf entries: {value}"
-    )
-    inertia = _checks.check(
-        inertia,
-        lambda I: abs(I - I.T).max() <= 1e-10 * abs(I).max(),
-        "inertia must be symmetric, got {value}",
-    )
-    # The three leading principal minors are positive iff I is positive definite
-    # (Sylvester); this avoids an eigendecomposition in the traced check.
-    inertia = _checks.check(
-        inertia,
-        lambda I: (I[0, 0] > 0)
-        & (I[0, 0] * I[1, 1] - I[0, 1] * I[1, 0] > 0)
-        & (
-            I[0, 0] * (I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1])
-            - I[0, 1] * (I[1, 0] * I[2, 2] - I[1, 2] * I[2, 0])
-            + I[0, 2] * (I[1, 0] * I[2, 1] - I[1, 1] * I[2, 0])
-            > 0
-        ),
-        "inertia must be positive definite, got {value}",
-    )
-    if isinstance(inertia, np.ndarray):
-        moments = np.linalg.eigvalsh(inertia)
-        if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
-            # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
-            # break it too, so this warns rather than refuses.
-            warnings.warn(
-                f"inertia {_checks._show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
-                "no rigid body has these principal moments; the equations are solved as given",
-                stacklevel=3,
-            )
-    return jnp.asarray(inertia)
 
 
 def _positive(name: str, value) -> float:

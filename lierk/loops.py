@@ -26,7 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import _checks
+from . import validation
 from .adjoint import ForwardMode
 from .controller import AbstractStepController
 from .solution import RESULTS, SaveAt, Solution
@@ -52,7 +52,7 @@ def num_steps(t0, t1, dt, max_steps=None) -> int:
     to rounding counts exactly).  Needs concrete values."""
     if max_steps is not None:
         return int(max_steps)
-    if _checks.is_traced(t0, t1, dt):
+    if validation.is_traced(t0, t1, dt):
         raise ValueError(
             "t0, t1 or dt is traced (under jit/vmap), so the number of steps cannot be read from them: "
             "pass max_steps=N, a Python int with N * dt >= t1 - t0"
@@ -180,7 +180,7 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution
     end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
     ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
     result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
-    result = jnp.where(_checks.all_finite(state), result, RESULTS.nonfinite)
+    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
     stats = {
         "num_steps": taken,
         "num_accepted_steps": taken,
@@ -394,7 +394,7 @@ def _adaptive_loop(
         checkpoints=adjoint.checkpoints,
         buffers=(lambda c: c.decisions) if record and adjoint.kind == "checkpointed" else None,
     )
-    finite = _checks.all_finite((final.R, final.y))
+    finite = validation.all_finite((final.R, final.y))
     result = jnp.where(
         final.done & finite, final.result, jnp.where(finite, RESULTS.max_steps_reached, RESULTS.nonfinite)
     ).astype(jnp.int32)

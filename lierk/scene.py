@@ -97,9 +97,10 @@ import numpy as np
 from . import inertia as _inertia
 from . import so3
 from . import solvers as _solvers
-from .effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
-from .fields import AbstractProblem, check_attitude
-from .rigid_body import FreeRigidBody, RigidBodyWithEffects
+from .problems.effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
+from .problems import AbstractProblem
+from .validation import check_attitude
+from .problems import FreeRigidBody, RigidBodyWithEffects
 from .solution import SaveAt, Solution
 from .solve import num_steps as _num_steps
 from .solve import solve as _solve

@@ -29,7 +29,7 @@ from jax.typing import ArrayLike
 
 from . import so3
 from .adjoint import ForwardMode
-from .fields import AbstractProblem
+from .problems import AbstractProblem, AbstractRigidBody
 from .solution import RESULTS, SaveAt, raise_if_failed
 from .global_error import TOLERANCE_RATIO, finer
 from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, solve
@@ -126,7 +126,7 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
         return p0, lambda p: eqx.tree_at(wrt, problem, p)
     if wrt not in _INPUTS:
         raise ValueError(f"wrt must be one of {_INPUTS} or a function selecting fields of the problem, got {wrt!r}")
-    if not hasattr(problem, "with_omega0"):
+    if not isinstance(problem, AbstractRigidBody):
         raise ValueError(f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}")
     omega0 = problem.omega0
     if wrt == "omega0":
@@ -144,8 +144,7 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
     # diagonal would read only the diagonal, and its derivative along the
     # off-diagonal entries would be lost).
     def weighed(inertia):
-        from .fields import SpatialFreeRigidBody
-        from .rigid_body import FreeRigidBody, RigidBodyWithEffects
+        from .problems import FreeRigidBody, RigidBodyWithEffects, SpatialFreeRigidBody
 
         if isinstance(problem, FreeRigidBody) or isinstance(problem, SpatialFreeRigidBody):
             return type(problem)(inertia, omega0, problem.R0)

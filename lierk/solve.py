@@ -9,11 +9,11 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import _checks
+from . import validation
 from . import global_error
 from .adjoint import AbstractAdjoint, RecursiveCheckpointAdjoint
 from .controller import Controller
-from .fields import AbstractProblem
+from .problems import AbstractProblem
 from .loops import num_steps, solve_adaptive, solve_fixed
 from .solution import RESULTS, SaveAt, Solution, raise_if_failed
 from .solvers.base import AbstractSolver
@@ -126,8 +126,8 @@ def solve(
             raise ValueError(f"target_error= chooses the step or the tolerances itself, so {', '.join(given)} cannot be given too")
         if saveat.steps is not False:
             raise ValueError("target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used")
-        eps = _checks.check(
-            _scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
+        eps = validation.check(
+            validation.check_scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
         )
         max_steps = max_steps or global_error.DEFAULT_TARGET_MAX_STEPS
         sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps, adjoint)
@@ -179,24 +179,24 @@ def _check_call(problem, solver, saveat, max_steps, estimate_error) -> SaveAt:
 def _check_times(t0, t1, dtype) -> tuple[Array, Array]:
     """``t0`` and ``t1`` (s) as scalars of the problem's dtype, ``t1 >= t0``."""
     t0_given, t1_given = t0, t1
-    t0 = _scalar(t0, "t0", dtype)
-    t1 = _scalar(t1, "t1", dtype)
-    if not _checks.is_traced(t0_given, t1_given) and float(t1_given) > float(t0_given) and float(t1) <= float(t0):
+    t0 = validation.check_scalar(t0, "t0", dtype)
+    t1 = validation.check_scalar(t1, "t1", dtype)
+    if not validation.is_traced(t0_given, t1_given) and float(t1_given) > float(t0_given) and float(t1) <= float(t0):
         raise ValueError(
             f"t1 = {float(t1_given)!r} rounds to t0 = {float(t0)!r} in {np.dtype(dtype).name}: the interval is below "
             "the resolution of the time axis; shift t0 towards 0 or use float64"
         )
-    t1 = _checks.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not _checks.is_traced(t0) else 't0'}, got t1 = {{value}}")
+    t1 = validation.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}")
     return t0, t1
 
 
 def _check_save_times(saveat: SaveAt, t0, t1, dtype) -> SaveAt:
     if saveat.ts is None:
         return saveat
-    ts = _checks.asarray(saveat.ts, dtype, "SaveAt(ts=...)")
+    ts = validation.asarray(saveat.ts, dtype, "SaveAt(ts=...)")
     if np.shape(ts)[0] == 0:
         raise ValueError("SaveAt(ts=...) is empty: give at least one time, or save t0/t1 instead")
-    ts = _checks.check(
+    ts = validation.check(
         ts,
         lambda x: (x >= t0).all() & (x <= t1).all() & (x[1:] >= x[:-1]).all(),
         "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1], got {value}",
@@ -209,9 +209,9 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
     """The step ``dt`` (s) and the static step count of a fixed-step solve."""
     if saveat.ts is not None:
         raise ValueError("SaveAt(ts=...) needs an adaptive solve; with fixed steps use SaveAt(steps=k)")
-    dt = _scalar(dt, "dt", dtype)
-    dt = _checks.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
-    if not _checks.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
+    dt = validation.check_scalar(dt, "dt", dtype)
+    dt = validation.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
+    if not validation.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
         # The step itself would still be integrated exactly dt long, but
         # the times t0 + k dt, which time-dependent effects read and the
         # solution reports, could not move forward.
@@ -256,7 +256,7 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
             "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
         )
     eps = float(np.finfo(dtype).eps)
-    if not _checks.is_traced(controller.rtol, controller.atol) and float(controller.rtol + controller.atol) < eps:
+    if not validation.is_traced(controller.rtol, controller.atol) and float(controller.rtol + controller.atol) < eps:
         raise ValueError(
             f"rtol + atol = {float(controller.rtol + controller.atol):g} is below the rounding of "
             f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
@@ -265,7 +265,7 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     if not isinstance(adjoint, AbstractAdjoint):
         raise ValueError(f"adjoint must be a lierk.adjoint object, got {adjoint!r}")
     if dt0 is not None:
-        dt0 = _checks.check(_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
+        dt0 = validation.check(validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
     return controller, adjoint, dt0
 
 
@@ -289,10 +289,3 @@ def _flag_drift(problem, sol: Solution) -> Solution:
     drifted = (sol.result == RESULTS.successful) & (worst > _DRIFT_LIMIT)
     result = jnp.where(drifted, RESULTS.invariant_drift, sol.result).astype(sol.result.dtype)
     return eqx.tree_at(lambda s: s.result, sol, result)
-
-
-def _scalar(x, name, dtype) -> Array:
-    if np.ndim(x) != 0:
-        raise ValueError(f"{name} must be a scalar, got shape {np.shape(x)}")
-    x = _checks.asarray(x, dtype, name)
-    return _checks.check(x, lambda v: (v == v) & (abs(v) < float("inf")), f"{name} must be finite, got {{value}}")

@@ -1,4 +1,4 @@
-"""Claims of lierk.inertia (shapes, composites, validation) and lierk.body
+"""Claims of lierk.inertia (shapes, composites, validation) and lierk.problems.kinematics
 (angular momentum, kinetic energy, body angular velocity)."""
 
 from __future__ import annotations
@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import lierk
-from lierk import body, inertia, so3
+from lierk import inertia, so3
+from lierk.problems import kinematics as body
 
 from helpers import TEE
 

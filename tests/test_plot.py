@@ -9,7 +9,7 @@ from PIL import Image
 import lierk
 from lierk import plot, so3
 from lierk import RigidBodyWithEffects
-from lierk.effects import Damping
+from lierk.problems.effects import Damping
 
 from helpers import OMEGA_GENERIC, TEE
 

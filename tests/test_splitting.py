@@ -292,7 +292,7 @@ def test_problems_without_a_drift_are_refused():
 
 
 def test_effect_reading_momentum_without_a_kick_is_refused():
-    class Drag(lierk.effects.AbstractEffect):
+    class Drag(lierk.problems.effects.AbstractEffect):
         def torque(self, t, R, m, omega):
             return -0.1 * omega * jnp.linalg.norm(omega)
 

@@ -1,0 +1,19 @@
+"""What lierk integrates: a vector field on SO(3) x R^n with its initial state.
+
+- `base`: `AbstractProblem` (the field interface solvers call) and
+  `AbstractRigidBody` (what solvers and tools rely on for a rigid body:
+  omega0, torque-free or not, the splitting interface, the invariants);
+- `rigid_body`: `RigidBodyWithEffects` and `FreeRigidBody` (attitude and body
+  momentum as state);
+- `spatial`: the report's `SpatialFreeRigidBody` (spatial momentum fixed);
+- `effects`: gravity, torques and damping a body opts into;
+- `kinematics`: momentum, energy and angular velocity of a rigid body.
+"""
+
+from . import effects as effects
+from . import kinematics as kinematics
+from .base import AbstractProblem as AbstractProblem
+from .base import AbstractRigidBody as AbstractRigidBody
+from .rigid_body import FreeRigidBody as FreeRigidBody
+from .rigid_body import RigidBodyWithEffects as RigidBodyWithEffects
+from .spatial import SpatialFreeRigidBody as SpatialFreeRigidBody

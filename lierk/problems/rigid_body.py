@@ -1,0 +1,269 @@
+"""The rigid-body problem: attitude and body momentum, with opt-in effects.
+
+One problem covers every rigid body in lierk.  Its state is the attitude ``R``
+(body -> space) and the body angular momentum ``m`` (kg m^2/s, body frame),
+
+    dR/dt = R hat(omega),    omega = I^{-1} m,
+    dm/dt = m x omega + sum_k tau_k(t, R, m, omega),
+
+where each ``tau_k`` is the body-frame torque of one effect (`lierk.effects`).
+A torque-free body, `FreeRigidBody`, is this problem with no effects.
+
+Why the momentum is state even without torque: the report instead keeps the
+spatial momentum ``L`` fixed and reads ``m = R^T L`` off the attitude
+(`lierk.SpatialFreeRigidBody`).  Then every attitude error, which the fast
+spin dominates, becomes a momentum error, and near the intermediate axis the
+momentum decides when the body flips, so a small phase error turns into a
+large error in the flip time.  Integrating Euler's equations for ``m`` keeps
+the spin's phase error out of the momentum.  On near-intermediate-axis
+batches of four bodies this made RKMK4 30 to 300 times and DOP853 170 to 5000
+times more accurate, and RKMK4 1.8x faster, since a torque-free stage needs no
+rotation at all (``benchmarks/results/formulation.md``).  The price is that ``|m|`` and ``L``
+are conserved only to the solver's accuracy, not to rounding.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from .. import exact, so3, validation
+from .base import AbstractRigidBody
+from .effects import AbstractEffect
+from .kinematics import kinetic_energy
+
+__all__ = ["RigidBodyWithEffects", "FreeRigidBody"]
+
+
+class RigidBodyWithEffects(AbstractRigidBody):
+    """A rigid body under a tuple of effects; state ``y`` is the body momentum ``m``.
+
+    ``dm/dt = m x omega + sum(effect.torque(t, R, m, omega))`` with
+    ``omega = I^{-1} m``.  The sum is unrolled in Python over ``effects``, so
+    only the effects present are traced: with ``effects=()`` the stages never
+    form a rotation matrix at all.
+
+    Adaptive solves measure the momentum's error relative to its size
+    (`error_tolerance`), so ``rtol`` means the same for a 1e-4 kg m^2 handle
+    and a 500 kg satellite.
+
+    Args:
+        inertia: ``(3, 3)`` or ``(3,)`` principal moments (kg m^2), body frame,
+            about the point the body turns about (the pivot for `Gravity`,
+            otherwise the centre of mass).
+        omega0: ``(3,)`` initial body angular velocity (rad/s).
+        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
+        effects: tuple of `lierk.effects.AbstractEffect`.
+
+    Example:
+        >>> top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.0, 0.3, 50.0],
+        ...                            effects=(Gravity([0, 0, 1.0], 1.0, 20.0),))
+        >>> sol = lierk.solve(top, lierk.RKMK4(), 1.0, dt=1e-3)
+    """
+
+    inertia: Array
+    inertia_inv: Array
+    R0: Array
+    y0: Array
+    effects: tuple
+    # The principal axis (0, 1, 2) of a diagonal inertia whose other two
+    # moments are equal, found when the inertia is concrete; None otherwise.
+    # Only the splitting solvers' drift reads it (a closed form instead of the
+    # elliptic one), so a traced inertia merely takes the general path.  Note
+    # that inside jit even jnp.asarray(constant) is traced: pass NumPy arrays
+    # or lists to get the closed form there.
+    symmetry_axis: int | None = eqx.field(static=True)
+    # Whether the inertia is a concrete diagonal matrix: then omega = I^-1 m is
+    # an elementwise product, which XLA fuses with the rest of a stage, where
+    # the 3x3 product is a kernel of its own (a DOP853 step on a heavy top ran
+    # 7% faster).  Found like `symmetry_axis`; a traced inertia is general.
+    diagonal: bool = eqx.field(static=True)
+
+    def __init__(
+        self,
+        inertia: ArrayLike,
+        omega0: ArrayLike,
+        R0: ArrayLike | None = None,
+        effects: tuple | list = (),
+    ):
+        if isinstance(effects, AbstractEffect):
+            effects = (effects,)
+        effects = tuple(effects)
+        for i, e in enumerate(effects):
+            if not isinstance(e, AbstractEffect):
+                raise ValueError(
+                    f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
+                )
+        self.inertia, self.inertia_inv, omega0, self.R0 = validation.rigid_body_state(inertia, omega0, R0)
+        self.y0 = self.inertia @ omega0
+        self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
+        # From the argument as given: the checked copy may be traced (its checks
+        # join the traced R0's) even when the inertia itself is a constant.
+        diagonal = _concrete_diagonal(inertia)
+        self.diagonal = diagonal is not None
+        self.symmetry_axis = None if diagonal is None else _symmetry_axis(diagonal)
+
+    @property
+    def L(self) -> Array:
+        """Initial spatial angular momentum ``R0 m0`` ``(3,)`` (kg m^2/s);
+        constant in time for a torque-free body."""
+        return self.R0 @ self.y0
+
+    def _body_momenta(self, R, y):
+        return y
+
+    def _momentum_state(self, m):
+        return m
+
+    def _with_initial_momentum(self, m0):
+        return eqx.tree_at(lambda p: p.y0, self, m0)
+
+    def _space_vectors(self) -> Array | None:
+        """The effects' `AbstractEffect.space_vectors` stacked, ``(K, 3)``, or
+        None when some effect reads the attitude another way."""
+        vs = [e.space_vectors() for e in self.effects]
+        if any(v is None for v in vs):
+            return None
+        return jnp.concatenate([jnp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [jnp.zeros((0, 3), self.y0.dtype)])
+
+    # Stages never need the whole attitude when every effect reads it only
+    # through the body images R^T s of a few space-fixed vectors s (gravity's
+    # vertical, a space-fixed torque): the base of a step is those images, and
+    # at a stage point R_n exp(u) they are exp(-u) R_n^T s, a Rodrigues rotation
+    # of each vector, with no 3x3 product.  Without such vectors (no effects,
+    # body torques, damping) the stage point is not formed at all.
+    def base(self, t, R, y):
+        S = self._space_vectors()
+        return R if S is None else so3.compose(S, R)  # rows: (R^T s_j)^T
+
+    def advance(self, base, u, coefficients=None):
+        if self._space_vectors() is None:
+            return super().advance(base, u, coefficients)
+        return so3.rotate(-u, base, coefficients)
+
+    def at(self, base, t, y):
+        omega = jnp.diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
+        dm = so3.cross(y, omega)
+        vectors = self._space_vectors() is not None
+        start = 0
+        for e in self.effects:
+            # The scope names the effect's equations (including the sum, so a
+            # constant torque shows up too) in jaxprs and profiles.
+            with jax.named_scope(f"lierk_effect_{type(e).__name__}"):
+                if vectors:
+                    k = np.shape(e.space_vectors())[0]
+                    dm = dm + e.torque_from(t, base[start : start + k], y, omega)
+                    start += k
+                else:
+                    dm = dm + e.torque(t, base, y, omega)
+        return omega, dm
+
+    def field(self, t, R, y):
+        return self.at(self.base(t, R, y), t, y)
+
+    def local(self, base, t, u, y, coefficients=None):
+        S = self._space_vectors()
+        if S is not None and S.shape[0] == 0:
+            # The torques do not depend on the attitude: skip the stage point.
+            return self.at(base, t, y)
+        return super().local(base, t, u, y, coefficients)
+
+    def free_flow(self, m: Array, h: Array) -> tuple[Array, Array]:
+        """The exact torque-free flow over ``h`` (s) from body momentum ``m``
+        ``(3,)``: ``(Q, m_h)``, the body turning by ``Q`` ``(3, 3)`` (``R -> R Q``).
+        A symmetric body (`symmetry_axis`) uses two rotations
+        (`lierk.exact.symmetric_flow`), any other the elliptic-function
+        solution (`lierk.exact.free_flow`)."""
+        k = self.symmetry_axis
+        if k is None:
+            return exact.free_flow(self.inertia, m, h)
+        moments = jnp.diagonal(self.inertia)
+        return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], k, m, h)
+
+    @property
+    def closed_form_drift(self) -> bool:
+        """Whether `drift` is the symmetric body's closed form (two rotations,
+        small to compile), rather than the elliptic-function flow: the
+        splitting solvers then unroll their stages."""
+        return self.symmetry_axis is not None
+
+    def error_tolerance(self, y0, y1, rtol, atol):
+        """The momentum's error is measured as a vector against
+        ``atol * m_ref + rtol * max(|m_n|, |m_n+1|)``: relative to its size, so
+        units and body size drop out, and near a principal axis the small
+        components are not held to a relative accuracy they cannot matter for.
+        ``m_ref`` (`momentum_scale`) keeps a body at rest well defined."""
+        size = jnp.maximum(jnp.linalg.norm(y0), jnp.linalg.norm(y1))
+        return jnp.broadcast_to(atol * self.momentum_scale + rtol * size, y0.shape)
+
+    @property
+    def momentum_scale(self) -> Array:
+        """A reference momentum (kg m^2/s) for absolute tolerances: ``|m0|``, plus
+        the momentum that the effects' potential energy can give the body,
+        ``sqrt(I_max * sum(effect.energy_scale()))``; for a body at rest without
+        potential, ``I_max * 1 rad/s``."""
+        i_max = jnp.max(jnp.abs(self.inertia))
+        scale = jnp.linalg.norm(self.y0) + jnp.sqrt(i_max * self._effects_energy())
+        # A body at rest without potential: I_max times 1 rad/s.
+        return jnp.where(scale > 0, scale, i_max)
+
+    def invariant_scales(self):
+        """Energies against the kinetic energy plus what the effects' potentials
+        can give; momenta against `momentum_scale`."""
+        energy = kinetic_energy(self.inertia, self.omega0) + self._effects_energy()
+        return {k: (energy if k == "energy" else self.momentum_scale) for k in self.conserved()}
+
+    def _effects_energy(self) -> Array:
+        """The energy (J) the effects can give the body: sum of `energy_scale`."""
+        return sum((e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype))
+
+
+class FreeRigidBody(RigidBodyWithEffects):
+    """The torque-free rigid body: `RigidBodyWithEffects` with no effects.
+
+    The state is the attitude and the body momentum ``m`` (``y``), advanced by
+    Euler's equations ``m' = m x I^{-1} m`` with the solver's tableau.  This is
+    the most accurate formulation near the intermediate axis (see the module
+    docstring); the report's own formulation, with spatial ``L`` fixed and
+    ``|m|`` and ``L`` conserved to rounding, is `lierk.SpatialFreeRigidBody`.
+
+    Args:
+        inertia: ``(3, 3)`` symmetric positive-definite, or ``(3,)`` principal
+            moments (kg m^2), in the body frame.
+        omega0: ``(3,)`` initial body angular velocity (rad/s).
+        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
+
+    Example:
+        >>> body = FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
+        >>> sol = lierk.solve(body, lierk.RKMK4(), 10.0, dt=0.01)
+    """
+
+    def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
+        super().__init__(inertia, omega0, R0, effects=())
+
+
+def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
+    """The diagonal ``(3,)`` of a concrete inertia with zero off-diagonal
+    entries (given as ``(3,)`` or ``(3, 3)``); None if traced or not diagonal."""
+    if validation.is_traced(inertia):
+        return None
+    I = np.asarray(inertia, float)
+    if I.shape == (3,):
+        return I
+    d = np.diagonal(I)
+    return None if np.any(I - np.diag(d)) else d
+
+
+def _symmetry_axis(d: np.ndarray) -> int | None:
+    """See `RigidBodyWithEffects.symmetry_axis`: the axis whose two companions
+    in the diagonal ``d`` ``(3,)`` are equal to a few ulps."""
+    close = lambda a, b: abs(a - b) <= 4 * np.finfo(float).eps * max(abs(a), abs(b))  # noqa: E731
+    for k in range(3):
+        i, j = (k + 1) % 3, (k + 2) % 3
+        if close(d[i], d[j]):
+            return k
+    return None
