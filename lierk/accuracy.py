@@ -194,7 +194,7 @@ def work_precision(
     Args:
         scene: a `lierk.scene.Scene`; its problem and ``t1`` are used, its
             own solver and run settings are not.
-        solvers: solver names (as in `lierk.scene.SOLVERS`) or instances;
+        solvers: solver names (as in `lierk.solvers.SOLVERS`) or instances;
             default `DEFAULT_SOLVERS`.
         settings: per solver name, the values to run: steps ``dt`` (s) for
             fixed-step solvers, each rounded so a whole number of steps fits
@@ -278,17 +278,14 @@ def work_precision(
 
 
 def _solvers_to_run(solvers) -> list:
-    """Solver instances from names (as in `lierk.scene.SOLVERS`) or instances."""
-    from .scene import SOLVERS
+    """Solver instances from names (as in `lierk.solvers.SOLVERS`) or instances."""
+    from .solvers import solver_class
     from .solvers.base import AbstractSolver
 
     chosen = []
     for s in DEFAULT_SOLVERS if solvers is None else solvers:
         if isinstance(s, str):
-            names = {n.lower(): n for n in SOLVERS}
-            if s.lower() not in names:
-                raise ValueError(f"unknown solver {s!r}; choose from: {', '.join(SOLVERS)}")
-            s = SOLVERS[names[s.lower()]]()
+            s = solver_class(s)()
         elif not isinstance(s, AbstractSolver):
             raise ValueError(f"solvers must be names or lierk solvers, got {s!r}")
         chosen.append(s)

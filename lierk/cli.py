@@ -258,16 +258,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _solver_list(s: str) -> list[str]:
-    from .scene import SOLVERS
+    from .solvers import solver_class
 
-    names = {n.lower(): n for n in SOLVERS}
-    out = []
-    for part in s.split(","):
-        name = part.strip()
-        if name.lower() not in names:
-            raise argparse.ArgumentTypeError(f"unknown solver {name!r}; choose from: {', '.join(SOLVERS)}")
-        out.append(names[name.lower()])
-    return out
+    try:
+        return [solver_class(part.strip()).__name__ for part in s.split(",")]
+    except ValueError as e:
+        raise argparse.ArgumentTypeError(str(e)) from None
 
 
 def _version() -> str:
@@ -396,23 +392,11 @@ def _load(args):
     except OSError as e:
         raise CLIError(f"cannot read the scene file {args.scene}: {e.strerror or e}") from None
     if args.float32:
-        _check_single_precision(scene)
+        try:
+            scene.check_single_precision()
+        except ValueError as e:
+            raise CLIError(f"{e}; drop --float32") from None
     return scene
-
-
-def _check_single_precision(scene) -> None:
-    """Times and tolerances must survive the cast to float32 (1e300 would become inf)."""
-    import numpy as np
-
-    info = np.finfo(np.float32)
-    tiny, big = float(info.tiny), float(info.max)
-    values = {"t1": scene.t1, **{k: v for k, v in scene.solve_kwargs.items() if k in ("dt", "rtol", "atol", "target_error")}}
-    for k, v in values.items():
-        if not tiny <= v <= big:
-            raise CLIError(
-                f"{'t1' if k == 't1' else 'run.' + k} = {v:g} is outside single precision's range "
-                f"({tiny:.2g} to {big:.2g}); drop --float32"
-            )
 
 
 def _check_out(out: Path) -> None:
@@ -497,8 +481,9 @@ def simulate(args) -> int:
     import numpy as np
 
     from . import plot
-    from .segments import N_PIECES
+    from .exact import flip_times
     from .problems.kinematics import angular_momentum
+    from .segments import N_PIECES
     from .store import check_size
 
     if args.target_error is not None:
@@ -547,12 +532,8 @@ def simulate(args) -> int:
     with _staged_output(args.out) as tmp:
         npz = tmp / f"{stem}.npz"
         np.savez(npz, **data)
-        # Tops precess and nutate: their classical Z-X-Z angles show that apart
-        # from the spin, where Z-Y-X angles ramp with it.
-        from .problems.effects import Gravity
-
-        convention = "zxz" if any(isinstance(e, Gravity) for e in problem.effects) else "zyx"
-        flips = _flip_times(problem, sol)
+        convention = scene.euler_convention
+        flips = flip_times(problem, sol)
         figures = {
             "components": plot.components(sol, title, flips=flips),
             "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=convention),
@@ -609,31 +590,11 @@ def simulate(args) -> int:
     return 0
 
 
-def _flip_times(problem, sol):
-    """Times (s) at which a flipping torque-free body's momentum crosses the
-    plane normal to its intermediate axis (the middle of each flip, by
-    interpolation between saved points), or None when it does not flip."""
-    import numpy as np
+def _flip_interval(problem) -> float | None:
+    """`lierk.exact.flip_interval` of a torque-free body (``inf``: it never flips), else None."""
+    from .exact import flip_interval
 
-    flip = _flip_interval(problem)
-    if flip is None or not np.isfinite(flip) or sol.y is None:
-        return None
-    e2 = np.linalg.eigh(np.asarray(problem.inertia, float))[1][:, 1]
-    ts, m2 = np.asarray(sol.ts, float), np.asarray(sol.y, float) @ e2
-    k = np.nonzero(np.signbit(m2[1:]) != np.signbit(m2[:-1]))[0]
-    return ts[k] - m2[k] * (ts[k + 1] - ts[k]) / (m2[k + 1] - m2[k])
-
-
-def _flip_interval(problem):
-    """`lierk.exact.flip_interval` of a torque-free body (``inf``: it never
-    flips), else None."""
-    if not problem.torque_free:
-        return None
-    try:
-        from .exact import flip_interval
-    except ImportError:
-        return None
-    return float(flip_interval(problem.inertia, problem.omega0))
+    return float(flip_interval(problem.inertia, problem.omega0)) if problem.torque_free else None
 
 
 # --------------------------------------------------------------------------
@@ -667,7 +628,7 @@ def sweep(args) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from . import so3
+    from . import plot, so3
     from ._progress import Progress
     from .batch import sweep_chunks
     from .store import ChunkStore, check_size
@@ -769,7 +730,7 @@ def sweep(args) -> int:
     with _staged_output(args.out) as tmp:
         np.savez(tmp / f"{stem}_sweep.npz", **{n: axes[k] for n, k in zip(names, varied)},
                  omega0=grid.reshape(*shape, 3), t1=t1, **res)
-        fig = _sweep_figure(res, [axes[k] for k in varied], varied, omega0, title)
+        fig = plot.omega_sweep(res, [axes[k] for k in varied], varied, omega0, title)
         fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
     # The chunks are in the .npz now; only an unfinished run's are kept (to
     # resume, and to refuse another run in their place).
@@ -793,74 +754,6 @@ def sweep(args) -> int:
     for p in (npz, png):
         print(f"  {p}")
     return 0
-
-
-def _sweep_figure(res, axes, varied, omega0, title):
-    import numpy as np
-    from matplotlib.colors import LogNorm
-    from matplotlib.figure import Figure
-
-    panels = []
-    if "flip_interval" in res:
-        panels.append(("flip_interval", "flip interval (exact) [s]", True))
-    panels.append(("angle", "final attitude angle |log R(T)| [rad]", False))
-    panels.append(("sensitivity", "sensitivity ||dR(T)/d$\\omega_0$||$_F$ [s]", True))
-    if "lyapunov" in res:
-        panels.append(("lyapunov", "finite-time Lyapunov exponent [1/s]", False))
-    labels = [f"$\\omega_{{0,{'xyz'[k]}}}$ [rad/s]" for k in varied]
-
-    if len(varied) == 1:
-        fig = Figure(figsize=(7.0, 2.4 * len(panels) + 0.8), layout="constrained")
-        fig.suptitle(title)
-        axs = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
-        for ax, (key, label, log) in zip(axs, panels):
-            v = np.where(np.isfinite(res[key]), res[key], np.nan)
-            ax.plot(axes[0], v, ".-", lw=1.0, ms=3)
-            if log:
-                ax.set_yscale("log")
-            ax.set_ylabel(label, fontsize=9)
-            ax.grid(True, alpha=0.3)
-        axs[-1].set_xlabel(labels[0])
-        return fig
-
-    fig = Figure(figsize=(4.6 * len(panels), 4.6), layout="constrained")
-    fig.suptitle(title)
-    axs = fig.subplots(1, len(panels), squeeze=False)[0]
-    x, y = axes
-    for ax, (key, label, log) in zip(axs, panels):
-        v = np.asarray(res[key], dtype=float)
-        finite = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
-        # Robust colour limits: one extreme cell (the sensitivity is ~1e16 at an
-        # exact equilibrium) must not turn the rest of the map one colour.
-        # Cells beyond the 1st/99th percentiles are clipped and outlined.
-        lo, hi = (
-            (np.percentile(finite, 1, method="higher"), np.percentile(finite, 99, method="lower"))
-            if finite.size
-            else (None, None)
-        )
-        norm = LogNorm(lo, hi) if log and finite.size and lo < hi else None
-        masked = np.ma.masked_invalid(np.where(v > 0, v, np.nan) if log else v)
-        cmap = "viridis" if key != "sensitivity" else "magma"
-        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap,
-                           **({} if log or lo is None or not lo < hi else dict(vmin=lo, vmax=hi)))
-        im.cmap = im.cmap.with_extremes(bad="0.75")
-        if lo is not None and lo < hi:
-            clipped = np.isfinite(v) & ((v > hi) | (v < lo))
-            if clipped.any():
-                xx, yy = np.meshgrid(x, y, indexing="ij")
-                ax.plot(xx[clipped], yy[clipped], "s", ms=5, mfc="none", mec="c", mew=0.8,
-                        label=f"clipped ({int(clipped.sum())} cells)")
-                ax.legend(loc="upper right", fontsize=6)
-        ax.plot([omega0[varied[0]]], [omega0[varied[1]]], "w+", ms=10, mew=2, label="scene's $\\omega_0$")
-        ax.set_xlabel(labels[0])
-        ax.set_ylabel(labels[1])
-        ax.set_aspect("equal" if np.ptp(x) and 0.33 < np.ptp(y) / np.ptp(x) < 3 else "auto")
-        fig.colorbar(im, ax=ax, label=label, shrink=0.85)
-        if key == "flip_interval" and not np.isfinite(v).all():
-            ax.text(0.02, 0.98, "grey: no flip (lierk.exact.flip_interval)", transform=ax.transAxes,
-                    fontsize=7, va="top", color="k", bbox=dict(fc="w", alpha=0.7, lw=0))
-    axs[0].legend(loc="lower right", fontsize=7)
-    return fig
 
 
 # --------------------------------------------------------------------------

@@ -23,7 +23,7 @@ from matplotlib.figure import Figure
 from . import so3
 from .inertia import Part, composite
 
-__all__ = ["trajectory", "components", "euler_angles", "invariants", "animate", "GIF_DPI", "GIF_SIZE"]
+__all__ = ["trajectory", "components", "euler_angles", "invariants", "omega_sweep", "animate", "GIF_DPI", "GIF_SIZE"]
 
 # Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
 GIF_SIZE = (5.0, 5.0)
@@ -182,6 +182,83 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5)) -
 
 # ----------------------------------------------------------------------------
 # Animation
+
+
+def omega_sweep(res: dict, axes: Sequence[np.ndarray], varied: Sequence[int], omega0, title: str | None = None) -> Figure:
+    """A sweep over initial angular velocities (``lierk sweep``): one panel per
+    quantity, a line plot for one varied component, heatmaps for two.
+
+    Args:
+        res: per quantity an array over the grid (shape ``[len(a) for a in
+            axes]``, NaN where a point failed): ``"angle"`` (rad),
+            ``"sensitivity"`` (``||dR(T)/d omega0||_F``, s), optionally
+            ``"lyapunov"`` (1/s) and ``"flip_interval"`` (s, ``inf``: no flip).
+        axes: the values (rad/s) of each varied component.
+        varied: which components of omega0 vary (0, 1, 2 for x, y, z).
+        omega0: ``(3,)`` the scene's own omega0 (rad/s), marked on heatmaps.
+        title: the figure's title.
+    """
+    from matplotlib.colors import LogNorm
+
+    panels = []
+    if "flip_interval" in res:
+        panels.append(("flip_interval", "flip interval (exact) [s]", True))
+    panels.append(("angle", "final attitude angle |log R(T)| [rad]", False))
+    panels.append(("sensitivity", "sensitivity ||dR(T)/d$\\omega_0$||$_F$ [s]", True))
+    if "lyapunov" in res:
+        panels.append(("lyapunov", "finite-time Lyapunov exponent [1/s]", False))
+    labels = [f"$\\omega_{{0,{'xyz'[k]}}}$ [rad/s]" for k in varied]
+
+    if len(varied) == 1:
+        fig = _figure((7.0, 2.4 * len(panels) + 0.8), title)
+        axs = fig.subplots(len(panels), 1, sharex=True, squeeze=False)[:, 0]
+        for ax, (key, label, log) in zip(axs, panels):
+            v = np.where(np.isfinite(res[key]), res[key], np.nan)
+            ax.plot(axes[0], v, ".-", lw=1.0, ms=3)
+            if log:
+                ax.set_yscale("log")
+            ax.set_ylabel(label, fontsize=9)
+            ax.grid(True, alpha=0.3)
+        axs[-1].set_xlabel(labels[0])
+        return fig
+
+    fig = _figure((4.6 * len(panels), 4.6), title)
+    axs = fig.subplots(1, len(panels), squeeze=False)[0]
+    x, y = axes
+    for ax, (key, label, log) in zip(axs, panels):
+        v = np.asarray(res[key], dtype=float)
+        finite = v[np.isfinite(v) & (v > 0)] if log else v[np.isfinite(v)]
+        # Robust colour limits: one extreme cell (the sensitivity is ~1e16 at an
+        # exact equilibrium) must not turn the rest of the map one colour.
+        # Cells beyond the 1st/99th percentiles are clipped and outlined.
+        lo, hi = (
+            (np.percentile(finite, 1, method="higher"), np.percentile(finite, 99, method="lower"))
+            if finite.size
+            else (None, None)
+        )
+        norm = LogNorm(lo, hi) if log and finite.size and lo < hi else None
+        masked = np.ma.masked_invalid(np.where(v > 0, v, np.nan) if log else v)
+        cmap = "viridis" if key != "sensitivity" else "magma"
+        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap,
+                           **({} if log or lo is None or not lo < hi else dict(vmin=lo, vmax=hi)))
+        im.cmap = im.cmap.with_extremes(bad="0.75")
+        if lo is not None and lo < hi:
+            clipped = np.isfinite(v) & ((v > hi) | (v < lo))
+            if clipped.any():
+                xx, yy = np.meshgrid(x, y, indexing="ij")
+                ax.plot(xx[clipped], yy[clipped], "s", ms=5, mfc="none", mec="c", mew=0.8,
+                        label=f"clipped ({int(clipped.sum())} cells)")
+                ax.legend(loc="upper right", fontsize=6)
+        ax.plot([omega0[varied[0]]], [omega0[varied[1]]], "w+", ms=10, mew=2, label="scene's $\\omega_0$")
+        ax.set_xlabel(labels[0])
+        ax.set_ylabel(labels[1])
+        ax.set_aspect("equal" if np.ptp(x) and 0.33 < np.ptp(y) / np.ptp(x) < 3 else "auto")
+        fig.colorbar(im, ax=ax, label=label, shrink=0.85)
+        if key == "flip_interval" and not np.isfinite(v).all():
+            ax.text(0.02, 0.98, "grey: no flip (lierk.exact.flip_interval)", transform=ax.transAxes,
+                    fontsize=7, va="top", color="k", bbox=dict(fc="w", alpha=0.7, lw=0))
+    axs[0].legend(loc="lower right", fontsize=7)
+    return fig
 
 
 def _cylinder_mesh(radius: float, length: float, axis: str, n: int = 16):

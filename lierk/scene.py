@@ -107,27 +107,8 @@ from .solve import solve as _solve
 
 __all__ = ["Scene", "load", "from_dict", "SOLVERS"]
 
-SOLVERS: dict[str, type] = {
-    c.__name__: c
-    for c in (
-        _solvers.ExplicitEuler,
-        _solvers.LieEuler,
-        _solvers.NaiveLieRK4,
-        _solvers.RKMK4,
-        _solvers.CF4,
-        _solvers.RKF45,
-        _solvers.DP54,
-        _solvers.DOP853,
-        _solvers.Strang,
-        _solvers.Yoshida4,
-        _solvers.BlanesMoan4,
-        _solvers.Yoshida6,
-        _solvers.BlanesMoan6,
-        _solvers.BlanesMoanRKN4,
-        _solvers.BlanesMoanRKN6,
-    )
-}
-"""Solver names a scene may use, to their classes."""
+# The registry moved to lierk.solvers; kept here for one release.
+SOLVERS = _solvers.SOLVERS
 
 _DEFAULT_N_SAVE = 1001
 
@@ -193,6 +174,26 @@ class Scene:
     def target_error(self) -> float | None:
         """``run.target_error``, or None when the scene gives ``dt`` or ``rtol``."""
         return self.solve_kwargs.get("target_error")
+
+    @property
+    def euler_convention(self) -> str:
+        """The Euler angles that read best for this scene (`lierk.so3.to_euler`):
+        ``"zxz"`` (precession, nutation, spin) for a top under `Gravity`,
+        whose Z-Y-X angles would ramp with the spin; ``"zyx"`` otherwise."""
+        return "zxz" if any(isinstance(e, Gravity) for e in self.problem.effects) else "zyx"
+
+    def check_single_precision(self) -> None:
+        """Raise `ValueError` naming the first setting (``t1``, ``run.dt``,
+        ``run.rtol``, ``run.atol``, ``run.target_error``) that float32 cannot
+        hold: outside its range (1e300 would become inf, 1e-50 zero)."""
+        info = np.finfo(np.float32)
+        tiny, big = float(info.tiny), float(info.max)
+        values = {"t1": self.t1, **{k: v for k, v in self.solve_kwargs.items() if k in ("dt", "rtol", "atol", "target_error")}}
+        for k, v in values.items():
+            if not tiny <= v <= big:
+                raise ValueError(
+                    f"{'t1' if k == 't1' else 'run.' + k} = {v:g} is outside single precision's range ({tiny:.2g} to {big:.2g})"
+                )
 
     def saveat(self) -> SaveAt:
         """Fixed step: the initial state and every ``saveat_every``-th step (the
@@ -665,11 +666,10 @@ def _run(t):
         {"solver", "t1", "dt", "rtol", "atol", "target_error", "save_every", "n_save", "max_steps"},
         required={"solver", "t1"},
     )
-    names = {n.lower(): n for n in SOLVERS}
-    s = t["solver"]
-    if not isinstance(s, str) or s.lower() not in names:
-        raise ValueError(f"run.solver = {s!r} is not allowed; choose one of: {', '.join(SOLVERS)}")
-    solver = SOLVERS[names[s.lower()]]()
+    try:
+        solver = _solvers.solver_class(t["solver"])()
+    except ValueError:
+        raise ValueError(f"run.solver = {t['solver']!r} is not allowed; choose one of: {', '.join(SOLVERS)}") from None
     t1 = _number(t["t1"], "run.t1", positive=True)
     modes = [k for k in ("dt", "rtol", "target_error") if k in t]
     if len(modes) != 1:

@@ -178,3 +178,17 @@ def test_flips_are_marked_on_every_component_panel(flip):
     for ax in fig.axes:
         marks = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
         assert sorted(float(ln.get_xdata()[0]) for ln in marks) == [0.5, 2.0]
+
+
+def test_sweep_heatmap_colour_limits_ignore_one_extreme_cell():
+    # A grid through an exact equilibrium has one sensitivity of ~1e16; with
+    # min/max limits every other cell was the same colour.
+    x, y = np.linspace(-1, 1, 9), np.linspace(-1, 1, 7)
+    sens = np.outer(1.0 + x**2, 1.0 + y**2)
+    sens[4, 3] = 1.78e16
+    res = {"angle": np.outer(np.cos(x), np.sin(y)), "sensitivity": sens}
+    fig = plot.omega_sweep(res, (x, y), [0, 1], np.zeros(3), "t")
+    mesh = fig.axes[1].collections[0]
+    assert mesh.norm.vmax < 10 and mesh.norm.vmin >= 1.0
+    marks = [ln for ln in fig.axes[1].get_lines() if ln.get_label().startswith("clipped")]
+    assert marks and (4 * 0.25 - 1.0, 3 / 3 - 1.0) in set(zip(marks[0].get_xdata(), marks[0].get_ydata()))

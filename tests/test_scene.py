@@ -432,3 +432,17 @@ def test_saved_count_and_bytes_match_a_solve():
     sol = scene.solve()
     assert scene.saved_count() == len(sol.ts)
     assert scene.bytes_per_saved() == (sol.ts.nbytes + sol.R.nbytes + sol.y.nbytes) // len(sol.ts)
+
+
+def test_euler_convention_and_the_single_precision_check():
+    free = S.from_dict({"body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]}, "initial": {"omega": [0.3, 1.0, 0.2]},
+                        "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1}})
+    assert free.euler_convention == "zyx"
+    with pytest.raises(ValueError, match=r"run.dt = 1e-40 is outside single precision's range"):
+        dataclasses.replace(free, solve_kwargs={"dt": 1e-40}).check_single_precision()
+    with pytest.raises(ValueError, match=r"^t1 = 1e\+39 is outside"):
+        dataclasses.replace(free, t1=1e39, solve_kwargs={"dt": 1.0}).check_single_precision()
+    dataclasses.replace(free, solve_kwargs={"dt": 1e-3}).check_single_precision()  # in range: no error
+    top = dataclasses.replace(free, problem=RigidBodyWithEffects([1.0, 2.0, 3.0], [0.3, 1.0, 0.2],
+                                                                 effects=(lierk.Gravity([0, 0, 0.1], 1.0),)))
+    assert top.euler_convention == "zxz"

@@ -318,3 +318,13 @@ def test_chosen_setting_names_the_setting_target_error_chose():
     adaptive = lierk.solve(body, lierk.DP54(), 1.0, target_error=1e-6)
     assert adaptive.chosen_setting() == f"rtol = atol = {float(adaptive.stats['rtol']):.3g}"
     assert lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.1).chosen_setting() is None
+
+
+def test_solver_registry_names_every_solver_and_refuses_unknown_names():
+    from lierk.solvers import SOLVERS, solver_class
+
+    for name, cls in SOLVERS.items():
+        assert solver_class(name.lower()) is cls and cls().name == name
+    with pytest.raises(ValueError, match=r"unknown solver 'RK5'; choose from: ExplicitEuler, .*DOP853"):
+        solver_class("RK5")
+    assert lierk.scene.SOLVERS is SOLVERS  # the old path, for one release

@@ -21,3 +21,38 @@ from .splitting import Splitting as Splitting
 from .splitting import Strang as Strang
 from .splitting import Yoshida4 as Yoshida4
 from .splitting import Yoshida6 as Yoshida6
+
+SOLVERS: dict[str, type] = {
+    c.__name__: c
+    for c in (
+        ExplicitEuler,
+        LieEuler,
+        NaiveLieRK4,
+        RKMK4,
+        CF4,
+        RKF45,
+        DP54,
+        DOP853,
+        Strang,
+        Yoshida4,
+        BlanesMoan4,
+        Yoshida6,
+        BlanesMoan6,
+        BlanesMoanRKN4,
+        BlanesMoanRKN6,
+    )
+}
+"""Solver names (as scenes, the command line and `lierk.accuracy` take them)
+to their classes."""
+
+
+def solver_class(name: str) -> type:
+    """The solver class called ``name`` in `SOLVERS`, in any letter case.
+
+    Raises:
+        ValueError: an unknown name; the message lists the known ones.
+    """
+    names = {n.lower(): n for n in SOLVERS}
+    if not isinstance(name, str) or name.lower() not in names:
+        raise ValueError(f"unknown solver {name!r}; choose from: {', '.join(SOLVERS)}")
+    return SOLVERS[names[name.lower()]]
