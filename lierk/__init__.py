@@ -11,9 +11,11 @@ from . import batch as batch
 from . import body as body
 from . import cache as cache
 from . import effects as effects
+from . import diagnostics as diagnostics
 from . import exact as exact
 from . import fields as fields
 from . import inertia as inertia
+from . import omega_sweep as omega_sweep
 from . import problems as problems
 from . import rigid_body as rigid_body
 from . import scene as scene

@@ -477,12 +477,11 @@ def _key(name: str) -> str:
 
 def simulate(args) -> int:
     scene = _load(args)
-    import jax
     import numpy as np
 
     from . import plot
+    from .diagnostics import diagnostics
     from .exact import flip_times
-    from .problems.kinematics import angular_momentum
     from .segments import N_PIECES
     from .store import check_size
 
@@ -502,11 +501,8 @@ def simulate(args) -> int:
     wall = time.perf_counter() - start
 
     ts, R, y = plot.trajectory(sol)
-    omega = np.asarray(sol.omega(problem))
-    L = np.asarray(angular_momentum(problem.inertia, omega, R))
-    inv = {k: np.asarray(v) for k, v in problem.invariants(sol.R, sol.y).items()}
-    drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
-    orth = float(np.max(np.asarray(sol.orthogonality_error)))
+    diag = diagnostics(problem, sol)
+    omega, L, inv, drift, orth = diag.omega, diag.L, diag.invariants, diag.drift, diag.orthogonality
 
     stem = _key(scene.name) or "scene"
     data = {
@@ -601,153 +597,61 @@ def _flip_interval(problem) -> float | None:
 # sweep
 
 
-def _axes(args, omega0):
-    """The grid: per component a 1-D array of values (rad/s)."""
-    import numpy as np
-
-    given = [getattr(args, f"omega_{c}") for c in "xyz"]
-    if any(g is not None for g in given):
-        axes = []
-        for k, g in enumerate(given):
-            axes.append(np.array([omega0[k]]) if g is None else np.linspace(g[0], g[1], g[2]))
-        return axes
-    # A round default span, so grids centred on round omega0 components hit round values.
-    span = args.span if args.span is not None else float(f"{0.25 * float(np.linalg.norm(omega0)):.2g}")
-    if not span > 0:
-        raise CLIError("the scene's omega0 is zero: give --span or --omega-x/-y/-z ranges")
-    varied = sorted(np.argsort(np.abs(omega0), kind="stable")[:2])
-    return [
-        np.linspace(omega0[k] - span, omega0[k] + span, args.grid) if k in varied else np.array([omega0[k]])
-        for k in range(3)
-    ]
-
-
 def sweep(args) -> int:
     scene = _load(args)
-    import jax
-    import jax.numpy as jnp
     import numpy as np
 
-    from . import plot, so3
+    from . import plot
     from ._progress import Progress
-    from .batch import sweep_chunks
-    from .store import ChunkStore, check_size
-    from .sensitivity import sensitivity
-    from .solve import num_steps
+    from .omega_sweep import omega_grid, open_sweep_store, sweep_omega0
 
-    if scene.target_error is not None:
-        raise CLIError(
-            "sweep needs a scene with run.dt or run.rtol: target_error chooses a setting per solve, and the "
-            "sensitivity is a derivative through one fixed setting"
-        )
-    problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
-    dtype = problem.R0.dtype
-    omega0 = np.asarray(problem.omega0, dtype=float)
-    axes = _axes(args, omega0)
-    varied = [k for k in range(3) if len(axes[k]) > 1]
-    if not varied:
-        raise CLIError("nothing to sweep: give at least one --omega-x/-y/-z range START:STOP:N with N > 1")
-    if len(varied) > 2:
-        raise CLIError("at most two components can vary (a heatmap); give the third as a single value")
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
-    shape = tuple(len(axes[k]) for k in varied)
-
-    kw = dict(scene.solve_kwargs)
-    if not scene.adaptive:
-        # Under vmap/jit the step count cannot be read from t1 and dt.
-        kw["max_steps"] = num_steps(0.0, t1, float(kw["dt"]), None)
-    exact = None
-    if problem.torque_free:
-        try:
-            from .exact import flip_interval as exact
-        except ImportError:
-            exact = None
-
-    def point(w):
-        s = sensitivity(problem.with_omega0(w), solver, t1, throw=False, **kw)
-        out = {
-            "angle": jnp.linalg.norm(so3.log(s.R), axis=-1),
-            "sensitivity": jnp.sqrt(jnp.sum(s.jacobian_R**2)),
-            "sensitivity_error": s.error_estimate,
-            "lyapunov": s.lyapunov_exponent,
-            "result": s.result,
-        }
-        if exact is not None:
-            out["flip_interval"] = exact(problem.inertia, w)
-        return out
-
+    omega0 = np.asarray(scene.problem.omega0, dtype=float)
+    ranges = [getattr(args, f"omega_{c}") for c in "xyz"]
     stem = _key(scene.name) or "scene"
-    n_chunks = -(-len(grid) // args.chunk_size)
-    # Everything that decides a chunk's numbers: a directory holding another
-    # run is refused instead of mixed in.
-    key = {
-        "scene": hashlib.sha256(args.scene.read_bytes()).hexdigest(),
-        "t1": t1,
-        "grid": hashlib.sha256(np.ascontiguousarray(grid, dtype).tobytes()).hexdigest(),
-        "grid_shape": list(shape),
-        "solver": solver.name,
-        "settings": {k: repr(v) for k, v in sorted(kw.items())},
-        "dtype": np.dtype(dtype).name,
-        "chunk_size": args.chunk_size,
-        # How the batch is split decides the reduction order, hence the last
-        # bit: a resume on another device layout would not be identical.
-        "devices": jax.device_count(),
-        "processes": jax.process_count(),
-        "lierk": _version(),
-    }
-    # angle, sensitivity, its error, Lyapunov exponent, flip interval, result, omega0 per point
-    out_bytes = 7 * np.dtype(dtype).itemsize
     try:
-        # Per member: R(T) and its three tangents (jacfwd), a few copies each,
-        # for the solve and the finer one of the error estimate.
-        check_size(memory=args.chunk_size * 2 * 4 * 4 * scene.bytes_per_saved(), disk=2 * len(grid) * out_bytes,
-                   directory=args.out, what=f"a sweep of {len(grid)} points")
-        store = ChunkStore.open(args.out / f"{stem}_sweep.chunks", key=key, n_chunks=n_chunks)
+        axes = omega_grid(omega0, ranges, args.span, args.grid)
+    except ValueError as e:
+        raise CLIError(f"{e} (--span, --omega-x/-y/-z START:STOP:N)") from None
+    try:
+        key = {"scene": hashlib.sha256(args.scene.read_bytes()).hexdigest(), "lierk": _version()}
+        store = open_sweep_store(scene, axes, args.out / f"{stem}_sweep.chunks", chunk_size=args.chunk_size, key=key)
     except ValueError as e:
         raise CLIError(_one_line(e)) from None
     if store.resumed:
-        print(f"lierk sweep: resuming: {store.resumed} of {n_chunks} chunks already done", file=sys.stderr)
-    writer = jax.process_index() == 0
-    done = min(len(store.done) * args.chunk_size, len(grid))
-    bar = Progress("sweep", len(grid), "members", quiet=args.quiet or store.complete)
+        print(f"lierk sweep: resuming: {store.resumed} of {store.n_chunks} chunks already done", file=sys.stderr)
+    n_points = int(np.prod([len(a) for a in axes]))
+    bar = Progress("sweep", n_points, "members", quiet=args.quiet or store.complete)
     start = time.perf_counter()
-    chunks = sweep_chunks(point, np.asarray(grid, dtype), chunk_size=args.chunk_size, skip=store.done, compiling=bar.compiling)
-    for k, a, b, out in chunks:
-        if writer:
-            store.write(k, out)
-        done += b - a
-        bar.update(done)
+    res = sweep_omega0(scene, axes, chunk_size=args.chunk_size, store=store, compiling=bar.compiling, on_chunk=bar.update)
     wall = time.perf_counter() - start
-    if not writer:
+    if res is None:
         return 0
-    res = {k: np.asarray(v).reshape(shape) for k, v in store.read_all().items()}
-    failed = res.pop("result") != 0
-    for k in res:
-        res[k] = np.where(failed, np.nan, res[k]) if k != "flip_interval" else res[k]
 
+    solver, t1, varied = scene.solver, res.t1, res.varied
     names = [f"omega0_{'xyz'[k]}" for k in varied]
     title = f"{scene.name}: sweep of $\\omega_0$, T = {t1:g} s\n{solver.name}, {_run_settings(scene)}"
     with _staged_output(args.out) as tmp:
-        np.savez(tmp / f"{stem}_sweep.npz", **{n: axes[k] for n, k in zip(names, varied)},
-                 omega0=grid.reshape(*shape, 3), t1=t1, **res)
-        fig = plot.omega_sweep(res, [axes[k] for k in varied], varied, omega0, title)
+        np.savez(tmp / f"{stem}_sweep.npz", **{n: res.axes[k] for n, k in zip(names, varied)},
+                 omega0=res.grid, t1=t1, **res.values)
+        fig = plot.omega_sweep(res.values, [res.axes[k] for k in varied], varied, omega0, title)
         fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
     # The chunks are in the .npz now; only an unfinished run's are kept (to
     # resume, and to refuse another run in their place).
     shutil.rmtree(store.directory, ignore_errors=True)
     npz, png = args.out / f"{stem}_sweep.npz", args.out / f"{stem}_sweep.png"
 
-    print(f"scene {scene.name}: {len(grid)} initial angular velocities ({' x '.join(map(str, shape))}), "
+    print(f"scene {scene.name}: {n_points} initial angular velocities ({' x '.join(map(str, res.shape))}), "
           f"{solver.name}, {_run_settings(scene)}, T = {t1:g} s, {wall:.2f} s wall (incl. compilation)")
-    if failed.any():
-        print(f"  {int(failed.sum())} points failed to integrate (NaN in the outputs)")
-    s = res["sensitivity"]
+    if res.failed.any():
+        print(f"  {int(res.failed.sum())} points failed to integrate (NaN in the outputs)")
+    v = res.values
+    s = v["sensitivity"]
     print(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
-          f"(estimated error of it: up to {np.nanmax(res['sensitivity_error'] / s):.1g} relative)")
-    lam = res["lyapunov"]
+          f"(estimated error of it: up to {np.nanmax(v['sensitivity_error'] / s):.1g} relative)")
+    lam = v["lyapunov"]
     print(f"  finite-time Lyapunov exponent: {np.nanmin(lam):.3g} .. {np.nanmax(lam):.3g} 1/s")
-    if "flip_interval" in res:
-        f = res["flip_interval"][np.isfinite(res["flip_interval"])]
+    if "flip_interval" in v:
+        f = v["flip_interval"][np.isfinite(v["flip_interval"])]
         if f.size:
             print(f"  flip interval: {f.min():.3g} .. {f.max():.3g} s")
     print("wrote:")

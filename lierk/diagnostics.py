@@ -1,0 +1,57 @@
+"""What a finished solve says about itself: angular velocity and momentum,
+the invariants and how far they moved, and how far ``R`` is from SO(3).
+
+`diagnostics` computes them in one compiled program (no eager ``jax.numpy``
+op per quantity) and hands back NumPy arrays, for reports, files and figures.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import equinox as eqx
+import numpy as np
+
+__all__ = ["Diagnostics", "diagnostics"]
+
+
+class Diagnostics(NamedTuple):
+    """`diagnostics` of a solve with ``n`` saved points.
+
+    Attributes:
+        omega: ``(n, 3)`` body angular velocity (rad/s).
+        L: ``(n, 3)`` spatial angular momentum ``R I omega`` (kg m^2/s).
+        invariants: per name (``problem.invariants``) an ``(n,)`` array.
+        drift: per invariant, ``max_t |Q(t) - Q(0)| / |Q(0)|`` (``|Q(0)|``
+            taken as 1 when it is 0); conserved or not, see ``problem.conserved()``.
+        orthogonality: ``max_t ||R^T R - I||_F``.
+    """
+
+    omega: np.ndarray
+    L: np.ndarray
+    invariants: dict[str, np.ndarray]
+    drift: dict[str, float]
+    orthogonality: float
+
+
+@eqx.filter_jit
+def _compute(problem, R, y):
+    from . import so3
+    from .problems.kinematics import angular_momentum
+
+    omega = problem.angular_velocity(R, y)
+    return omega, angular_momentum(problem.inertia, omega, R), problem.invariants(R, y), so3.orthogonality_error(R)
+
+
+def diagnostics(problem, sol) -> Diagnostics:
+    """The `Diagnostics` of ``sol``, an unbatched solve of the rigid body
+    ``problem``, over its valid saved points."""
+    import jax
+
+    from .plot import trajectory
+
+    _, R, y = trajectory(sol)
+    omega, L, inv, orth = jax.device_get(_compute(problem, R, y))
+    inv = {k: np.asarray(v) for k, v in inv.items()}
+    drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
+    return Diagnostics(np.asarray(omega), np.asarray(L), inv, drift, float(np.max(orth)))
