@@ -8,7 +8,6 @@ theorem, which is how the report builds its T-handle.
 from __future__ import annotations
 
 import math
-import warnings
 from typing import NamedTuple, Sequence
 
 import jax.numpy as jnp

@@ -666,10 +666,11 @@ def _run(t):
         {"solver", "t1", "dt", "rtol", "atol", "target_error", "save_every", "n_save", "max_steps"},
         required={"solver", "t1"},
     )
+    s = t["solver"]
     try:
-        solver = _solvers.solver_class(t["solver"])()
+        solver = _solvers.solver_class(s)()
     except ValueError:
-        raise ValueError(f"run.solver = {t['solver']!r} is not allowed; choose one of: {', '.join(SOLVERS)}") from None
+        raise ValueError(f"run.solver = {s!r} is not allowed; choose one of: {', '.join(SOLVERS)}") from None
     t1 = _number(t["t1"], "run.t1", positive=True)
     modes = [k for k in ("dt", "rtol", "target_error") if k in t]
     if len(modes) != 1:
