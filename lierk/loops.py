@@ -406,6 +406,11 @@ def _adaptive_loop(
         n_saved = n_saved - (max_steps - final.save_index)
     if ts_req is not None:
         n_saved = n_saved - jnp.sum(ts_req > final.t)
+    return Solution(ts, R, y, jnp.asarray(n_saved), _adaptive_stats(solver, final, f0, dt0), result), final.decisions
+
+
+def _adaptive_stats(solver, final: _Carry, f0, dt0) -> dict[str, Array]:
+    """The adaptive loop's step and field-evaluation counts, from its final carry."""
     # The first stage is reused from the previous step when the controller
     # keeps the field at the new point (the FSAL stage or one extra
     # evaluation); one evaluation at t0, plus one inside the automatic
@@ -413,10 +418,9 @@ def _adaptive_loop(
     reuses_first_stage = f0 is not None and solver.tableau.fsal
     fevals_per_attempt = solver.stages - (1 if reuses_first_stage else 0)
     fevals_setup = 0 if f0 is None else 1 if dt0 is not None else 2
-    stats = {
+    return {
         "num_steps": final.num_steps,
         "num_accepted_steps": final.num_accepted,
         "num_rejected_steps": final.num_rejected,
         "num_fevals": fevals_setup + final.num_steps * fevals_per_attempt,
     }
-    return Solution(ts, R, y, jnp.asarray(n_saved), stats, result), final.decisions
