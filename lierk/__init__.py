@@ -25,6 +25,7 @@ from .adjoint import DirectAdjoint as DirectAdjoint
 from .adjoint import ForwardMode as ForwardMode
 from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .cache import compilation_cache_dir as compilation_cache_dir
+from .cache import using_cache as using_cache
 from .controller import Controller as Controller
 from .problems import AbstractProblem as AbstractProblem
 from .problems import AbstractRigidBody as AbstractRigidBody

@@ -10,7 +10,13 @@ opts in with one line before its first solve::
 
 Only programs that took at least a second to compile are kept unless
 ``jax_persistent_cache_min_compile_time_secs`` is lowered too (the command
-line keeps every program: its many small ones add up).
+line keeps every program: its many small ones add up).  `using_cache` does
+what the command line does, for one block, and puts the settings back
+after it::
+
+    with lierk.cache.using_cache() as use:
+        sol = scene.solve()
+    print(use.summary())  # compiled programs: 3 loaded from the cache, 12 compiled and saved (...)
 
 The directory is ``$LIERK_CACHE_DIR``, else the platform's user cache
 directory (``$XDG_CACHE_HOME/lierk`` or ``~/.cache/lierk`` on Linux,
@@ -26,15 +32,17 @@ and compiles again.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import platform
 import sys
 import tempfile
 import warnings
+from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["compilation_cache_dir", "default_cache_root", "machine_fingerprint"]
+__all__ = ["CacheUse", "compilation_cache_dir", "default_cache_root", "machine_fingerprint", "using_cache"]
 
 
 def default_cache_root() -> Path:
@@ -94,3 +102,123 @@ def compilation_cache_dir(root: str | os.PathLike | None = None) -> Path | None:
         warnings.warn(f"compilation cache off: {path} is not writable ({e.strerror or e})", stacklevel=2)
         return None
     return path
+
+
+_CACHE_SETTINGS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir",
+                   "jax_persistent_cache_min_compile_time_secs")
+# JAX's warnings about one entry (a corrupted file, a full disk), by what they count as.
+_ENTRY_WARNINGS = (("unreadable", "Error reading persistent compilation cache"),
+                   ("unwritable", "Error writing persistent compilation cache"))
+
+
+class CacheUse:
+    """What the compilation cache did in a `using_cache` block.
+
+    Attributes:
+        path: the cache directory, as text; None while the cache is off.
+        counts: ``"hits"`` (programs loaded), ``"misses"`` (programs compiled,
+            and saved unless too quick to compile), ``"unreadable"`` (entries
+            that could not be read and were compiled again) and
+            ``"unwritable"`` (programs that could not be saved).
+    """
+
+    def __init__(self):
+        self.path: str | None = None
+        self.counts = {"hits": 0, "misses": 0, "unreadable": 0, "unwritable": 0}
+
+    def _listen(self, event: str, **_) -> None:
+        if event == "/jax/compilation_cache/cache_hits":
+            self.counts["hits"] += 1
+        elif event == "/jax/compilation_cache/cache_misses":
+            self.counts["misses"] += 1
+
+    def _count_warning(self, message) -> bool:
+        """Count JAX's warning about one entry it could not read or write;
+        False for any other warning."""
+        text = str(message)
+        for key, start in _ENTRY_WARNINGS:
+            if text.startswith(start):
+                self.counts[key] += 1
+                return True
+        return False
+
+    def summary(self) -> str | None:
+        """One line: programs loaded, compiled and saved, the directory, and
+        entries that could not be read or written; None if the cache was off."""
+        if self.path is None:
+            return None
+        c = self.counts
+        line = f"compiled programs: {c['hits']} loaded from the cache, {c['misses']} compiled and saved ({self.path})"
+        if c["unreadable"]:
+            line += f"; {c['unreadable']} cached programs could not be read and were compiled again"
+        if c["unwritable"]:
+            line += f"; {c['unwritable']} could not be saved"
+        return line
+
+
+@contextlib.contextmanager
+def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
+    """Keep compiled programs between runs for the duration of a block, and
+    count what the cache did (the `CacheUse` yielded).  JAX's settings are
+    put back after the block.
+
+    JAX's cache settings are process-wide, which is why the library never
+    changes them outside such a block; the command line runs each command in
+    one.  With ``enabled=False``, or ``LIERK_NO_CACHE`` set (other than
+    ``0``), JAX's cache is off in the block.  Otherwise a directory the user
+    gave JAX (``jax_compilation_cache_dir``, ``JAX_COMPILATION_CACHE_DIR``)
+    is used with its own settings; without one, `compilation_cache_dir`'s
+    (after one warning, none if it cannot be written: the block then runs
+    uncached) keeps every program, however quickly it compiled: many small
+    programs add up to seconds.  Nothing happens if JAX's cache was turned
+    off (``jax_enable_compilation_cache``).
+
+    JAX's warning about each entry it cannot read (then compiles again) or
+    write is counted in the `CacheUse` instead of shown; other warnings pass
+    through.
+    """
+    import jax
+
+    before = {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}
+    use = CacheUse()
+    listening = False
+    try:
+        with warnings.catch_warnings():
+            shown = warnings.showwarning
+
+            def show(message, *args, **kwargs):
+                if not use._count_warning(message):
+                    shown(message, *args, **kwargs)
+
+            warnings.showwarning = show
+            # Every unreadable entry counts, not only the first of each name.
+            warnings.filterwarnings("always", message="Error (reading|writing) persistent compilation cache")
+            if not enabled or os.environ.get("LIERK_NO_CACHE", "") not in ("", "0"):
+                jax.config.update("jax_enable_compilation_cache", False)
+            elif before["jax_enable_compilation_cache"]:
+                use.path = _cache_path(before["jax_compilation_cache_dir"])
+                if use.path is not None:
+                    jax.monitoring.register_event_listener(use._listen)
+                    listening = True
+            yield use
+    finally:
+        if listening:
+            jax.monitoring.unregister_event_listener(use._listen)
+        for name, value in before.items():
+            if getattr(jax.config, name) != value:
+                jax.config.update(name, value)
+
+
+def _cache_path(given: str | None) -> str | None:
+    """The directory JAX was given, else `compilation_cache_dir`'s, set in
+    JAX's config to keep every program; None if that cannot be written."""
+    import jax
+
+    if given:
+        return str(given)
+    path = compilation_cache_dir()
+    if path is None:
+        return None
+    jax.config.update("jax_compilation_cache_dir", str(path))
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    return str(path)

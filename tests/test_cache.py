@@ -4,15 +4,16 @@ Claims: a second run of a command loads every program from the cache and
 compiles none, with bit-identical results; corrupted entries are compiled
 again, never loaded, and the run's results are unchanged; a cache directory
 that cannot be written costs one warning line and nothing else; the
-directory is keyed by a machine fingerprint; ``--no-cache`` turns JAX's
-cache off for one command and the settings come back after it.
+directory is keyed by a machine fingerprint; `lierk.cache.using_cache`
+(what each command runs in) turns JAX's cache off or on for one block,
+counts what it did, and puts the settings back after it.
 """
 
 import os
 import re
 import subprocess
 import sys
-from argparse import Namespace
+import warnings
 from pathlib import Path
 
 import jax
@@ -22,7 +23,6 @@ from helpers import write
 
 import lierk
 import lierk.exact
-from lierk import cli
 
 LIERK = str(Path(sys.executable).parent / "lierk")
 
@@ -111,16 +111,65 @@ def test_the_directory_is_keyed_by_the_machine(tmp_path):
         assert lierk.compilation_cache_dir(plain) is None
 
 
-def test_no_cache_turns_jax_s_cache_off_for_the_command_only(monkeypatch):
+def test_no_cache_turns_jax_s_cache_off_for_the_block_only(monkeypatch):
     before = jax.config.jax_enable_compilation_cache
-    use = cli._CacheUse()
-    with cli._use_cache(Namespace(no_cache=True), use):
+    with lierk.cache.using_cache(False) as use:
         assert jax.config.jax_enable_compilation_cache is False
     assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
     monkeypatch.setenv("LIERK_NO_CACHE", "1")
-    with cli._use_cache(Namespace(no_cache=False), use):
+    with lierk.cache.using_cache() as use:
         assert jax.config.jax_enable_compilation_cache is False
-    assert jax.config.jax_enable_compilation_cache == before
+    assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
+
+
+@pytest.fixture
+def keep_every_program():
+    """JAX counts a program it compiled only when it saves it: keep even small ones."""
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    yield
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
+
+
+def test_using_cache_counts_what_the_cache_did_and_passes_other_warnings_on(keep_every_program):
+    """JAX's own directory (the tests set one) is used as it is; programs
+    loaded or saved are counted, each unreadable entry too (not shown), and
+    any other warning is shown as usual."""
+    names = ("jax_enable_compilation_cache", "jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = {name: getattr(jax.config, name) for name in names}
+    entry = "Error reading persistent compilation cache entry for 'jit_f': ValueError: bad"
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        with lierk.cache.using_cache() as use:
+            jax.jit(lambda x: 3.0 * x + 1.0)(np.arange(7.0)).block_until_ready()
+            for _ in range(2):  # every one counts, not only the first from this line
+                warnings.warn(entry)
+            warnings.warn("Error writing persistent compilation cache entry for 'jit_f': OSError: full")
+            warnings.warn("something else")
+    assert [str(w.message) for w in shown] == ["something else"]
+    assert use.path == str(before["jax_compilation_cache_dir"])
+    assert use.counts["hits"] + use.counts["misses"] == 1
+    assert (use.counts["unreadable"], use.counts["unwritable"]) == (2, 1)
+    assert use.summary() == (
+        f"compiled programs: {use.counts['hits']} loaded from the cache, {use.counts['misses']} compiled and saved "
+        f"({use.path}); 2 cached programs could not be read and were compiled again; 1 could not be saved"
+    )
+    assert {name: getattr(jax.config, name) for name in names} == before
+
+
+def test_using_cache_without_a_directory_keeps_every_program_in_lierk_s(monkeypatch, tmp_path):
+    monkeypatch.setenv("LIERK_CACHE_DIR", str(tmp_path))
+    names = ("jax_compilation_cache_dir", "jax_persistent_cache_min_compile_time_secs")
+    before = {name: getattr(jax.config, name) for name in names}
+    jax.config.update("jax_compilation_cache_dir", None)
+    try:
+        with lierk.cache.using_cache() as use:
+            assert jax.config.jax_compilation_cache_dir == use.path == str(tmp_path / lierk.cache.machine_fingerprint())
+            assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
+        assert jax.config.jax_compilation_cache_dir is None
+    finally:
+        for name, value in before.items():
+            jax.config.update(name, value)
 
 
 def test_default_root_follows_the_environment(monkeypatch, tmp_path):
