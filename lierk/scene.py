@@ -88,6 +88,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 import tomllib
 from typing import Any
 
@@ -105,7 +106,7 @@ from .solution import SaveAt, Solution
 from .solve import num_steps as _num_steps
 from .solve import solve as _solve
 
-__all__ = ["Scene", "load", "from_dict", "SOLVERS"]
+__all__ = ["Scene", "load", "from_dict", "identifier", "SOLVERS"]
 
 # The registry moved to lierk.solvers; kept here for one release.
 SOLVERS = _solvers.SOLVERS
@@ -174,6 +175,28 @@ class Scene:
     def target_error(self) -> float | None:
         """``run.target_error``, or None when the scene gives ``dt`` or ``rtol``."""
         return self.solve_kwargs.get("target_error")
+
+    @property
+    def file_stem(self) -> str:
+        """The scene's name as the start of file names (`identifier`; ``"scene"``
+        if nothing is left of it)."""
+        return identifier(self.name) or "scene"
+
+    def describe_run(self, solution: Solution | None = None) -> str:
+        """The solver and its run settings as text: ``"RKMK4, dt = 0.01 s"``,
+        ``"DP54, rtol = 1e-08, atol = 1e-10"`` or ``"RKMK4, target_error = 1e-06"``;
+        with the `Solution` of a ``target_error`` run, the setting it chose too
+        (``"... (chose dt = 0.005 s)"``, `Solution.chosen_setting`)."""
+        kw = self.solve_kwargs
+        if "dt" in kw:
+            settings = f"dt = {kw['dt']:g} s"
+        elif "target_error" in kw:
+            settings = f"target_error = {kw['target_error']:g}"
+            if solution is not None:
+                settings = f"{settings} (chose {solution.chosen_setting()})"
+        else:
+            settings = f"rtol = {kw['rtol']:g}, atol = {kw['atol']:g}"
+        return f"{self.solver.name}, {settings}"
 
     @property
     def euler_convention(self) -> str:
@@ -296,6 +319,15 @@ class Scene:
 
         y = sum(int(np.size(x)) for x in tree_leaves(self.problem.y0))
         return (1 + 9 + y) * np.dtype(self.problem.R0.dtype).itemsize
+
+
+def identifier(name: str) -> str:
+    """``name`` as a key for file names and `numpy.savez`: ``|x|`` becomes
+    ``abs_x`` and each run of characters other than letters, digits and
+    ``_`` one ``_``, none at the ends (``"|L|"`` -> ``"abs_L"``,
+    ``"heavy top"`` -> ``"heavy_top"``; may be empty)."""
+    name = re.sub(r"\|(\w+)\|", r"abs_\1", name)
+    return re.sub(r"\W+", "_", name).strip("_")
 
 
 def load(path: str | os.PathLike) -> Scene:

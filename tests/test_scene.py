@@ -446,3 +446,18 @@ def test_euler_convention_and_the_single_precision_check():
     top = dataclasses.replace(free, problem=RigidBodyWithEffects([1.0, 2.0, 3.0], [0.3, 1.0, 0.2],
                                                                  effects=(lierk.Gravity([0, 0, 0.1], 1.0),)))
     assert top.euler_convention == "zxz"
+
+
+def test_describe_run_and_file_stem():
+    d = {"name": "heavy top!", "body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]},
+         "initial": {"omega": [0.3, 1.0, 0.2]}, "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.01}}
+    fixed = S.from_dict(d)
+    assert fixed.describe_run() == "RKMK4, dt = 0.01 s" and fixed.file_stem == "heavy_top"
+    adaptive = S.from_dict({**d, "name": "--", "run": {"solver": "dp54", "t1": 1.0, "rtol": 1e-8, "atol": 1e-10}})
+    assert adaptive.describe_run() == "DP54, rtol = 1e-08, atol = 1e-10" and adaptive.file_stem == "scene"
+    target = fixed.with_target_error(1e-6)
+    assert target.describe_run() == "RKMK4, target_error = 1e-06"
+    sol = target.solve()
+    assert target.describe_run(sol) == f"RKMK4, target_error = 1e-06 (chose {sol.chosen_setting()})"
+    assert sol.chosen_setting().startswith("dt = ")
+    assert [S.identifier(k) for k in ("|L|", "energy", "L.z (space)", "é")] == ["abs_L", "energy", "L_z_space", "é"]
