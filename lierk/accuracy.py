@@ -29,13 +29,16 @@ The reference ``R_ref``:
   reference's, so no decade below it is claimed.
 
 `AccuracyReport.best_per_decade` gives, per decade 1e-2 ... 1e-12, the
-cheapest run whose true error is at most that decade; `figure` draws the
-work-precision diagram and `to_json` serialises the report.
+cheapest run whose true error is at most that decade (`AccuracyReport.table`
+as text, `AccuracyReport.summary` with the reference: what ``lierk accuracy``
+prints); `figure` draws the work-precision diagram and `to_json` serialises
+the report.
 
 Example:
     >>> scene = lierk.scene.load("examples/heavy_top.toml")
     >>> report = lierk.accuracy.work_precision(scene, max_settings=4)
     >>> row = report.cheapest(1e-6)   # e.g. DOP853 at rtol = 1e-09
+    >>> print(report.summary())       # the cheapest run per decade
     >>> lierk.accuracy.figure(report).savefig("work_precision.png")
 """
 
@@ -170,6 +173,37 @@ class AccuracyReport:
     def best_per_decade(self, decades: Sequence[float] = DECADES) -> dict[float, Row | None]:
         """``{decade: cheapest(decade)}`` for each decade (default 1e-2 ... 1e-12)."""
         return {d: self.cheapest(d) for d in decades}
+
+    def table(self, decades: Sequence[float] = DECADES) -> str:
+        """`best_per_decade` as a text table, a header and one line per
+        decade: the cheapest solver, its setting, time, true error and
+        estimate, or why no run is named (below `floor`, or none reached it)."""
+        lines = [f"{'error <=':>9}  {'cheapest':<8}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"]
+        for decade, row in self.best_per_decade(decades).items():
+            if row is not None:
+                lines.append(
+                    f"{decade:>9.0e}  {row.solver:<8}  {row.label:<18}  {row.time:>9.3g}  {row.error:>8.1e}  "
+                    f"{row.error_estimate:>8.1e}"
+                )
+            elif decade < self.floor:
+                lines.append(f"{decade:>9.0e}  (below the reference's accuracy, {self.floor:.1e})")
+            else:
+                lines.append(f"{decade:>9.0e}  (no run reached it)")
+        return "\n".join(lines)
+
+    def summary(self, wall: float | None = None) -> str:
+        """The report ``lierk accuracy`` prints: what ran (with ``wall``, the
+        whole run's wall time in s, compilation included), the reference and
+        its cross-check, then `table`."""
+        head = (f"scene {self.scene}: {len(self.rows)} runs of {', '.join(self.solvers)}, T = {self.t1:g} s, "
+                f"errors max_t ||R - R_ref||_F at {len(self.ts)} equally spaced times")
+        if wall is not None:
+            head += f", {wall:.1f} s wall (incl. compilation)"
+        lines = [head, f"  reference: {self.reference}, error about {self.reference_error:.1e}"]
+        if self.check is not None:
+            d = self.check_disagreement
+            lines.append(f"  cross-check: {self.check}" + (f", disagrees by {d:.1e}" if d is not None else ""))
+        return "\n".join([*lines, self.table()])
 
 
 # --------------------------------------------------------------------------

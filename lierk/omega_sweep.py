@@ -6,7 +6,8 @@ every point with `lierk.sensitivity` in chunks (`lierk.sweep_chunks`), kept
 in a resumable `lierk.store.ChunkStore` when given a directory, and returns an
 `OmegaSweep`: per point the final attitude angle, the sensitivity
 ``||dR(T)/d omega0||_F`` with its estimated error, the finite-time Lyapunov
-exponent and, for a torque-free body, the exact flip interval.
+exponent and, for a torque-free body, the exact flip interval
+(`OmegaSweep.summary`: their ranges, as ``lierk sweep`` prints them).
 """
 
 from __future__ import annotations
@@ -58,6 +59,24 @@ class OmegaSweep:
     def grid(self) -> np.ndarray:
         """``(*shape, 3)`` the initial angular velocities (rad/s)."""
         return _grid(self.axes).reshape(*self.shape, 3)
+
+    def summary(self) -> str:
+        """What ``lierk sweep`` prints about the values, one indented line
+        each: how many points failed (if any), the range of the sensitivity
+        and its largest estimated relative error, of the Lyapunov exponent
+        and, for a torque-free body that flips somewhere, of the flip interval."""
+        v, lines = self.values, []
+        if self.failed.any():
+            lines.append(f"  {int(self.failed.sum())} points failed to integrate (NaN in the outputs)")
+        s = v["sensitivity"]
+        lines.append(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
+                     f"(estimated error of it: up to {np.nanmax(v['sensitivity_error'] / s):.1g} relative)")
+        lam = v["lyapunov"]
+        lines.append(f"  finite-time Lyapunov exponent: {np.nanmin(lam):.3g} .. {np.nanmax(lam):.3g} 1/s")
+        f = v["flip_interval"][np.isfinite(v["flip_interval"])] if "flip_interval" in v else ()
+        if len(f):
+            lines.append(f"  flip interval: {f.min():.3g} .. {f.max():.3g} s")
+        return "\n".join(lines)
 
 
 def omega_grid(

@@ -211,6 +211,31 @@ def test_cheapest_per_decade_and_the_floor():
     assert _report(rows, (1e-9, None), check="DP54: failed").cheapest(1e-2) is None
 
 
+def test_summary_and_table_are_what_lierk_accuracy_prints():
+    rows = [_row("A", 1e-4, 0.01, 3e-3), _row("B", 1e-9, 0.03, 4e-8)]
+    rep = _report(rows, (1e-9, 2e-9), check="DP54, rtol = atol = 1e-11")
+    table = rep.table(decades=(1e-2, 1e-8, 1e-10))
+    assert table.splitlines() == [
+        " error <=  cheapest  setting              time (s)     error  estimate",
+        "    1e-02  A         rtol = 1e-04             0.01   3.0e-03   3.0e-03",
+        "    1e-08  (no run reached it)",
+        "    1e-10  (below the reference's accuracy, 2.0e-09)",
+    ]
+    lines = rep.summary(wall=1.25).splitlines()
+    assert lines[:3] == [
+        "scene hand: 2 runs of A, B, T = 1 s, errors max_t ||R - R_ref||_F at 3 equally spaced times, "
+        "1.2 s wall (incl. compilation)",
+        "  reference: made up, error about 1.0e-09",
+        "  cross-check: DP54, rtol = atol = 1e-11, disagrees by 2.0e-09",
+    ]
+    assert lines[3:] == rep.table().splitlines() and len(lines) == 3 + 1 + len(A.DECADES)
+    # Without the wall time and with the closed form (no cross-check).
+    assert _report(rows).summary().splitlines()[:2] == [
+        "scene hand: 2 runs of A, B, T = 1 s, errors max_t ||R - R_ref||_F at 3 equally spaced times",
+        "  reference: made up, error about 1.0e-13",
+    ]
+
+
 def test_to_json_is_strict_json():
     rows = [_row("A", 1e-4, 0.01, 3e-3), _row("A", 1e-12, 0.01, math.nan, result=1)]
     doc = json.loads(A.to_json(_report(rows)), parse_constant=lambda c: pytest.fail(f"JSON has {c}"))

@@ -62,3 +62,30 @@ def test_bad_sweeps_are_refused():
                           "run": {"solver": "RKMK4", "t1": 0.5, "target_error": 1e-6}})
     with pytest.raises(ValueError, match="target_error chooses a setting"):
         sweep_omega0(target, omega_grid([1.0, 0.05, 0.3], span=0.1, n=2))
+
+
+def test_summary_gives_the_ranges_lierk_sweep_prints():
+    from lierk.omega_sweep import OmegaSweep
+
+    axes = (np.array([1.0]), np.array([0.0, 0.1]), np.array([0.2, 0.3]))
+    failed = np.array([[False, False], [True, False]])
+    values = {
+        "angle": np.array([[0.1, 0.2], [np.nan, 0.4]]),
+        "sensitivity": np.array([[2.0, 3.0], [np.nan, 40.0]]),
+        "sensitivity_error": np.array([[2e-7, 3e-9], [np.nan, 4e-8]]),
+        "lyapunov": np.array([[0.5, 1.5], [np.nan, 2.25]]),
+        "flip_interval": np.array([[7.5, np.inf], [12.0, np.inf]]),
+    }
+    res = OmegaSweep(axes, values, failed, 0.5)
+    assert res.summary().splitlines() == [
+        "  1 points failed to integrate (NaN in the outputs)",
+        "  ||dR(T)/d omega0||: 2 .. 40 s (estimated error of it: up to 1e-07 relative)",
+        "  finite-time Lyapunov exponent: 0.5 .. 2.25 1/s",
+        "  flip interval: 7.5 .. 12 s",
+    ]
+    # No failures and no flip anywhere (or a body with effects): those lines go.
+    calm = OmegaSweep(axes, {**values, "flip_interval": np.full((2, 2), np.inf)}, np.zeros((2, 2), bool), 0.5)
+    assert [line.split(":")[0] for line in calm.summary().splitlines()] == [
+        "  ||dR(T)/d omega0||", "  finite-time Lyapunov exponent"]
+    no_flip = {k: v for k, v in values.items() if k != "flip_interval"}
+    assert len(OmegaSweep(axes, no_flip, failed, 0.5).summary().splitlines()) == 3
