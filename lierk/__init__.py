@@ -19,6 +19,7 @@ from . import omega_sweep as omega_sweep
 from . import problems as problems
 from . import rigid_body as rigid_body
 from . import scene as scene
+from . import simulation as simulation
 from . import so3 as so3
 from . import tableaux as tableaux
 from .adjoint import DirectAdjoint as DirectAdjoint

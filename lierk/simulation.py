@@ -1,0 +1,135 @@
+"""A scene run once and read: what ``lierk simulate`` computes, as one
+library call.
+
+`simulate` solves a `lierk.scene.Scene` (in pieces, with progress if asked)
+and takes its `lierk.diagnostics.diagnostics`; the `Simulation` it returns
+gives the arrays ``lierk simulate`` saves (`Simulation.record`, one
+``.npz``) and the report it prints (`Simulation.summary`).
+
+Example:
+    >>> sim = lierk.simulation.simulate(lierk.scene.load("examples/tee_handle_a.toml"))
+    >>> print(sim.summary())
+    >>> np.savez("tee_handle_a.npz", **sim.record())
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from typing import Any
+
+import numpy as np
+
+from .diagnostics import Diagnostics
+from .solution import Solution
+
+__all__ = ["Simulation", "simulate"]
+
+
+@dataclasses.dataclass(frozen=True)
+class Simulation:
+    """A solved scene with its diagnostics.
+
+    Attributes:
+        scene: the `lierk.scene.Scene` that was solved.
+        solution: its `lierk.Solution`.
+        diagnostics: `lierk.diagnostics.diagnostics` of the solution.
+        wall: the solve's wall time (s), compilation included.
+    """
+
+    scene: Any
+    solution: Solution
+    diagnostics: Diagnostics
+    wall: float
+
+    @property
+    def flip_interval(self) -> float | None:
+        """`lierk.exact.flip_interval` of a torque-free body (``inf``: it
+        never flips); None for a body with effects."""
+        from .exact import flip_interval
+
+        problem = self.scene.problem
+        return float(flip_interval(problem.inertia, problem.omega0)) if problem.torque_free else None
+
+    def record(self) -> dict[str, np.ndarray]:
+        """The arrays ``lierk simulate`` saves, for `numpy.savez`: ``ts``
+        ``(n,)``; ``R`` ``(n, 3, 3)`` (body -> space); ``omega`` and ``L``
+        ``(n, 3)`` (`Diagnostics`); ``inertia``, ``omega0``, ``R0``, ``t1``;
+        ``solver`` and ``scene`` (names); ``invariant_<name>`` ``(n,)`` per
+        invariant (`lierk.scene.identifier` of its name: ``|L|`` ->
+        ``invariant_abs_L``); ``y``, the state besides ``R`` (when the
+        problem has one); and ``error_estimate`` ``(n,)`` (when the solve
+        estimated its error)."""
+        from .plot import trajectory
+        from .scene import identifier
+
+        scene, sol, diag = self.scene, self.solution, self.diagnostics
+        problem = scene.problem
+        ts, R, y = trajectory(sol)
+        data = {
+            "ts": ts,
+            "R": R,
+            "omega": diag.omega,
+            "L": diag.L,
+            "inertia": np.asarray(problem.inertia),
+            "omega0": np.asarray(problem.omega0),
+            "R0": np.asarray(problem.R0),
+            "t1": np.asarray(scene.t1),
+            "solver": np.asarray(scene.solver.name),
+            "scene": np.asarray(scene.name),
+            **{f"invariant_{identifier(k)}": v for k, v in diag.invariants.items()},
+        }
+        if y is not None:
+            data["y"] = y
+        if sol.error_estimate is not None:
+            data["error_estimate"] = np.asarray(sol.error_estimate)[: len(ts)]
+        return data
+
+    def summary(self) -> str:
+        """The report ``lierk simulate`` prints, one line each: the scene; the
+        solver, settings, steps, field evaluations and wall time; with
+        ``target_error``, the setting chosen and the estimated error; the
+        largest relative change of each invariant; ``max ||R^T R - I||``;
+        for a torque-free body, the exact flip interval."""
+        scene, sol, diag = self.scene, self.solution, self.diagnostics
+        st = sol.stats
+        lines = [
+            f"scene {scene.name}" + (f": {scene.description}" if scene.description else ""),
+            f"{scene.describe_run(sol)}, t1 = {scene.t1:g} s: {st['num_accepted_steps']} steps"
+            + (f" ({st['num_rejected_steps']} rejected)" if st.get("num_rejected_steps") else "")
+            + f", {st['num_fevals']} field evaluations, {self.wall:.2f} s wall (incl. compilation)",
+        ]
+        if scene.target_error is not None:
+            est = np.asarray(sol.error_estimate)
+            lines.append(
+                f"  target_error {scene.target_error:.3g}: chose {sol.chosen_setting()} "
+                f"after {st['num_solves']} solves (steps above: the last, finest solve); "
+                f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
+            )
+        conserved = scene.problem.conserved()
+        for k, v in diag.drift.items():
+            note = "" if k in conserved else "  (not conserved by this scene)"
+            lines.append(f"  max relative change of {k}: {v:.2e}{note}")
+        lines.append(f"  max ||R^T R - I||: {diag.orthogonality:.2e}")
+        flip = self.flip_interval
+        if flip is not None and math.isfinite(flip):
+            lines.append(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
+        elif flip is not None:
+            lines.append("  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+        return "\n".join(lines)
+
+
+def simulate(scene, *, n_pieces: int | None = None, progress: bool = False) -> Simulation:
+    """Solve ``scene`` (`lierk.scene.Scene.solve`, in ``n_pieces`` with
+    ``progress`` on stderr if asked) and read the solution's diagnostics.
+
+    Raises:
+        RuntimeError: the solve failed (`lierk.scene.Scene.solve`).
+    """
+    from .diagnostics import diagnostics
+
+    start = time.perf_counter()
+    sol = scene.solve(n_pieces=n_pieces, progress=progress)
+    wall = time.perf_counter() - start
+    return Simulation(scene, sol, diagnostics(scene.problem, sol), wall)

@@ -1,0 +1,96 @@
+"""`lierk.simulation`: what ``lierk simulate`` saves and prints, from Python."""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+
+import lierk
+from lierk import scene as S
+from lierk.diagnostics import diagnostics
+from lierk.simulation import Simulation, simulate
+
+RUN = {"solver": "RKMK4", "t1": 0.5, "dt": 0.01, "save_every": 5}
+
+
+def _scene(effects=(), omega=(1.0, 0.05, 0.3), **run):
+    return S.from_dict({"name": "tee |L| test", "description": "a T-handle", "body": {"kind": "tee_handle"},
+                        "initial": {"omega": list(omega)}, "effects": list(effects), "run": {**RUN, **run}})
+
+
+def test_record_holds_the_solve_and_its_diagnostics():
+    scene = _scene()
+    sim = simulate(scene)
+    sol, problem = sim.solution, scene.problem
+    assert sim.wall > 0 and isinstance(sim, Simulation)
+    # One plain solve gives the same numbers.
+    plain = scene.solve()
+    np.testing.assert_array_equal(np.asarray(sol.R), np.asarray(plain.R))
+    record = sim.record()
+    assert set(record) == {"ts", "R", "omega", "L", "inertia", "omega0", "R0", "t1", "solver", "scene", "y",
+                           "invariant_energy", "invariant_abs_L"}
+    np.testing.assert_array_equal(record["ts"], np.asarray(sol.ts))
+    np.testing.assert_array_equal(record["R"], np.asarray(sol.R))
+    np.testing.assert_array_equal(record["y"], np.asarray(sol.y))
+    d = diagnostics(problem, sol)
+    np.testing.assert_array_equal(record["omega"], d.omega)
+    np.testing.assert_array_equal(record["L"], d.L)
+    np.testing.assert_array_equal(record["invariant_abs_L"], d.invariants["|L|"])
+    np.testing.assert_array_equal(record["inertia"], np.asarray(problem.inertia))
+    np.testing.assert_array_equal(record["omega0"], [1.0, 0.05, 0.3])
+    assert record["R"].shape == (11, 3, 3) and float(record["t1"]) == 0.5
+    assert str(record["solver"]) == "RKMK4" and str(record["scene"]) == "tee |L| test"
+    np.testing.assert_array_equal(record["R0"], np.eye(3))
+
+
+def test_summary_reports_steps_drifts_and_the_flip_interval():
+    sim = simulate(_scene())
+    lines = sim.summary().splitlines()
+    assert lines[0] == "scene tee |L| test: a T-handle"
+    assert re.fullmatch(r"RKMK4, dt = 0\.01 s, t1 = 0\.5 s: 50 steps, 200 field evaluations, [\d.]+ s wall "
+                        r"\(incl\. compilation\)", lines[1]), lines[1]
+    d = sim.diagnostics
+    assert lines[2:4] == [f"  max relative change of energy: {d.drift['energy']:.2e}",
+                          f"  max relative change of |L|: {d.drift['|L|']:.2e}"]
+    assert lines[4] == f"  max ||R^T R - I||: {d.orthogonality:.2e}"
+    tau = float(lierk.exact.flip_interval(sim.scene.problem.inertia, [1.0, 0.05, 0.3]))
+    assert sim.flip_interval == tau and lines[5] == f"  intermediate-axis flip interval (exact): {tau:.3f} s"
+    assert len(lines) == 6
+    # Spin about the largest axis: it never flips.
+    stable = simulate(_scene(omega=(0.05, 0.0, 1.0)))
+    assert stable.flip_interval == np.inf
+    assert stable.summary().splitlines()[-1] == (
+        "  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+
+
+def test_summary_with_effects_and_with_a_target_error():
+    damped = simulate(_scene(effects=[{"kind": "damping", "c": 1e-5}]))
+    assert damped.flip_interval is None
+    lines = damped.summary().splitlines()
+    assert lines[2].startswith("  max relative change of energy: ") and lines[2].endswith("  (not conserved by this scene)")
+    assert lines[-1].startswith("  max ||R^T R - I||: ")  # no flip line for a body with effects
+    scene = _scene().with_target_error(1e-6)
+    sim = simulate(scene)
+    record = sim.record()
+    est = np.asarray(sim.solution.error_estimate)
+    np.testing.assert_array_equal(record["error_estimate"], est[: len(record["ts"])])
+    lines = sim.summary().splitlines()
+    assert lines[1].startswith(f"RKMK4, target_error = 1e-06 (chose {sim.solution.chosen_setting()}), t1 = 0.5 s: ")
+    assert lines[2] == (f"  target_error 1e-06: chose {sim.solution.chosen_setting()} after "
+                        f"{sim.solution.stats['num_solves']} solves (steps above: the last, finest solve); "
+                        f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}")
+    assert est.max() <= 1e-6
+
+
+def test_simulate_in_pieces_saves_what_one_solve_saves():
+    scene = _scene()
+    whole, pieces = simulate(scene), simulate(scene, n_pieces=3)
+    a, b = whole.record(), pieces.record()
+    assert a.keys() == b.keys() and str(b["scene"]) == str(a["scene"])
+    for k, v in a.items():
+        if v.dtype.kind == "f":
+            np.testing.assert_allclose(b[k], v, rtol=1e-13, atol=1e-15, err_msg=k)
+    with pytest.raises(ValueError, match="n_pieces must be a positive int"):
+        simulate(scene, n_pieces=0)
