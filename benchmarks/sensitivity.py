@@ -19,16 +19,20 @@ Programs:
 
 - lierk forward mode (`lierk.sensitivity`, which is `jax.jacfwd` through
   `lierk.solve`): ``RKMK4`` and ``RKMK(DOP853)`` at fixed steps, ``DOP853``
-  adaptive (`ForwardMode`); reverse mode (`jax.jacrev`, default adjoint) for a
-  few of the same settings.  Each setting's forward solve is timed too, for
-  the ratio "Jacobian / forward solve".
+  adaptive (`ForwardMode`); reverse mode (`jax.jacrev`, default adjoint,
+  `ForwardSensitivity`) for a few of the same settings; the gradient of a
+  scalar loss ``sum(W * R(T))`` (`jax.grad`) with the default adjoint and
+  with reverse mode through the loop (``adjoint=RecursiveCheckpointAdjoint()``:
+  the checkpointed while loop, or for fixed steps the scan's own reverse
+  mode).  Each setting's forward solve is timed too, for the ratio "Jacobian
+  / forward solve".
 - diffrax ``Dopri8`` and ``Tsit5`` (PID controller, rtol = atol = tol) on the
   9-component ODE (tee) or the 12-component one (top), with
   ``diffrax.ForwardMode`` (`jax.jacfwd`) and ``RecursiveCheckpointAdjoint``
-  (`jax.jacrev`).
+  (`jax.jacrev`, and `jax.grad` of the same loss).
 - Reverse-mode memory of a fixed-step gradient at 10^4, 10^5 and 10^6 steps
-  (one body, RKMK4): XLA's compiled temporary buffers, and the time of one
-  gradient.
+  (one body, RKMK4), with both adjoints: XLA's compiled temporary buffers,
+  and the time of one gradient.
 
 Compilation and a warm-up call are excluded; the median of at least 3 calls,
 more until they add up to 0.25 s.  Writes benchmarks/results/sensitivity.{json,md,png}.
@@ -208,6 +212,24 @@ def lierk_jacobian(fam, solver, kw, mode="forward"):
     return on_devices(one)
 
 
+# The scalar loss of the gradient rows: sum(LOSS_WEIGHTS * R(T)), so its
+# gradient is the Jacobian contracted with these weights.
+LOSS_WEIGHTS = np.asarray(np.random.default_rng(1).normal(size=(3, 3)))
+
+
+def lierk_gradient(fam, solver, kw, adjoint=None):
+    kw = solve_options(fam, kw)
+
+    def one(w, R0):
+        def loss(v):
+            sol = lierk.solve(fam.problem(v, R0), solver, fam.T, throw=False, adjoint=adjoint, **kw)
+            return jnp.sum(LOSS_WEIGHTS * sol.R[-1]), sol.stats["num_steps"]
+
+        return jax.grad(loss, has_aux=True)(w)
+
+    return on_devices(one)
+
+
 def lierk_forward(fam, solver, kw):
     kw = solve_options(fam, kw)
 
@@ -238,6 +260,17 @@ def diffrax_jacobian(fam, solver, tol, mode):
     return on_devices(one)
 
 
+def diffrax_gradient(fam, solver, tol):
+    def one(w, R0):
+        def loss(v):
+            R, steps = diffrax_run(fam, solver, tol, diffrax.RecursiveCheckpointAdjoint(), v, R0)
+            return jnp.sum(LOSS_WEIGHTS * R), steps
+
+        return jax.grad(loss, has_aux=True)(w)
+
+    return on_devices(one)
+
+
 def diffrax_forward(fam, solver, tol):
     return on_devices(lambda w, R0: diffrax_run(fam, solver, tol, diffrax.RecursiveCheckpointAdjoint(), w, R0)[0])
 
@@ -246,13 +279,18 @@ def run_family(fam) -> dict:
     W, R0 = fam.initial()
     W, R0 = jnp.asarray(W), jnp.asarray(R0)
     J_ref, ref_info = fam.reference(W, R0)
+    g_ref = np.einsum("ij,bijk->bk", LOSS_WEIGHTS, J_ref)
     records = []
 
     def add(method, mode, setting, jac_fn, fwd_fn):
         (J, steps), t_jac, first = timed(jac_fn, W, R0, repeats=REPEATS, min_time=MIN_TIME)
         _, t_fwd, _ = timed(fwd_fn, W, R0, repeats=REPEATS, min_time=MIN_TIME)
+        if mode == "gradient":
+            err = float(np.max(np.linalg.norm(np.asarray(J) - g_ref, axis=1) / np.linalg.norm(g_ref, axis=1)))
+        else:
+            err = relative_error(J, J_ref)
         rec = dict(
-            method=method, mode=mode, setting=setting, error=relative_error(J, J_ref), time_s=t_jac,
+            method=method, mode=mode, setting=setting, error=err, time_s=t_jac,
             forward_s=t_fwd, ratio_to_forward=t_jac / t_fwd, compile_s=first - t_jac, mean_steps=float(np.mean(steps)),
             devices=jac_fn.devices,
         )
@@ -278,17 +316,36 @@ def run_family(fam) -> dict:
         kw = dict(rtol=tol, atol=tol)
         add("lierk DOP853", "reverse", f"tol={tol:g}", lierk_jacobian(fam, lierk.DOP853(), kw, "reverse"),
             lierk_forward(fam, lierk.DOP853(), kw))
+    # The gradient of a scalar loss of R(T) (reverse mode): the default adjoint
+    # (ForwardSensitivity) and, for fixed steps, reverse mode through the scan.
+    for dt in fam.rk4_dts[1::2][:2]:
+        add("lierk RKMK4", "gradient", f"dt={dt:g}", lierk_gradient(fam, lierk.RKMK4(), dict(dt=dt)),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+        add("lierk RKMK4 (scan reverse)", "gradient", f"dt={dt:g}",
+            lierk_gradient(fam, lierk.RKMK4(), dict(dt=dt), lierk.RecursiveCheckpointAdjoint()),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+    for dt in fam.dop_dts[1::2][:2]:
+        add("lierk RKMK(DOP853)", "gradient", f"dt={dt:g}", lierk_gradient(fam, dop, dict(dt=dt)),
+            lierk_forward(fam, dop, dict(dt=dt)))
+    for tol in fam.tols[1::2][:2]:
+        kw = dict(rtol=tol, atol=tol)
+        add("lierk DOP853", "gradient", f"tol={tol:g}", lierk_gradient(fam, lierk.DOP853(), kw),
+            lierk_forward(fam, lierk.DOP853(), kw))
+        add("lierk DOP853 (checkpointed)", "gradient", f"tol={tol:g}",
+            lierk_gradient(fam, lierk.DOP853(), kw, lierk.RecursiveCheckpointAdjoint()), lierk_forward(fam, lierk.DOP853(), kw))
     for solver in (diffrax.Dopri8(), diffrax.Tsit5()):
-        for mode in ("forward", "reverse"):
+        for mode in ("forward", "reverse", "gradient"):
+            name = f"diffrax {type(solver).__name__}"
             for tol in fam.tols if mode == "forward" else fam.tols[1::2][:2]:
-                add(f"diffrax {type(solver).__name__}", mode, f"tol={tol:g}", diffrax_jacobian(fam, solver, tol, mode),
-                    diffrax_forward(fam, solver, tol))
+                prog = diffrax_gradient(fam, solver, tol) if mode == "gradient" else diffrax_jacobian(fam, solver, tol, mode)
+                add(name, mode, f"tol={tol:g}", prog, diffrax_forward(fam, solver, tol))
 
     levels = []
     for level in LEVELS:
         best = {}
         for prog in ("lierk", "diffrax"):
-            t = interp_time([(r["error"], r["time_s"]) for r in records if r["method"].startswith(prog)], level)
+            pts = [(r["error"], r["time_s"]) for r in records if r["method"].startswith(prog) and r["mode"] != "gradient"]
+            t = interp_time(pts, level)
             best[prog] = None if t is None else t[0]
         ratio = None if None in best.values() else best["lierk"] / best["diffrax"]
         levels.append(dict(level=level, lierk_s=best["lierk"], diffrax_s=best["diffrax"], ratio=ratio))
@@ -296,26 +353,61 @@ def run_family(fam) -> dict:
 
 
 def reverse_memory() -> list[dict]:
-    """Compiled temporaries and time of one fixed-step gradient (RKMK4, one body)."""
+    """Compiled temporaries and time of one fixed-step gradient (RKMK4, one
+    body): the default adjoint (forward sensitivities) and reverse mode
+    through the scan (blocks of sqrt(n) steps recomputed)."""
     body = lierk.FreeRigidBody([1.0, 2.0, 3.0], [0.3, 1.0, 0.2])
     out = []
     for n in ([10**3, 10**4] if QUICK else [10**4, 10**5, 10**6]):
-        def loss(w, n=n):
-            return lierk.solve(body.with_omega0(w), lierk.RKMK4(), n * 1e-3, dt=1e-3).R[-1][0, 1]
+        for name, adjoint in (("ForwardSensitivity (default)", None), ("scan reverse", lierk.RecursiveCheckpointAdjoint())):
+            def loss(w, n=n, adjoint=adjoint):
+                return lierk.solve(body.with_omega0(w), lierk.RKMK4(), n * 1e-3, dt=1e-3, adjoint=adjoint).R[-1][0, 1]
 
-        w = jnp.array([0.3, 1.0, 0.2])
-        grad = jax.jit(jax.grad(loss)).lower(w).compile()
-        fwd = jax.jit(loss).lower(w).compile()
-        t = time.perf_counter()
-        jax.block_until_ready(grad(w))
-        t_grad = time.perf_counter() - t
-        t = time.perf_counter()
-        jax.block_until_ready(fwd(w))
-        t_fwd = time.perf_counter() - t
-        mem = grad.memory_analysis()
-        out.append(dict(steps=n, temp_bytes=int(mem.temp_size_in_bytes), gradient_s=t_grad, forward_s=t_fwd))
-        print(f"  reverse memory: {n:8d} steps: {mem.temp_size_in_bytes / 1e6:.2f} MB temporaries, gradient {t_grad:.2f} s, "
-              f"forward {t_fwd:.3f} s", flush=True)
+            w = jnp.array([0.3, 1.0, 0.2])
+            grad = jax.jit(jax.grad(loss)).lower(w).compile()
+            fwd = jax.jit(loss).lower(w).compile()
+            _, t_grad, _ = timed(grad, w, repeats=REPEATS)
+            _, t_fwd, _ = timed(fwd, w, repeats=REPEATS)
+            mem = grad.memory_analysis()
+            out.append(dict(steps=n, adjoint=name, temp_bytes=int(mem.temp_size_in_bytes), gradient_s=t_grad, forward_s=t_fwd))
+            print(f"  reverse memory: {n:8d} steps, {name}: {mem.temp_size_in_bytes / 1e6:.3f} MB temporaries, "
+                  f"gradient {t_grad:.3f} s, forward {t_fwd:.3f} s", flush=True)
+    return out
+
+
+def reversibility() -> list[dict]:
+    """Would a reversible adjoint (states rebuilt by stepping back with -h,
+    O(1) memory) be right?  Accuracy only, no timing: run a splitting n steps
+    forward, then n steps back from the end, and compare each rebuilt state
+    with the one the forward pass had."""
+    inertia = np.asarray(lierk.inertia.tee_handle())
+    out = []
+    for solver in (lierk.Strang(), lierk.BlanesMoan4()):
+        for w0, label in (((1.0, 0.05, 0.3), "T-handle near the intermediate axis"), ((1.0, 1e-4, 1e-4), "near the separatrix")):
+            for T in (10.0, 100.0) if not QUICK else (1.0,):
+                n, body = round(T / 0.01), lierk.FreeRigidBody(inertia, jnp.asarray(w0))
+
+                def sweep(R, m, h, n=n, body=body, solver=solver):
+                    def one(c, _):
+                        st = solver.step(body, 0.0, h, *c)
+                        return (st.R, st.y), (st.R, st.y)
+
+                    return jax.lax.scan(one, (R, m), None, length=n)
+
+                @jax.jit
+                def rebuilt_error(sweep=sweep, body=body):
+                    (R1, m1), (Rs, ms) = sweep(body.R0, body.y0, 0.01)
+                    _, (Rb, mb) = sweep(R1, m1, -0.01)
+                    # Stepping back from the end, step k lands on forward state n - 1 - k.
+                    Rf = jnp.concatenate([body.R0[None], Rs[:-1]])[::-1]
+                    mf = jnp.concatenate([body.y0[None], ms[:-1]])[::-1]
+                    return (jnp.max(jnp.linalg.norm(Rb - Rf, axis=(1, 2))),
+                            jnp.max(jnp.linalg.norm(mb - mf, axis=1)) / jnp.linalg.norm(body.y0))
+
+                eR, em = (float(x) for x in rebuilt_error())
+                out.append(dict(solver=solver.name, body=label, omega0=list(w0), T=T, steps=n, R_error=eR, m_error=em))
+                print(f"  reversibility: {solver.name} {label}, T = {T:g}: rebuilt states off by {eR:.1e} (R), "
+                      f"{em:.1e} (m, relative)", flush=True)
     return out
 
 
@@ -344,9 +436,19 @@ def write_markdown(p):
                          f"{r['forward_s']:.4f} | {r['ratio_to_forward']:.1f} | {r['mean_steps']:.0f} | {r['devices']} |")
         lines.append("")
     lines += ["## Reverse-mode memory (RKMK4, one body, dt = 1e-3)", "",
-              "| steps | compiled temporaries (MB) | gradient (s) | forward (s) |", "|---:|---:|---:|---:|"]
+              "| steps | adjoint | compiled temporaries (MB) | gradient (s) | forward (s) | gradient / forward |",
+              "|---:|---|---:|---:|---:|---:|"]
     for r in p["reverse_memory"]:
-        lines.append(f"| {r['steps']} | {r['temp_bytes'] / 1e6:.2f} | {r['gradient_s']:.2f} | {r['forward_s']:.3f} |")
+        lines.append(f"| {r['steps']} | {r['adjoint']} | {r['temp_bytes'] / 1e6:.3f} | {r['gradient_s']:.3f} | "
+                     f"{r['forward_s']:.3f} | {r['gradient_s'] / r['forward_s']:.1f} |")
+    if p.get("reversibility"):
+        lines += ["", "## Would a reversible adjoint be right? (splittings, dt = 0.01 s, accuracy only)", "",
+                  "States rebuilt by stepping back from t1 with -dt against the states of the forward pass: "
+                  "the largest difference over the run.", "",
+                  "| solver | body | T (s) | steps | R rebuilt, max error | m rebuilt, max relative error |",
+                  "|---|---|---:|---:|---:|---:|"]
+        for r in p["reversibility"]:
+            lines.append(f"| {r['solver']} | {r['body']} | {r['T']:g} | {r['steps']} | {r['R_error']:.1e} | {r['m_error']:.1e} |")
     (OUT / "sensitivity.md").write_text("\n".join(lines) + "\n")
 
 
@@ -378,7 +480,7 @@ def plot(p):
 
 def main():
     OUT.mkdir(parents=True, exist_ok=True)
-    p = dict(machine=machine_info(diffrax=diffrax.__version__), families={}, reverse_memory=[])
+    p = dict(machine=machine_info(diffrax=diffrax.__version__), families={}, reverse_memory=[], reversibility=[])
 
     def save():
         # After every part: a run stopped part-way (the full one takes over
@@ -388,6 +490,7 @@ def main():
         plot(p)
         print(f"wrote {OUT}/sensitivity.{{json,md,png}}", flush=True)
 
+    p["reversibility"] = reversibility()
     fams = [Tee(), Top()]
     print(f"{fams[0].title}:", flush=True)
     p["families"][fams[0].name] = run_family(fams[0])

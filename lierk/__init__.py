@@ -24,6 +24,7 @@ from . import so3 as so3
 from . import tableaux as tableaux
 from .adjoint import DirectAdjoint as DirectAdjoint
 from .adjoint import ForwardMode as ForwardMode
+from .adjoint import ForwardSensitivity as ForwardSensitivity
 from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .cache import compilation_cache_dir as compilation_cache_dir
 from .cache import using_cache as using_cache

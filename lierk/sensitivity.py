@@ -180,7 +180,9 @@ def sensitivity(
             problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``.
         mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs; adaptive
             solvers get ``adjoint=ForwardMode()`` unless another is given) or
-            ``"reverse"`` (`jax.jacrev`, six passes: for many inputs).
+            ``"reverse"`` (`jax.jacrev`: with the default adjoint,
+            `ForwardSensitivity`, the same forward pass for a few inputs, and
+            six reverse passes for many).
         estimate_error: also take the Jacobian of a finer solve and fill
             `Sensitivity.error_estimate` (about 2.5x the cost).
         throw: raise if the solve fails; with False read `Sensitivity.result`.

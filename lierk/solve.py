@@ -11,7 +11,7 @@ from jax.typing import ArrayLike
 
 from . import validation
 from . import global_error
-from .adjoint import AbstractAdjoint, RecursiveCheckpointAdjoint
+from .adjoint import AbstractAdjoint, ForwardSensitivity
 from .controller import Controller
 from .problems import AbstractProblem
 from .loops import num_steps, solve_adaptive, solve_fixed
@@ -104,7 +104,9 @@ def solve(
         throw: raise on failure (default).  With ``throw=False`` the partial
             `Solution` comes back with its `Solution.result` code, per batch
             member under `vmap`.
-        adjoint: how an adaptive solve is differentiated (`lierk.adjoint`).
+        adjoint: how the solve is differentiated (`lierk.adjoint`); default
+            `ForwardSensitivity()`: forward and reverse mode at the cost of
+            the Jacobian in the differentiated inputs.
         estimate_error: fill `Solution.error_estimate`.
         target_error: the attitude error wanted at every saved time
             (Frobenius norm, dimensionless), ``> 0``.
@@ -136,21 +138,22 @@ def solve(
         if given:
             raise ValueError(f"dt= asks for fixed steps, so {', '.join(given)} would be ignored; pass one or the other")
         dt, n = _check_fixed(dt, t0, t1, saveat, max_steps, dtype)
-        sol = solve_fixed(problem, solver, t0, t1, dt, saveat, n)
+        adjoint = _check_adjoint(adjoint)
+        sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n)
         if estimate_error:
             sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
     else:
         controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
         max_steps = max_steps or DEFAULT_ADAPTIVE_MAX_STEPS
         try:
-            sol = solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
+            sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, max_steps, controller)
         except TypeError as e:
             if "custom_vjp" not in str(e):
                 raise
             raise ValueError(
                 f"forward-mode autodiff (jax.jvp, jax.jacfwd) cannot go through an adaptive solve with "
-                f"{type(adjoint).__name__}, which supports reverse mode only: pass adjoint=lierk.ForwardMode() "
-                "(forward only) or adjoint=lierk.DirectAdjoint() (both)"
+                f"{type(adjoint).__name__}, which supports reverse mode only: leave adjoint= out "
+                "(lierk.ForwardSensitivity(), both modes), or pass adjoint=lierk.ForwardMode() (forward only)"
             ) from None
         if estimate_error:
             sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, max_steps, controller, adjoint)
@@ -261,12 +264,27 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
             f"rtol + atol = {float(controller.rtol + controller.atol):g} is below the rounding of "
             f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
         )
-    adjoint = RecursiveCheckpointAdjoint() if adjoint is None else adjoint
-    if not isinstance(adjoint, AbstractAdjoint):
-        raise ValueError(f"adjoint must be a lierk.adjoint object, got {adjoint!r}")
+    adjoint = _check_adjoint(adjoint)
     if dt0 is not None:
         dt0 = validation.check(validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
     return controller, adjoint, dt0
+
+
+def _check_adjoint(adjoint) -> AbstractAdjoint:
+    adjoint = ForwardSensitivity() if adjoint is None else adjoint
+    if not isinstance(adjoint, AbstractAdjoint):
+        raise ValueError(f"adjoint must be a lierk.adjoint object such as lierk.ForwardSensitivity(), got {adjoint!r}")
+    return adjoint
+
+
+# The loops as `AbstractAdjoint.run` calls them: the adjoint first (the
+# fixed-step scan has no use for it).
+def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n):
+    return solve_fixed(problem, solver, t0, t1, dt, saveat, n)
+
+
+def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller):
+    return solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
 
 
 # A conserved quantity that moves by more than this (relative to its scale)

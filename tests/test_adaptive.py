@@ -279,8 +279,12 @@ def replay_jac():
     return jax.jacfwd(lambda w: replay_R(w, 300, lierk.ForwardMode()))(REPLAY_OMEGA0)
 
 
-@pytest.mark.parametrize("max_steps,adjoint", [(300, None), (5000, None), (300, lierk.DirectAdjoint())],
-                         ids=["checkpointed-300", "checkpointed-5000", "direct-300"])
+@pytest.mark.parametrize(
+    "max_steps,adjoint",
+    [(300, lierk.RecursiveCheckpointAdjoint()), (5000, lierk.RecursiveCheckpointAdjoint()), (300, lierk.DirectAdjoint()),
+     (300, None)],
+    ids=["checkpointed-300", "checkpointed-5000", "direct-300", "default-300"],
+)
 def test_reverse_mode_is_the_derivative_of_the_solve_taken_for_any_max_steps(replay_jac, max_steps, adjoint):
     """The checkpointed reverse pass recomputes the steps between checkpoints
     in a differently compiled body, where the error estimate (a nearly
@@ -290,7 +294,8 @@ def test_reverse_mode_is_the_derivative_of_the_solve_taken_for_any_max_steps(rep
     at 5000.  The loop now records each attempt's decisions and the
     recomputation replays them.  DirectAdjoint's rematerialised scans had the
     same fault (4e-9 off at 300); its decisions now come from a solve of
-    their own, which its loop replays."""
+    their own, which its loop replays.  The default, `ForwardSensitivity`,
+    replays nothing: its reverse mode reads forward tangents."""
     J = jax.jacrev(lambda w: replay_R(w, max_steps, adjoint))(REPLAY_OMEGA0)
     assert frob(J, replay_jac) <= 1e-12 * float(jnp.linalg.norm(replay_jac))
 

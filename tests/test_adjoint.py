@@ -1,0 +1,153 @@
+"""`ForwardSensitivity`, the default adjoint: every autodiff mode reads one
+forward pass of tangents, and gets the derivative of the solve that was run.
+
+Each claim is checked against an independent number: forward mode through
+the plain loop (`ForwardMode`, which adds nothing to the solve), central
+finite differences, or the exact flow's derivative."""
+
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import lierk
+from helpers import OMEGA_GENERIC, TEE, fd_jacobian
+
+W0 = jnp.asarray(OMEGA_GENERIC)
+TARGET = jnp.asarray(np.asarray(lierk.so3.exp(jnp.asarray([0.2, -0.1, 0.4]))))
+
+# (solver, solve options): fixed steps through the scan, a splitting with the
+# elliptic drift, an adaptive pair through the while loop.
+CASES = {
+    "RKMK4": (lierk.RKMK4(), dict(dt=0.05)),
+    "Strang": (lierk.Strang(), dict(dt=0.1)),
+    "DP54": (lierk.DP54(), dict(rtol=1e-9, atol=1e-9)),
+}
+
+
+def final(w, solver, adjoint=None, **kw):
+    return lierk.solve(lierk.FreeRigidBody(TEE, w), solver, 2.0, adjoint=adjoint, **kw).R[-1]
+
+
+def loss(w, *args, **kw):
+    return jnp.sum((final(w, *args, **kw) - TARGET) ** 2)
+
+
+@pytest.mark.parametrize("name", list(CASES))
+def test_every_mode_reads_the_derivative_of_the_solve(name):
+    solver, kw = CASES[name]
+    # The reference: forward mode through the loop itself, one tangent pass.
+    J_ref = jax.jit(jax.jacfwd(lambda w: final(w, solver, lierk.ForwardMode(), **kw)))(W0)
+    scale = float(jnp.linalg.norm(J_ref))
+    J_fwd = jax.jit(jax.jacfwd(lambda w: final(w, solver, **kw)))(W0)
+    J_rev = jax.jit(jax.jacrev(lambda w: final(w, solver, **kw)))(W0)
+    g = jax.jit(jax.grad(lambda w: loss(w, solver, **kw)))(W0)
+    g_ref = jnp.einsum("ij,ijk->k", 2 * (final(W0, solver, **kw) - TARGET), J_ref)
+    assert float(jnp.linalg.norm(J_fwd - J_ref)) <= 1e-12 * scale
+    assert float(jnp.linalg.norm(J_rev - J_ref)) <= 1e-12 * scale
+    assert float(jnp.linalg.norm(g - g_ref)) <= 1e-12 * float(jnp.linalg.norm(g_ref))
+    # ... and that is the Jacobian of the solve, not of some other computation.
+    J_fd = fd_jacobian(jax.jit(lambda w: final(w, solver, lierk.ForwardMode(), **kw)), W0)
+    assert float(jnp.linalg.norm(J_fwd - J_fd)) <= 1e-6 * scale
+
+
+def test_gradient_under_vmap_matches_a_loop():
+    solver, kw = CASES["RKMK4"]
+    ws = jnp.asarray(OMEGA_GENERIC) * jnp.asarray([[1.0], [1.3], [0.7]])
+    grad = jax.jit(jax.grad(lambda w: loss(w, solver, **kw)))
+    batched = jax.jit(jax.vmap(jax.grad(lambda w: loss(w, solver, **kw))))(ws)
+    for i in range(ws.shape[0]):
+        np.testing.assert_allclose(batched[i], grad(ws[i]), rtol=1e-13, atol=1e-15)
+
+
+def test_adaptive_gradient_does_not_depend_on_max_steps():
+    """No checkpoint replays a step: the same gradient with room for 300 or
+    5000 attempts, at a tolerance where the checkpointed adjoint's replay
+    once drifted (issue 22's case)."""
+    body = lambda w: lierk.FreeRigidBody(lierk.inertia.tee_handle(), w)  # noqa: E731
+    w = jnp.asarray([0.9, 0.07, 0.2])
+
+    def g(max_steps):
+        f = lambda w: jnp.sum(  # noqa: E731
+            (lierk.solve(body(w), lierk.DP54(), 2.5, rtol=1e-11, atol=1e-11, max_steps=max_steps).R[-1] - TARGET) ** 2
+        )
+        return jax.jit(jax.grad(f))(w)
+
+    a, b = g(300), g(5000)
+    np.testing.assert_allclose(a, b, rtol=1e-13, atol=0)
+
+
+def grad_temp_bytes(n_steps):
+    def g(w):
+        return jax.grad(lambda w: loss(w, lierk.RKMK4(), dt=2.0 / n_steps))(w)
+
+    return jax.jit(g).lower(W0).compile().memory_analysis().temp_size_in_bytes
+
+
+def test_reverse_mode_memory_does_not_grow_with_steps():
+    """The tangents ride in the scan's carry: no state is stored per step or
+    per block, so 10^6 steps need what 10^3 need (reverse mode through the
+    scan keeps sqrt(10^6) = 1000 block-start states, 96 kB)."""
+    small, large = grad_temp_bytes(10**3), grad_temp_bytes(10**6)
+    assert large <= small + 1024
+    assert large < 16 * 1024
+
+
+def test_inputs_without_a_derivative_are_not_counted():
+    """Differentiating in omega0 perturbs the body's momentum only (3
+    scalars): the attitude, inertia and its inverse carry no tangent."""
+    solver, kw = CASES["DP54"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        jax.grad(lambda w: loss(w, solver, lierk.ForwardSensitivity(max_inputs=3), **kw))(W0)
+    with pytest.warns(UserWarning, match="3 input scalars, more than ForwardSensitivity's max_inputs=2"):
+        jax.grad(lambda w: loss(w, solver, lierk.ForwardSensitivity(max_inputs=2), **kw))(W0)
+
+
+@pytest.mark.parametrize("name", ["RKMK4", "DP54"])
+def test_beyond_max_inputs_the_fallback_gives_the_same_derivative(name):
+    solver, kw = CASES[name]
+    few = lierk.ForwardSensitivity(max_inputs=2)
+    g_ref = jax.grad(lambda w: loss(w, solver, **kw))(W0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        g = jax.grad(lambda w: loss(w, solver, few, **kw))(W0)
+        J = jax.jacfwd(lambda w: final(w, solver, few, **kw))(W0)
+    np.testing.assert_allclose(g, g_ref, rtol=1e-11)
+    J_ref = jax.jacfwd(lambda w: final(w, solver, **kw))(W0)
+    np.testing.assert_allclose(J, J_ref, rtol=1e-11, atol=1e-14)
+
+
+def test_gradient_with_respect_to_the_inertia_against_finite_differences():
+    """21 perturbed scalars (inertia, its inverse, the momentum): fixed steps
+    go through the scan's own reverse mode, adaptive ones carry them all."""
+
+    def f(moments, solver, **kw):
+        body = lierk.FreeRigidBody(jnp.diag(moments), W0)
+        return jnp.sum((lierk.solve(body, solver, 2.0, **kw).R[-1] - TARGET) ** 2)
+
+    moments = jnp.asarray(np.diag(TEE))
+    for solver, kw in (CASES["RKMK4"], CASES["DP54"]):
+        g = jax.grad(lambda m: f(m, solver, **kw))(moments)
+        fd = fd_jacobian(jax.jit(lambda m: f(m, solver, adjoint=lierk.ForwardMode(), **kw)), moments, h=1e-8)
+        np.testing.assert_allclose(g, fd, rtol=1e-6)
+
+
+def test_float32_gradient():
+    solver, kw = CASES["RKMK4"]
+    w32 = W0.astype(jnp.float32)
+    g = jax.grad(lambda w: jnp.sum((lierk.solve(lierk.FreeRigidBody(TEE.astype(np.float32), w), solver, 2.0, **kw).R[-1]
+                                    - TARGET.astype(jnp.float32)) ** 2))(w32)
+    assert g.dtype == jnp.float32
+    np.testing.assert_allclose(g, jax.grad(lambda w: loss(w, solver, **kw))(W0), rtol=2e-4)
+
+
+@pytest.mark.parametrize(
+    "kw, match",
+    [(dict(max_inputs=0), "positive int"), (dict(fallback=lierk.RecursiveCheckpointAdjoint()), "must support forward mode")],
+)
+def test_bad_settings_are_refused(kw, match):
+    with pytest.raises(ValueError, match=match):
+        lierk.ForwardSensitivity(**kw)
