@@ -44,6 +44,8 @@ __all__ = [
     "orthogonality_error",
     "from_quaternion",
     "to_quaternion",
+    "from_mrp",
+    "to_mrp",
     "from_euler",
     "to_euler",
 ]
@@ -452,6 +454,40 @@ def from_quaternion(q: ArrayLike) -> Array:
     K = hat(v)
     eye = jnp.eye(3, dtype=q.dtype)
     return eye + 2.0 * w[..., None, None] * K + 2.0 * (K @ K)
+
+
+def to_mrp(R: ArrayLike) -> Array:
+    """Modified Rodrigues parameters ``sigma = n tan(phi/4)`` of a rotation by
+    ``phi`` about the unit axis ``n``: ``(..., 3, 3) -> (..., 3)``.
+
+    ``R`` maps body to space, so this is Basilisk's ``sigma_BN`` (the MRP of
+    the body frame B relative to the space frame N) and SciPy's
+    ``Rotation.from_matrix(R).as_mrp()``.  The set is the one with
+    ``|sigma| <= 1`` (``phi <= pi``): its shadow ``-sigma/|sigma|^2`` is taken
+    where ``|sigma|`` would pass 1, as Basilisk's MRP switching does, so a
+    saved history jumps from ``sigma`` to its shadow where the angle passes
+    pi.  From the quaternion with ``w >= 0`` (`to_quaternion`):
+    ``sigma = v/(1 + w)``, with ``1 + w >= 1``, so it is finite and
+    differentiable at 0 and at pi.
+    """
+    q = to_quaternion(R)
+    return q[..., 1:] / (1.0 + q[..., :1])
+
+
+def from_mrp(sigma: ArrayLike) -> Array:
+    """Rotation matrix (body -> space) of modified Rodrigues parameters,
+    either set: ``(..., 3) -> (..., 3, 3)``,
+    ``R = I + (8 S^2 + 4 (1 - |sigma|^2) S)/(1 + |sigma|^2)^2`` with
+    ``S = hat(sigma)`` (the transpose of Schaub and Junkins' ``[BN]``).  A
+    rational function: smooth everywhere, ``sigma = 0`` and ``|sigma| = 1``
+    (a half turn) included."""
+    sigma = _float(sigma)
+    if sigma.shape[-1:] != (3,):
+        raise ValueError(f"from_mrp expects shape (..., 3), got {sigma.shape}")
+    s2 = _sq(sigma)[..., None, None]
+    S = hat(sigma)
+    eye = jnp.eye(3, dtype=sigma.dtype)
+    return eye + (8.0 * compose(S, S) + 4.0 * (1.0 - s2) * S) / (1.0 + s2) ** 2
 
 
 def log(R: ArrayLike) -> Array:

@@ -122,6 +122,23 @@ class Solution(eqx.Module):
 
         return to_euler(self.R, convention)
 
+    def quaternion(self, scalar_first: bool = True) -> Array:
+        """Unit quaternions of the saved attitudes, ``(..., n_save, 4)``:
+        ``(w, x, y, z)``, or ``(x, y, z, w)`` (SciPy's default order) with
+        ``scalar_first=False``; the sign with ``w >= 0`` (`lierk.so3.to_quaternion`)."""
+        from .so3 import to_quaternion
+
+        q = to_quaternion(self.R)
+        return q if scalar_first else jnp.concatenate([q[..., 1:], q[..., :1]], axis=-1)
+
+    def mrp(self) -> Array:
+        """Modified Rodrigues parameters of the saved attitudes, ``(...,
+        n_save, 3)``, Basilisk's ``sigma_BN``, switched to the shadow set so
+        that ``|sigma| <= 1`` (`lierk.so3.to_mrp`)."""
+        from .so3 import to_mrp
+
+        return to_mrp(self.R)
+
     def chosen_setting(self) -> str | None:
         """The setting a ``target_error=`` solve chose, as text (``"dt = 0.01
         s"`` or ``"rtol = atol = 1e-08"``); None for other solves.  Reads

@@ -9,6 +9,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+import lierk
+
 from lierk import so3 as _so3
 
 
@@ -462,3 +464,78 @@ def test_classical_zxz_angles_round_trip_and_name_the_tilt():
     np.testing.assert_allclose(so3.from_euler(*so3.to_euler(R0, "zxz"), "zxz"), R0, atol=1e-15)
     with pytest.raises(ValueError, match="convention"):
         so3.to_euler(R0, "xyz")
+
+
+# --- modified Rodrigues parameters (Basilisk's sigma_BN) --------------------------
+
+# Generic rotations, the identity, tiny ones, half turns about an axis and a
+# generic axis, and angles just below and above pi.
+_HALF = np.pi * np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0.6, 0.0, 0.8]])
+MRP_VECTORS = np.concatenate([
+    Rotation.random(24, random_state=7).as_rotvec(),
+    np.zeros((1, 3)),
+    1e-7 * np.array([[1.0, -2.0, 0.5]]),
+    _HALF,
+    (1 - 1e-9) * _HALF[3:],
+    np.array([[0.0, 0.0, np.pi + 1e-6]]),
+])
+
+
+def test_mrp_matches_scipy_and_stays_in_the_unit_ball():
+    R = np.asarray(so3.exp(jnp.asarray(MRP_VECTORS)))
+    s = np.array(so3.to_mrp(jnp.asarray(R)))
+    assert np.all(np.linalg.norm(s, axis=-1) <= 1 + 1e-15)
+    # Away from a half turn the set is unique; at one, sigma and its shadow
+    # -sigma are both unit vectors: compare the rotations there.
+    ref = Rotation.from_matrix(R).as_mrp()
+    generic = np.abs(np.linalg.norm(ref, axis=-1) - 1) > 1e-6
+    np.testing.assert_allclose(s[generic], ref[generic], atol=1e-15, rtol=1e-13)
+    np.testing.assert_allclose(Rotation.from_mrp(np.array(s)).as_matrix(), R, atol=1e-14)
+
+
+def test_from_mrp_matches_scipy_for_either_set():
+    s = Rotation.from_rotvec(MRP_VECTORS).as_mrp()
+    shadow = -s / np.maximum(np.sum(s * s, axis=-1, keepdims=True), 1e-300)
+    for sig in (s, shadow[np.linalg.norm(s, axis=-1) > 1e-3]):
+        np.testing.assert_allclose(np.asarray(so3.from_mrp(jnp.asarray(sig))), Rotation.from_mrp(sig).as_matrix(),
+                                   atol=1e-14)
+    assert float(jnp.max(so3.orthogonality_error(so3.from_mrp(jnp.asarray(shadow[:24]))))) < 1e-14
+
+
+@pytest.mark.parametrize("w", [np.zeros(3), 1e-9 * np.ones(3), _HALF[0], _HALF[3], (1 - 1e-4) * _HALF[3]],
+                         ids=["zero", "tiny", "pi-x", "pi-generic", "below-pi"])
+def test_mrp_derivatives_are_finite_and_right(w):
+    w = jnp.asarray(w)
+    f = lambda v: so3.to_mrp(so3.exp(v))  # noqa: E731
+    for jac in (jax.jacfwd, jax.jacrev):
+        J = np.asarray(jac(f)(w))
+        assert np.all(np.isfinite(J))
+        Jb = np.asarray(jac(so3.from_mrp)(f(w)))
+        assert np.all(np.isfinite(Jb))
+    if np.linalg.norm(w) < 1:
+        # sigma = tan(phi/4) n: d sigma/dw = I/4 at the identity, and
+        # from_mrp's Jacobian there is four times the generators.
+        np.testing.assert_allclose(jax.jacfwd(f)(w), np.eye(3) / 4, atol=1e-9)
+        np.testing.assert_allclose(jax.jacfwd(so3.from_mrp)(jnp.zeros(3)),
+                                   4 * np.asarray(so3.hat(jnp.eye(3))).transpose(1, 2, 0), atol=0)
+    else:
+        # Off the switching surface, against central differences.
+        h = 1e-6
+        fd = np.stack([(np.asarray(f(w + h * e)) - np.asarray(f(w - h * e))) / (2 * h) for e in np.eye(3)], -1)
+        if float(jnp.linalg.norm(w)) < np.pi:
+            np.testing.assert_allclose(jax.jacfwd(f)(w), fd, atol=1e-6)
+
+
+def test_solution_quaternions_and_mrps_against_scipy():
+    body = lierk.FreeRigidBody(np.diag([1.0, 2.0, 3.0]), [0.3, 1.0, 2.5])
+    sol = lierk.solve(body, lierk.RKMK4(), 3.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=10))
+    rot = Rotation.from_matrix(np.asarray(sol.R))
+    np.testing.assert_allclose(sol.quaternion(scalar_first=False), rot.as_quat(canonical=True), atol=1e-14)
+    q = np.asarray(sol.quaternion())
+    np.testing.assert_allclose(q, rot.as_quat(canonical=True, scalar_first=True), atol=1e-14)
+    # The body turns through a half turn in this run: the MRPs switch to the
+    # shadow set there and stay in the unit ball.
+    s = np.array(sol.mrp())
+    assert np.max(np.linalg.norm(s, axis=-1)) <= 1 + 1e-15
+    assert np.max(np.linalg.norm(np.diff(s, axis=0), axis=-1)) > 1.0
+    np.testing.assert_allclose(Rotation.from_mrp(np.array(s)).as_matrix(), sol.R, atol=1e-13)
