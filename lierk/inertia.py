@@ -8,6 +8,7 @@ theorem, which is how the report builds its T-handle.
 from __future__ import annotations
 
 import math
+import os
 from typing import NamedTuple, Sequence
 
 import jax.numpy as jnp
@@ -27,6 +28,8 @@ __all__ = [
     "tee_handle",
     "tee_handle_parts",
     "parallel_axis",
+    "MeshInertia",
+    "from_mesh",
 ]
 
 _AXES = {"x": 0, "y": 1, "z": 2}
@@ -147,3 +150,63 @@ def tee_handle(**dimensions) -> Array:
     of `tee_handle_parts`.
     """
     return composite(tee_handle_parts(**dimensions)).inertia
+
+
+class MeshInertia(NamedTuple):
+    """Result of `from_mesh`.
+
+    Attributes:
+        mass: kg.
+        center_of_mass: ``(3,)`` m, in the mesh frame.
+        inertia: ``(3, 3)`` kg m^2 about the centre of mass, along the mesh
+            axes (off-diagonal unless they are principal).
+        principal_moments: ``(3,)`` kg m^2, ascending.
+        principal_axes: ``(3, 3)`` rotation whose columns are the principal
+            axes in the mesh frame: ``inertia = Q diag(moments) Q^T``.
+        mesh: the `lierk.mesh.TriangleMesh` (m), for drawing.
+    """
+
+    mass: float
+    center_of_mass: np.ndarray
+    inertia: np.ndarray
+    principal_moments: np.ndarray
+    principal_axes: np.ndarray
+    mesh: object
+
+
+def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
+    """Inertia of a uniform solid bounded by a closed triangle mesh.
+
+    Args:
+        mesh: a file path (STL or OBJ; other formats if ``trimesh`` is
+            installed), a ``(vertices (V, 3), faces (F, 3))`` pair, or a
+            `lierk.mesh.TriangleMesh`.
+        density: kg/m^3.
+        scale: file units to metres (``1e-3`` for a CAD file in mm); not
+            applied to a `TriangleMesh`.
+
+    Exact for the polyhedron (`lierk.mesh.mass_properties`).  A mesh that is
+    not watertight, is inconsistently oriented or encloses no volume raises a
+    ValueError saying which.
+
+    Example:
+        >>> props = lierk.inertia.from_mesh("bracket.stl", density=2700.0, scale=1e-3)
+        >>> body = lierk.FreeRigidBody(props.inertia, [0.0, 1.0, 0.1])
+    """
+    from . import mesh as _mesh
+
+    if isinstance(mesh, _mesh.TriangleMesh):
+        m = mesh
+    elif isinstance(mesh, (str, os.PathLike)):
+        m = _mesh.load(mesh, scale)
+    else:
+        try:
+            vertices, faces = mesh
+        except (TypeError, ValueError):
+            raise ValueError(f"mesh must be a file path, a (vertices, faces) pair or a TriangleMesh, got {type(mesh).__name__}") from None
+        m = _mesh.from_arrays(vertices, faces, scale)
+    props = _mesh.mass_properties(m, density)
+    moments, axes = np.linalg.eigh(props.inertia)
+    if np.linalg.det(axes) < 0:
+        axes[:, 2] = -axes[:, 2]
+    return MeshInertia(props.mass, props.center_of_mass, props.inertia, moments, axes, m)
