@@ -39,6 +39,10 @@ from .problems.effects import Damping as Damping
 from .problems.effects import Gravity as Gravity
 from .problems.effects import SpaceTorque as SpaceTorque
 from .problems.effects import TimedTorque as TimedTorque
+from .problems.spacecraft import GravityGradient as GravityGradient
+from .problems.spacecraft import MagneticTorque as MagneticTorque
+from .problems.spacecraft import Rotor as Rotor
+from .problems.spacecraft import dipole_field as dipole_field
 from .solution import RESULTS as RESULTS
 from .solution import SaveAt as SaveAt
 from .solution import Solution as Solution

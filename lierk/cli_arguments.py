@@ -144,7 +144,8 @@ def _t1(parser: argparse.ArgumentParser) -> None:
 
 _SIMULATE = """
     Integrate SCENE.toml with the solver and step given in its [run] table, in chunks with a progress bar,
-    then write to DIR: <name>.npz (ts; R, the attitude, body -> space; y, the state besides R, which for
+    then write to DIR: <name>.npz (ts; R, the attitude, body -> space; quaternion, its unit quaternion
+    (w, x, y, z), w >= 0; y, the state besides R, which for
     every scene, with or without effects, is the body angular momentum m = I omega in kg m^2/s; omega, the
     body angular velocity; L = R m, the angular momentum in space; the invariants; the inertia, omega0, R0
     and t1), <name>_components.png (3x3 grid of R(t)), <name>_euler.png (Euler angles),

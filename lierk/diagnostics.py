@@ -25,6 +25,7 @@ class Diagnostics(NamedTuple):
         drift: per invariant, ``max_t |Q(t) - Q(0)| / |Q(0)|`` (``|Q(0)|``
             taken as 1 when it is 0); conserved or not, see ``problem.conserved()``.
         orthogonality: ``max_t ||R^T R - I||_F``.
+        quaternion: ``(n, 4)`` unit quaternions ``(w, x, y, z)`` of ``R``, ``w >= 0``.
     """
 
     omega: np.ndarray
@@ -32,6 +33,7 @@ class Diagnostics(NamedTuple):
     invariants: dict[str, np.ndarray]
     drift: dict[str, float]
     orthogonality: float
+    quaternion: np.ndarray
 
 
 @eqx.filter_jit
@@ -40,7 +42,8 @@ def _compute(problem, R, y):
     from .problems.kinematics import angular_momentum
 
     omega = problem.angular_velocity(R, y)
-    return omega, angular_momentum(problem.inertia, omega, R), problem.invariants(R, y), so3.orthogonality_error(R)
+    return (omega, angular_momentum(problem.inertia, omega, R), problem.invariants(R, y), so3.orthogonality_error(R),
+            so3.to_quaternion(R))
 
 
 def diagnostics(problem, sol) -> Diagnostics:
@@ -51,7 +54,7 @@ def diagnostics(problem, sol) -> Diagnostics:
     from .plot import trajectory
 
     _, R, y = trajectory(sol)
-    omega, L, inv, orth = jax.device_get(_compute(problem, R, y))
+    omega, L, inv, orth, q = jax.device_get(_compute(problem, R, y))
     inv = {k: np.asarray(v) for k, v in inv.items()}
     drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
-    return Diagnostics(np.asarray(omega), np.asarray(L), inv, drift, float(np.max(orth)))
+    return Diagnostics(np.asarray(omega), np.asarray(L), inv, drift, float(np.max(orth)), np.asarray(q))

@@ -32,8 +32,9 @@ Schema (every table rejects keys it does not know)::
     [initial]
     omega = [1.0, 0.05, 0.0]    # body angular velocity (rad/s)
     attitude = "identity"       # or one of: matrix = [[...], [...], [...]] (body -> space),
-                                # quaternion = [w, x, y, z], euler = [phi, theta, psi] (rad,
-                                # R = Rz(phi) Ry(theta) Rx(psi)); default identity
+                                # quaternion = [w, x, y, z], mrp = [s1, s2, s3] (modified
+                                # Rodrigues parameters, Basilisk's sigma_BN), euler = [phi,
+                                # theta, psi] (rad, R = Rz(phi) Ry(theta) Rx(psi)); default identity
 
     [[effects]]                 # zero or more; each kind at most once
     kind = "gravity"            # space z is up; give exactly one of
@@ -47,6 +48,14 @@ Schema (every table rejects keys it does not know)::
     # kind = "timed_torque"  times = [0, 1, 2]  torque = [[0, 0, 0], [0, 0, 0.1], [0, 0, 0]]
     #                        frame = "body"       (N m at each time (s), linear in between,
     #                                              held outside; "body" or "space")
+    # Spacecraft (lierk.problems.spacecraft; circular orbit in the space x-y plane):
+    # kind = "gravity_gradient"  radius = 7e6 (m) or mean_motion = 0.0011 (rad/s);
+    #                            mu = 3.986e14, phase = 0 (rad)
+    # kind = "magnetic"      radius or mean_motion, tilt = 0 (dipole to orbit normal, rad),
+    #                        B0 = 3.12e-5 (T); dipole = [x, y, z] (A m^2) or bdot_gain = k
+    # kind = "rotor"         momentum = [x, y, z] (kg m^2/s, constant, body frame); or
+    #                        axes = [[1, 0, 0], ...], momentum = [h1, ...] (per wheel),
+    #                        optional torque = [[u1, ...], ...] at times = [...] (N m, s)
 
     [run]
     solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
@@ -98,6 +107,7 @@ import numpy as np
 from . import inertia as _inertia
 from . import so3
 from . import solvers as _solvers
+from .problems import spacecraft
 from .problems.effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
 from .problems import AbstractProblem
 from .validation import check_attitude
@@ -502,7 +512,7 @@ def _choice(x, path: str, choices) -> str:
 def _orientation(t: dict, path: str, allow_identity: bool) -> np.ndarray | None:
     """One of ``attitude = "identity"``, ``matrix``, ``quaternion``, ``euler``, or
     None if none is given.  Returns a rotation matrix checked to be in SO(3)."""
-    keys = [k for k in ("attitude", "matrix", "quaternion", "euler") if k in t]
+    keys = [k for k in ("attitude", "matrix", "quaternion", "mrp", "euler") if k in t]
     if len(keys) > 1:
         raise ValueError(f"{path}: give at most one of {', '.join(keys)}")
     if not keys:
@@ -519,6 +529,8 @@ def _orientation(t: dict, path: str, allow_identity: bool) -> np.ndarray | None:
         if not np.linalg.norm(q) > 1e-12:
             raise ValueError(f"{p} must be a nonzero quaternion [w, x, y, z], got {t[k]!r}")
         R = np.asarray(so3.from_quaternion(q / np.linalg.norm(q)))
+    elif k == "mrp":
+        R = np.asarray(so3.from_mrp(_vec(t[k], p)))
     else:
         R = np.asarray(so3.from_euler(*_vec(t[k], p)))
     try:
@@ -608,7 +620,7 @@ def _body(t) -> _Body:
 
 
 def _initial(t) -> tuple[np.ndarray, np.ndarray]:
-    _table(t, "initial", {"omega", "attitude", "matrix", "quaternion", "euler"}, required={"omega"})
+    _table(t, "initial", {"omega", "attitude", "matrix", "quaternion", "mrp", "euler"}, required={"omega"})
     omega = _vec(t["omega"], "initial.omega")
     R0 = _orientation(t, "initial", allow_identity=True)
     return omega, np.eye(3) if R0 is None else R0
@@ -622,6 +634,9 @@ _EFFECT_KEYS = {
     "space_torque": ({"torque"}, {"torque"}),
     "timed_torque": ({"times", "torque", "frame"}, {"times", "torque"}),
     "damping": ({"c"}, {"c"}),
+    "gravity_gradient": ({"radius", "mean_motion", "mu", "phase"}, set()),
+    "magnetic": ({"radius", "mean_motion", "tilt", "B0", "phase", "dipole", "bdot_gain"}, set()),
+    "rotor": ({"momentum", "axes", "torque", "times"}, {"momentum"}),
 }
 
 
@@ -677,9 +692,67 @@ def _effects(items: list, body: _Body) -> tuple[tuple[AbstractEffect, ...], np.n
             values = np.stack([_vec(v, f"{p}.torque[{j}]") for j, v in enumerate(torque)])
             frame = _choice(t.get("frame", "body"), f"{p}.frame", ("body", "space"))
             effects.append(TimedTorque(values, times=times, frame=frame))
-        else:
+        elif kind == "damping":
             effects.append(Damping(_number(t["c"], f"{p}.c", nonnegative=True)))
+        else:
+            effects.append(_SPACECRAFT[kind](t, p, body))
     return tuple(effects), pivot_to_com
+
+
+def _orbit(t: dict, p: str) -> dict:
+    """The circular orbit of a spacecraft effect: exactly one of ``radius``
+    (m) or ``mean_motion`` (rad/s)."""
+    given = [k for k in ("radius", "mean_motion") if k in t]
+    if len(given) != 1:
+        raise ValueError(f"{p}: give the orbit as exactly one of 'radius' (m) or 'mean_motion' (rad/s), got {given or 'neither'}")
+    (k,) = given
+    return {k: _number(t[k], f"{p}.{k}", positive=True)}
+
+
+def _gravity_gradient(t: dict, p: str, body: _Body):
+    orbit = _orbit(t, p)
+    mu = _number(t.get("mu", spacecraft.MU_EARTH), f"{p}.mu", positive=True)
+    return spacecraft.GravityGradient(body.inertia, mu=mu, phase=_number(t.get("phase", 0.0), f"{p}.phase"), **orbit)
+
+
+def _magnetic(t: dict, p: str, body: _Body):
+    orbit = _orbit(t, p)
+    n = orbit.get("mean_motion") or math.sqrt(spacecraft.MU_EARTH / orbit["radius"] ** 3)
+    field = spacecraft.dipole_field(
+        n, radius=orbit.get("radius"), tilt=_number(t.get("tilt", 0.0), f"{p}.tilt"),
+        B0=_number(t.get("B0", spacecraft.B0_EARTH), f"{p}.B0", positive=True), phase=_number(t.get("phase", 0.0), f"{p}.phase"),
+    )
+    given = [k for k in ("dipole", "bdot_gain") if k in t]
+    if len(given) != 1:
+        raise ValueError(f"{p}: magnetic needs exactly one of 'dipole' (A m^2, body frame) or 'bdot_gain', got {given or 'neither'}")
+    if "dipole" in t:
+        return spacecraft.MagneticTorque(field, dipole=_vec(t["dipole"], f"{p}.dipole"))
+    return spacecraft.MagneticTorque(field, bdot_gain=_number(t["bdot_gain"], f"{p}.bdot_gain", nonnegative=True))
+
+
+def _rotor(t: dict, p: str, body: _Body):
+    if "axes" not in t:
+        for k in ("torque", "times"):
+            if k in t:
+                raise ValueError(f"{p}.{k}: motor torques act along wheel axes; give 'axes' too")
+        return spacecraft.Rotor(_vec(t["momentum"], f"{p}.momentum"))
+    if not isinstance(t["axes"], list) or not t["axes"]:
+        raise ValueError(f"{p}.axes must be a non-empty list of [x, y, z] wheel axes (body frame), got {_show(t['axes'])}")
+    axes = np.stack([_vec(a, f"{p}.axes[{j}]") for j, a in enumerate(t["axes"])])
+    k = len(axes)
+    momentum = _vec(t["momentum"], f"{p}.momentum", k)
+    if ("torque" in t) != ("times" in t):
+        raise ValueError(f"{p}: motor torques need both 'torque' (one row of {k} per time, N m) and 'times' (s)")
+    if "torque" not in t:
+        return spacecraft.Rotor(momentum, axes=axes)
+    times = np.array([_number(x, f"{p}.times[{j}]") for j, x in enumerate(t["times"])]) if isinstance(t["times"], list) else None
+    if times is None or not isinstance(t["torque"], list) or len(t["torque"]) != len(times):
+        raise ValueError(f"{p}.torque must list one row of {k} wheel torques per time, got {_show(t['torque'])}")
+    torque = np.stack([_vec(v, f"{p}.torque[{j}]", k) for j, v in enumerate(t["torque"])])
+    return spacecraft.Rotor(momentum, axes=axes, torque=torque, times=times)
+
+
+_SPACECRAFT = {"gravity_gradient": _gravity_gradient, "magnetic": _magnetic, "rotor": _rotor}
 
 
 # --- run -----------------------------------------------------------------------

@@ -54,7 +54,8 @@ class Simulation:
 
     def record(self) -> dict[str, np.ndarray]:
         """The arrays ``lierk simulate`` saves, for `numpy.savez`: ``ts``
-        ``(n,)``; ``R`` ``(n, 3, 3)`` (body -> space); ``omega`` and ``L``
+        ``(n,)``; ``R`` ``(n, 3, 3)`` (body -> space); ``quaternion``
+        ``(n, 4)`` (``w, x, y, z`` of ``R``, ``w >= 0``); ``omega`` and ``L``
         ``(n, 3)`` (`Diagnostics`); ``inertia``, ``omega0``, ``R0``, ``t1``;
         ``solver`` and ``scene`` (names); ``invariant_<name>`` ``(n,)`` per
         invariant (`lierk.scene.identifier` of its name: ``|L|`` ->
@@ -70,6 +71,7 @@ class Simulation:
         data = {
             "ts": ts,
             "R": R,
+            "quaternion": diag.quaternion,
             "omega": diag.omega,
             "L": diag.L,
             "inertia": np.asarray(problem.inertia),

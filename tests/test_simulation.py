@@ -29,8 +29,13 @@ def test_record_holds_the_solve_and_its_diagnostics():
     plain = scene.solve()
     np.testing.assert_array_equal(np.asarray(sol.R), np.asarray(plain.R))
     record = sim.record()
-    assert set(record) == {"ts", "R", "omega", "L", "inertia", "omega0", "R0", "t1", "solver", "scene", "y",
+    assert set(record) == {"ts", "R", "quaternion", "omega", "L", "inertia", "omega0", "R0", "t1", "solver", "scene", "y",
                            "invariant_energy", "invariant_abs_L"}
+    # The quaternions are those of R (against SciPy, w >= 0).
+    from scipy.spatial.transform import Rotation
+
+    np.testing.assert_allclose(record["quaternion"], Rotation.from_matrix(record["R"]).as_quat(canonical=True, scalar_first=True),
+                               atol=1e-14)
     np.testing.assert_array_equal(record["ts"], np.asarray(sol.ts))
     np.testing.assert_array_equal(record["R"], np.asarray(sol.R))
     np.testing.assert_array_equal(record["y"], np.asarray(sol.y))

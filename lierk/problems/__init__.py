@@ -7,11 +7,13 @@
   momentum as state);
 - `spatial`: the report's `SpatialFreeRigidBody` (spatial momentum fixed);
 - `effects`: gravity, torques and damping a body opts into;
+- `spacecraft`: gravity gradient, magnetic torque and rotors (wheels);
 - `kinematics`: momentum, energy and angular velocity of a rigid body.
 """
 
 from . import effects as effects
 from . import kinematics as kinematics
+from . import spacecraft as spacecraft
 from .base import AbstractProblem as AbstractProblem
 from .base import AbstractRigidBody as AbstractRigidBody
 from .rigid_body import FreeRigidBody as FreeRigidBody

@@ -32,6 +32,7 @@ from typing import ClassVar
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import jax.scipy.linalg
 import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
@@ -108,6 +109,17 @@ class AbstractEffect(eqx.Module):
             )
         return m + h * self.torque(t, R, m, inertia_inv @ m)
 
+    def affine_torque(self, t: Array, R: Array, inertia_inv: Array) -> tuple[Array, Array] | None:
+        """The torque as ``A m + c`` with ``t`` and ``R`` held fixed: ``(A (3, 3),
+        c (3,))``, or None if it is not affine in the momentum.  A kick of
+        several effects whose torques all are is then exact (`affine_flow`
+        of their sum) instead of a composition.  The default covers torques
+        that do not read the momentum (``A = 0``)."""
+        if self.reads_momentum:
+            return None
+        z = jnp.zeros(3, R.dtype)
+        return jnp.zeros((3, 3), R.dtype), self.torque(t, R, z, z)
+
     def potential(self, R: Array) -> Array:
         """Potential energy (J) at attitude ``R`` ``(..., 3, 3)``; 0 unless conservative."""
         return jnp.zeros(R.shape[:-2], R.dtype)
@@ -130,6 +142,15 @@ class AbstractEffect(eqx.Module):
     def _cast(self, dtype) -> "AbstractEffect":
         """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
         return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self)
+
+
+def affine_flow(A: Array, c: Array, m: Array, h: Array) -> Array:
+    """The exact flow of ``dm/dt = A m + c`` (``A`` ``(3, 3)``, ``c`` ``(3,)``
+    constant) over ``h`` from ``m``: one exponential of the 4x4 block
+    ``[[A, c], [0, 0]]`` gives ``exp(hA) m + (int_0^h exp(sA) ds) c``."""
+    top = jnp.concatenate([A, c[:, None]], axis=1)
+    M = jnp.concatenate([top, jnp.zeros((1, 4), m.dtype)], axis=0)
+    return (jax.scipy.linalg.expm(h * M) @ jnp.concatenate([m, jnp.ones((1,), m.dtype)]))[:3]
 
 
 def _scalar(x, name: str, positive: bool = False) -> Array:
@@ -356,6 +377,9 @@ class Damping(AbstractEffect):
 
     def torque_from(self, t, v, m, omega):
         return -self.c * omega
+
+    def affine_torque(self, t, R, inertia_inv):
+        return -self.c * inertia_inv, jnp.zeros(3, R.dtype)
 
     def kick(self, t, R, m, h, inertia_inv):
         # dm/dt = -c I^{-1} m: m(h) = exp(-c h I^{-1}) m, in I^{-1}'s eigenbasis.

@@ -96,7 +96,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
         for i, e in enumerate(effects):
             if not isinstance(e, AbstractEffect):
                 raise ValueError(
-                    f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
+                    f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, TimedTorque, Damping, "
+                    f"GravityGradient, MagneticTorque, Rotor), got {e!r}"
                 )
         self.inertia, self.inertia_inv, omega0, self.R0 = validation.rigid_body_state(inertia, omega0, R0)
         self.y0 = self.inertia @ omega0
