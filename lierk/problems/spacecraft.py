@@ -149,7 +149,10 @@ def dipole_field(mean_motion, radius=None, tilt=0.0, B0=B0_EARTH, planet_radius=
     Args:
         mean_motion: orbit rate (rad/s).
         radius: orbit radius (m); default ``(MU_EARTH / n^2)^(1/3)``.
-        tilt, B0, planet_radius, phase: as above (rad, T, m, rad).
+        tilt: the dipole's angle to the orbit normal (rad).
+        B0: the field at the planet's equator on its surface (T).
+        planet_radius: m.
+        phase: the orbit angle at ``t = 0`` (rad).
 
     Returns:
         A function ``t -> (3,)`` that JAX traces.
