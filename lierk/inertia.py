@@ -81,7 +81,8 @@ class Part(NamedTuple):
         inertia: ``(3, 3)`` about the part's own centre of mass, in the part's frame.
         offset: ``(3,)`` position of the part's centre of mass in the assembly frame (m).
         rotation: ``(3, 3)`` part frame -> assembly frame (identity if None).
-        shape: optional description for drawing, e.g. ``("cylinder", radius, length, axis)``.
+        shape: optional description for drawing, e.g. ``("cylinder", radius, length, axis)``
+            or ``("mesh", triangles)`` (``(F, 3, 3)``, m, about the part's centre of mass).
     """
 
     mass: float

@@ -320,6 +320,10 @@ def _part_mesh(part: Part):
         faces, stripe = _box_mesh(*(float(s) for s in shape[1:4]))
     elif kind == "sphere":
         faces, stripe = _sphere_mesh(float(shape[1]))
+    elif kind == "mesh":
+        # Triangles as quads with the last corner repeated (one face array).
+        tri = np.asarray(shape[1], dtype=float)
+        faces, stripe = np.concatenate([tri, tri[:, 2:]], axis=1), np.zeros(len(tri), int)
     else:
         warnings.warn(f"cannot draw a part of shape {shape!r}; it is left out of the animation", stacklevel=3)
         return None
@@ -358,8 +362,10 @@ def animate(
     """Write a GIF of the body turning in the space frame.
 
     The body is drawn from ``parts`` (`lierk.inertia.Part` with ``shape``
-    ``("cylinder", radius, length, axis)``, ``("box", lx, ly, lz)`` or
-    ``("sphere", radius)``), with the body point ``origin`` (``(3,)``, body
+    ``("cylinder", radius, length, axis)``, ``("box", lx, ly, lz)``,
+    ``("sphere", radius)`` or ``("mesh", triangles (F, 3, 3))``, the
+    triangles about the part's centre; every face is drawn, so a mesh of
+    many thousand faces makes a slow GIF), with the body point ``origin`` (``(3,)``, body
     frame, m; default the parts' centre of mass, e.g. a top's pivot) pinned at
     the space origin: a body point ``x`` is drawn at ``R (x - origin)``.  With
     ``parts=None`` a box with the principal moments of ``inertia`` is drawn, or

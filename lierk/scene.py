@@ -16,6 +16,9 @@ Schema (every table rejects keys it does not know)::
     # kind = "box"        mass, lx, ly, lz               (edges along body x, y, z)
     # kind = "cylinder"   mass, radius, length, axis = "z" ("x" | "y" | "z")
     # kind = "sphere"     mass, radius
+    # kind = "mesh"       file = "part.stl" (STL or OBJ, relative to the scene file),
+    #                     density (kg/m^3), scale = 1.0 (file units -> m; 1e-3 for mm):
+    #                     a closed triangle mesh, the body frame its coordinates
     # kind = "tensor"     inertia = [Ixx, Iyy, Izz] or 3x3, about the centre of mass
     #                     (kg m^2); mass optional (needed by gravity unless given there)
     # kind = "composite"  one [[body.parts]] table per solid:
@@ -356,25 +359,26 @@ def load(path: str | os.PathLike) -> Scene:
             ) from None
     stem = os.path.splitext(os.path.basename(path))[0]
     try:
-        return from_dict(d, name=stem)
+        return from_dict(d, name=stem, directory=os.path.dirname(path))
     except ValueError as e:
         # One line: arrays in messages (np.array2string) span several.
         raise ValueError(f"{path}: {' '.join(str(e).split())}") from None
 
 
-def from_dict(d: dict, name: str = "scene") -> Scene:
+def from_dict(d: dict, name: str = "scene", directory: str | os.PathLike = ".") -> Scene:
     """Build a scene from a parsed TOML document (a dict); ``d["name"]``, if
-    present, overrides ``name``."""
+    present, overrides ``name``.  Relative file names in it (a mesh) are
+    read from ``directory`` (`load`: the scene file's)."""
     # Overflows are reported as errors below, not as NumPy warnings.
     with np.errstate(all="ignore"):
-        return _from_dict(d, name)
+        return _from_dict(d, name, directory)
 
 
-def _from_dict(d: dict, name: str) -> Scene:
+def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
     _table(d, "scene", {"name", "description", "body", "initial", "effects", "run"}, required={"body", "initial", "run"})
     name = _string(d.get("name", name), "name")
     description = _string(d.get("description", ""), "description")
-    body = _body(d["body"])
+    body = _body(d["body"], directory)
     omega0, R0 = _initial(d["initial"])
     effects_list = d.get("effects", [])
     if not isinstance(effects_list, list):
@@ -556,7 +560,7 @@ _SHAPE_KEYS = {
     "sphere": ("mass", "radius"),
 }
 _TEE_KEYS = ("handle_length", "handle_radius", "shaft_length", "shaft_radius", "density")
-_BODY_KINDS = ("tee_handle", "box", "cylinder", "sphere", "composite", "tensor")
+_BODY_KINDS = ("tee_handle", "box", "cylinder", "sphere", "composite", "tensor", "mesh")
 
 
 def _solid(t: dict, path: str, extra: set) -> tuple[float, np.ndarray, tuple]:
@@ -577,11 +581,27 @@ def _solid(t: dict, path: str, extra: set) -> tuple[float, np.ndarray, tuple]:
     )
 
 
-def _body(t) -> _Body:
+def _mesh_body(t: dict, directory) -> _Body:
+    _table(t, "body", {"kind", "file", "density", "scale"}, required={"file", "density"})
+    file = _string(t["file"], "body.file")
+    path = file if os.path.isabs(file) else os.path.join(os.fspath(directory), file)
+    try:
+        props = _inertia.from_mesh(path, _number(t["density"], "body.density", positive=True),
+                                   _number(t.get("scale", 1.0), "body.scale", positive=True))
+    except ValueError as e:
+        raise ValueError(f"body.file {file!r}: {e}") from None
+    part = _inertia.Part(props.mass, props.inertia, props.center_of_mass, None,
+                         ("mesh", props.mesh.triangles - props.center_of_mass))
+    return _Body(props.mass, props.center_of_mass, props.inertia, [part])
+
+
+def _body(t, directory=".") -> _Body:
     path = "body"
     if not isinstance(t, dict):
         raise ValueError(f"body must be a table, got {t!r}")
     kind = _choice(t.get("kind"), "body.kind", _BODY_KINDS)
+    if kind == "mesh":
+        return _mesh_body(t, directory)
     if kind == "tee_handle":
         _table(t, path, {"kind", *_TEE_KEYS})
         dims = {k: _number(t[k], f"body.{k}", positive=True) for k in _TEE_KEYS if k in t}

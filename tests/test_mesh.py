@@ -125,3 +125,48 @@ def test_defective_meshes_are_refused_saying_why(tmp_path):
     (tmp_path / "junk.stl").write_bytes(b"\x01\x02 not a mesh")
     with pytest.raises(ValueError, match="not an STL file"):
         lierk.inertia.from_mesh(tmp_path / "junk.stl", 1000.0)
+
+
+def test_a_mesh_scene_is_the_mesh_body_and_its_animation_draws_it(tmp_path):
+    import tomllib
+    import warnings
+
+    from PIL import Image
+
+    import lierk.plot
+    import lierk.scene
+
+    v, f = box_mesh(300.0, 200.0, 100.0)
+    (tmp_path / "parts").mkdir()
+    write_stl(tmp_path / "parts" / "box.stl", v[f] + np.array([50.0, 0.0, 0.0]), binary=True)
+    text = """
+[body]
+kind = "mesh"
+file = "parts/box.stl"
+density = 2700.0
+scale = 1e-3
+[initial]
+omega = [0.3, 2.0, 0.1]
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 1.0
+"""
+    (tmp_path / "box.toml").write_text(text)
+    scene = lierk.scene.load(tmp_path / "box.toml")
+    box = np.asarray(lierk.inertia.box(2700.0 * 0.3 * 0.2 * 0.1, 0.3, 0.2, 0.1))
+    np.testing.assert_allclose(scene.problem.inertia, box, rtol=1e-6, atol=1e-12)
+    np.testing.assert_allclose(scene.center_of_mass, [0.05, 0.0, 0.0], atol=1e-9)
+    with pytest.raises(ValueError, match="body.file 'missing.stl'"):
+        lierk.scene.from_dict(tomllib.loads(text.replace("parts/box.stl", "missing.stl")), directory=tmp_path)
+    sol = lierk.solve(scene.problem, lierk.RKMK4(), 1.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=10))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # "cannot draw a part" would be a warning
+        gif = lierk.plot.animate(sol, scene.body_parts, tmp_path / "box.gif", frames=3, origin=scene.fixed_point)
+    im = Image.open(gif)
+    frames = []
+    for k in range(im.n_frames):
+        im.seek(k)
+        frames.append(np.asarray(im.convert("RGB"), dtype=int))
+    assert len(frames) == 3
+    assert np.mean(np.any(frames[0] != frames[2], axis=-1)) > 0.01  # the box turned
