@@ -15,6 +15,7 @@ from . import diagnostics as diagnostics
 from . import exact as exact
 from . import fields as fields
 from . import inertia as inertia
+from . import interpolation as interpolation
 from . import omega_sweep as omega_sweep
 from . import problems as problems
 from . import rigid_body as rigid_body
@@ -29,6 +30,8 @@ from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .cache import compilation_cache_dir as compilation_cache_dir
 from .cache import using_cache as using_cache
 from .controller import Controller as Controller
+from .event import Event as Event
+from .event import EventRecord as EventRecord
 from .problems import AbstractProblem as AbstractProblem
 from .problems import AbstractRigidBody as AbstractRigidBody
 from .problems import FreeRigidBody as FreeRigidBody
