@@ -10,6 +10,7 @@ from . import adjoint as adjoint
 from . import batch as batch
 from . import body as body
 from . import cache as cache
+from . import conditions as conditions
 from . import effects as effects
 from . import diagnostics as diagnostics
 from . import exact as exact
