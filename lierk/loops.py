@@ -139,10 +139,11 @@ def _schedule(t0, t1, dt, n: int) -> _Schedule:
     return _Schedule(needed, count, time, size)
 
 
-def _chunked(one, carry, n: int, every: int):
+def _chunked(one, carry, n: int, every: int, time):
     """``n`` steps of the scan body ``one`` from ``carry``, in chunks of
-    ``every`` steps: ``(carry, saved)``, ``saved`` the stacked ``carry[0]`` at
-    each chunk's end (None when ``every`` is 0 or exceeds ``n``)."""
+    ``every`` steps: ``(carry, middle)``, ``middle`` the chunk ends' times
+    (``time`` of their step index) and stacked ``carry[0]``, or None when
+    ``every`` is 0 or exceeds ``n``."""
     # In reverse mode each step keeps only its starting state and is
     # recomputed in the backward pass: saved as they fall out of the step's
     # fused arithmetic, its residuals were about a hundred small arrays, each
@@ -173,12 +174,13 @@ def _chunked(one, carry, n: int, every: int):
         carry = steps(carry, every)
         return carry, carry[0]
 
-    saved = None
+    middle = None
     if n_chunks:
         carry, saved = jax.lax.scan(chunk, carry, None, length=n_chunks)
+        middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
     if rem:
         carry = steps(carry, rem)
-    return carry, saved
+    return carry, middle
 
 
 @eqx.filter_jit
@@ -203,8 +205,7 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tup
     state0 = (problem.R0, problem.y0)
     every = saveat.every
     n_chunks, rem = divmod(n, every) if every else (0, n)
-    carry, saved = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every)
-    middle = None if saved is None else (time((jnp.arange(n_chunks) + 1) * every), saved)
+    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time)
     state, _, taken = carry
     # (The last chunk's end is t1 already when the chunks fill the run.)
     end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
@@ -262,16 +263,19 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         # Every step's interpolant is kept: memory O(n) is what was asked for.
         # (At least one step, of size 0 when t1 = t0, so that t0 has an interpolant.)
         carry, (records, states) = jax.lax.scan(jax.checkpoint(one, prevent_cse=False), carry, None, length=max(n, 1))
-        saved = None if not n_chunks else jax.tree_util.tree_map(lambda x: x[every - 1 :: every][:n_chunks], states)
+        middle = None
+        if n_chunks:
+            saved = jax.tree_util.tree_map(lambda x: x[every - 1 :: every][:n_chunks], states)
+            middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
     else:
-        carry, saved = _chunked(one, carry, n, every)
+        carry, middle = _chunked(one, carry, n, every, time)
     state, _, _, taken, ev, stopped, t_end = carry
     if saveat.dense:
         interpolation = DenseInterpolation(*records, t0=t0, t1=t_end, n=taken)
-    middle, unreached = None, 0
+    unreached = 0
     fills = n_chunks and not rem  # the last chunk's end is the t1 row
-    if saved is not None:
-        times = time((jnp.arange(n_chunks) + 1) * every)
+    if middle is not None:
+        times, saved = middle
         # Rows past a terminating event were never reached.
         reached = times <= t_end
         if saveat.t1 and fills:
@@ -506,9 +510,18 @@ def _adaptive_loop(
         if saveat.dense:
             dense = _dense_update(c.dense, c.num_accepted, accept, (c.t, h, c.R, c.y, Fu, Fy))
         saved, save_index = _save_update(saveat, c.saved, c.save_index, accept, t_end, R_end, y_end, max_steps)
-        result = jnp.where(d.stuck, RESULTS.dt_min_reached, c.result)
-        if events:
-            result = jnp.where(stopped, RESULTS.event_occurred, jnp.where(nan, RESULTS.event_condition_nan, result))
+
+        # A terminating event or a NaN condition ends the solve too.  (Applied
+        # in place in the carry below, so that a solve without events
+        # compiles to the program it always did.)
+        def finished(done):
+            return done | stopped | nan if events else done
+
+        def coded(result):
+            if not events:
+                return result
+            return jnp.where(stopped, RESULTS.event_occurred, jnp.where(nan, RESULTS.event_condition_nan, result))
+
         return _Carry(
             t=jnp.where(accept, t_end, c.t),
             h=h_out,
@@ -519,8 +532,8 @@ def _adaptive_loop(
             num_accepted=c.num_accepted + accept.astype(jnp.int32),
             num_rejected=c.num_rejected + (~accept).astype(jnp.int32),
             rejected_last=~accept,
-            done=(accept & last) | d.stuck | d.end | stopped | nan,
-            result=result.astype(jnp.int32),
+            done=finished((accept & last) | d.stuck | d.end),
+            result=coded(jnp.where(d.stuck, RESULTS.dt_min_reached, c.result)).astype(jnp.int32),
             save_index=save_index,
             saved=saved,
             decisions=decisions,
