@@ -110,7 +110,8 @@ def flip(problem, *, terminate: bool | int = False, max_count: int | None = None
 
     Args:
         problem: a rigid body (its inertia and where it keeps ``m``).
-        terminate, max_count: as for `Event`.
+        terminate: as for `Event`.
+        max_count: as for `Event`.
     """
     problem = _rigid_body(problem, "flip")
     moments, axes = _principal(problem.inertia)
@@ -144,7 +145,8 @@ def pointing(body_axis: ArrayLike, space_direction: ArrayLike, angle: ArrayLike,
         body_axis: ``(3,)`` body-frame axis.
         space_direction: ``(3,)`` space-frame direction.
         angle: the angle (rad), in ``[0, pi]``.
-        terminate, max_count: as for `Event`.
+        terminate: as for `Event`.
+        max_count: as for `Event`.
         direction: ``1`` when the angle grows through ``angle``, ``-1`` when
             it shrinks through it (the axis comes within ``angle``), 0 both.
     """

@@ -35,7 +35,7 @@ def _one_step_midpoints(problem, solver, hs):
 # theta = 1/2 is O(h^(q+1)).  Quintic Hermite (interpolation error O(h^6))
 # carries the solver's local error: order 4 for RKMK4 and CF4, 5 for RKF45;
 # DOP853's continuous extension is order 7.  Measured slopes: 5.00, 5.00,
-# 5.99, 8.05.
+# 5.99, 8.07.
 @pytest.mark.parametrize(
     "solver, order, hs",
     [
@@ -88,6 +88,7 @@ def test_splitting_interpolant_orders_on_a_heavy_top():
     ids=["RKMK4", "DP54", "DOP853"],
 )
 def test_error_between_steps_is_within_10x_of_the_error_at_steps(solver, kwargs):
+    # Measured (largest between steps / largest at steps): 1.00, 1.00, 2.6.
     T = 10.0
     steps = lierk.SaveAt(steps=True, dense=True) if "rtol" in kwargs else lierk.SaveAt(steps=1, dense=True)
     sol = lierk.solve(BODY, solver, T, saveat=steps, max_steps=2000 if "rtol" in kwargs else None, **kwargs)
