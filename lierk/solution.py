@@ -64,7 +64,7 @@ class SaveAt(eqx.Module):
             error; dense ``ts`` therefore cost steps.  For many times, or an
             animation, ``dense=True`` and `Solution.evaluate` cost no steps.
         dense: keep every step's interpolant, for `Solution.evaluate` at any
-            time (`lierk.interpolation`).  Memory O(steps): about 300 to 450
+            time (`lierk.interpolation`).  Memory O(steps): 352 to 448
             bytes a step for a rigid body in float64, for ``max_steps`` steps
             in an adaptive solve (see `lierk.interpolation.DenseInterpolation`);
             nothing is kept without it.  ``SaveAt(dense=True)`` alone also

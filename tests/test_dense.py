@@ -193,3 +193,29 @@ def test_dense_output_in_float32():
     R = sol.evaluate(ts.astype(np.float32))[0]
     assert R.dtype == jnp.float32
     assert np.abs(np.asarray(R, float) - np.asarray(exact_R(ts))).max() < 2e-6
+
+
+def test_solves_without_dense_output_or_events_never_reach_their_code(monkeypatch):
+    # The dense output's and the events' code is reached only by solves that
+    # ask for them: a plain solve traces with all of it broken (its compiled
+    # program was compared before and after: the same equations).
+    def broken(*args, **kwargs):
+        raise AssertionError("reached")
+
+    import lierk.event
+    import lierk.solvers.base
+    import lierk.solvers.rkmk
+
+    for cls in (lierk.solvers.base.AbstractSolver, lierk.solvers.rkmk.AbstractRKMK):
+        monkeypatch.setattr(cls, "dense_step", broken)
+        monkeypatch.setattr(cls, "dense_node", broken)
+    for name in ("init", "process", "records"):
+        monkeypatch.setattr(lierk.event, name, broken)
+    jax.clear_caches()  # trace anew, not from a solve an earlier test compiled
+    w = jnp.asarray(OMEGA)
+    jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1).R)(w)
+    jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.DOP853(), 1.0, rtol=1e-8,
+                                         saveat=lierk.SaveAt(steps=True), max_steps=16).R)(w)
+    with pytest.raises(AssertionError, match="reached"):
+        jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1,
+                                             saveat=lierk.SaveAt(dense=True)).R)(w)
