@@ -219,3 +219,37 @@ def test_solves_without_dense_output_or_events_never_reach_their_code(monkeypatc
     with pytest.raises(AssertionError, match="reached"):
         jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1,
                                              saveat=lierk.SaveAt(dense=True)).R)(w)
+
+
+def test_dop853_continuous_extension_is_scipys():
+    # The tableau's extension, applied to one step of a scalar ODE in NumPy,
+    # against SciPy's DOP853 dense output of the same step (an independent
+    # copy of Hairer's coefficients).
+    from scipy.integrate import solve_ivp
+
+    T = lierk.tableaux.DOP853
+    f = lambda t, y: np.array([np.cos(t) * y[0] + t])  # noqa: E731
+    h, y0 = 0.5, np.array([1.0])
+    ref = solve_ivp(f, (0.0, h), y0, method="DOP853", dense_output=True, first_step=h, max_step=h, rtol=1.0, atol=1.0)
+    assert len(ref.t) == 2  # one step
+    A, C = list(T.a) + list(T.dense_a), list(T.c) + list(T.dense_c)
+    K = []
+    for i in range(len(C)):
+        K.append(f(C[i] * h, y0 + h * sum(A[i][j] * K[j] for j in range(i))))
+    F = h * np.asarray(T.dense_b) @ np.asarray(K)
+    for theta in (0.1, 0.37, 0.5, 0.9, 1.0):
+        ours = y0 + lierk.interpolation.nested(F, theta)
+        np.testing.assert_allclose(ours, ref.sol(theta * h), rtol=0, atol=2e-15)
+
+
+def test_continuous_extensions_are_checked_when_defined():
+    import dataclasses
+
+    T = lierk.tableaux.DOP853
+    assert T.dense and T.dense_order == 7 and not lierk.tableaux.DOPRI54.dense
+    with pytest.raises(ValueError, match="continuous weights"):
+        dataclasses.replace(T, dense_b=(T.dense_b[1],) + T.dense_b[1:])
+    with pytest.raises(ValueError, match="one row of dense_a per dense_c"):
+        dataclasses.replace(T, dense_a=T.dense_a[:2])
+    with pytest.raises(ValueError, match="dense row 1 must have 14 entries summing"):
+        dataclasses.replace(T, dense_a=(T.dense_a[0], T.dense_a[1][:-1] + (0.5,), T.dense_a[2]))
