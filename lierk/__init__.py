@@ -10,11 +10,13 @@ from . import adjoint as adjoint
 from . import batch as batch
 from . import body as body
 from . import cache as cache
+from . import conditions as conditions
 from . import effects as effects
 from . import diagnostics as diagnostics
 from . import exact as exact
 from . import fields as fields
 from . import inertia as inertia
+from . import interpolation as interpolation
 from . import omega_sweep as omega_sweep
 from . import problems as problems
 from . import rigid_body as rigid_body
@@ -29,6 +31,8 @@ from .adjoint import RecursiveCheckpointAdjoint as RecursiveCheckpointAdjoint
 from .cache import compilation_cache_dir as compilation_cache_dir
 from .cache import using_cache as using_cache
 from .controller import Controller as Controller
+from .event import Event as Event
+from .event import EventRecord as EventRecord
 from .problems import AbstractProblem as AbstractProblem
 from .problems import AbstractRigidBody as AbstractRigidBody
 from .problems import FreeRigidBody as FreeRigidBody

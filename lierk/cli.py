@@ -190,15 +190,15 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
     import numpy as np
 
     from . import plot
-    from .exact import flip_times
 
     scene, sol, problem = sim.scene, sim.solution, sim.scene.problem
     stem, settings = scene.file_stem, scene.describe_run(sol)
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     np.savez(tmp / f"{stem}.npz", **sim.record())
     figures = {
-        "components": plot.components(sol, title, flips=flip_times(problem, sol)),
-        "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention),
+        "components": plot.components(sol, title, events=sim.event_times),
+        "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention,
+                                   events=sim.event_times),
         "invariants": plot.invariants(sol, problem, title),
     }
     names = [f"{stem}.npz"]

@@ -26,8 +26,10 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from . import event as event_lib
 from . import validation
 from .adjoint import ForwardMode
+from .interpolation import DenseInterpolation
 from .controller import AbstractStepController
 from .solution import RESULTS, SaveAt, Solution
 
@@ -106,10 +108,17 @@ def _assemble(saveat: SaveAt, t0, state0, middle, end) -> tuple[Array, Any, Any,
     return jnp.concatenate(ts), R, y, sum(len(t) for t in ts)
 
 
-@eqx.filter_jit
-def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
-    """``n`` (static) fixed steps of ``dt`` from ``t0``, the last shortened to
-    end exactly at ``t1``; steps past ``t1`` are exact no-ops."""
+class _Schedule(NamedTuple):
+    """The steps of a fixed-step solve: ``n`` (static) steps of ``dt`` from
+    ``t0``, of which ``count`` reach ``t1`` (``needed`` would)."""
+
+    needed: Array
+    count: Array
+    time: Any  # k -> the time of step k's start (t1 from step `count` on)
+    size: Any  # k -> the size of step k (0 from step `count` on)
+
+
+def _schedule(t0, t1, dt, n: int) -> _Schedule:
     # `count` steps reach t1 (the host's `num_steps` when it chose n; fewer
     # when max_steps set n).  Every step but the last is exactly dt, and the
     # last is what remains of t1 - t0: step sizes are not differences of the
@@ -127,15 +136,14 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution
     def size(k):
         return jnp.where(k + 1 < count, dt, jnp.where(k + 1 == count, last, jnp.zeros_like(dt)))
 
-    # The step index and the count of steps taken ride in the loop's carry:
-    # scanning over an array of indices (or of step times) would allocate a
-    # buffer of the step count, 8 bytes a step, whatever is saved.
-    def one(carry, _):
-        (R, y), k, taken = carry
-        # Past t1, h = 0 and every solver's step is exactly the identity.
-        st = solver.step(problem, time(k), size(k), R, y)
-        return ((st.R, st.y), k + 1, taken + (k < count).astype(taken.dtype)), None
+    return _Schedule(needed, count, time, size)
 
+
+def _chunked(one, carry, n: int, every: int, time):
+    """``n`` steps of the scan body ``one`` from ``carry``, in chunks of
+    ``every`` steps: ``(carry, middle)``, ``middle`` the chunk ends' times
+    (``time`` of their step index) and stacked ``carry[0]``, or None when
+    ``every`` is 0 or exceeds ``n``."""
     # In reverse mode each step keeps only its starting state and is
     # recomputed in the backward pass: saved as they fall out of the step's
     # fused arithmetic, its residuals were about a hundred small arrays, each
@@ -160,34 +168,136 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution
         carry = jax.lax.scan(body, carry, None, length=blocks)[0]
         return scan(carry, rem) if rem else carry
 
-    state0 = (problem.R0, problem.y0)
-    every = saveat.every
     n_chunks, rem = divmod(n, every) if every else (0, n)
 
     def chunk(carry, _):
         carry = steps(carry, every)
         return carry, carry[0]
 
-    carry = (state0, jnp.asarray(0), jnp.asarray(0))
     middle = None
     if n_chunks:
         carry, saved = jax.lax.scan(chunk, carry, None, length=n_chunks)
         middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
     if rem:
         carry = steps(carry, rem)
+    return carry, middle
+
+
+@eqx.filter_jit
+def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tuple = ()) -> Solution:
+    """``n`` (static) fixed steps of ``dt`` from ``t0``, the last shortened to
+    end exactly at ``t1``; steps past ``t1`` are exact no-ops.  With
+    ``SaveAt(dense=True)`` or ``events`` (a tuple of `lierk.Event`), see
+    `_solve_fixed_tracked`."""
+    if saveat.dense or events:
+        return _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat, n, events)
+    needed, count, time, size = _schedule(t0, t1, dt, n)
+
+    # The step index and the count of steps taken ride in the loop's carry:
+    # scanning over an array of indices (or of step times) would allocate a
+    # buffer of the step count, 8 bytes a step, whatever is saved.
+    def one(carry, _):
+        (R, y), k, taken = carry
+        # Past t1, h = 0 and every solver's step is exactly the identity.
+        st = solver.step(problem, time(k), size(k), R, y)
+        return ((st.R, st.y), k + 1, taken + (k < count).astype(taken.dtype)), None
+
+    state0 = (problem.R0, problem.y0)
+    every = saveat.every
+    n_chunks, rem = divmod(n, every) if every else (0, n)
+    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time)
     state, _, taken = carry
     # (The last chunk's end is t1 already when the chunks fill the run.)
     end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
     ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
     result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
     result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
-    stats = {
+    return Solution(ts, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)
+
+
+def _fixed_stats(taken, solver) -> dict:
+    return {
         "num_steps": taken,
         "num_accepted_steps": taken,
         "num_rejected_steps": jnp.zeros_like(taken),
         "num_fevals": taken * solver.stages,
     }
-    return Solution(ts, R, y, jnp.asarray(n_saved), stats, result)
+
+
+def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tuple) -> Solution:
+    """`solve_fixed` that also builds each step's interpolant
+    (`AbstractSolver.dense_step`), for events (`lierk.event`) and, with
+    ``SaveAt(dense=True)``, keeps them (`DenseInterpolation`).  A terminating
+    event makes the remaining steps no-ops (``h = 0``) from the state at the
+    event."""
+    needed, count, time, size = _schedule(t0, t1, dt, n)
+    R0, y0 = problem.R0, problem.y0
+    ev0 = event_lib.init(events, t0, R0, y0) if events else None
+    stopped0 = ev0.nan if events else jnp.asarray(False)
+    every = saveat.every
+
+    def one(carry, _):
+        (R, y), node, k, taken, ev, stopped, t_end = carry
+        t = time(k)
+        h = jnp.where(stopped, jnp.zeros_like(dt), size(k))
+        st, (Fu, Fy), node1 = solver.dense_step(problem, t, h, R, y, None, node)
+        live = (k < count) & ~stopped
+        state = (st.R, st.y)
+        t_end = jnp.where(live, time(k + 1), t_end)
+        if events:
+            ev, stop = event_lib.process(events, ev, (t, h, R, y, Fu, Fy), st.R, st.y, live)
+            state = jax.tree_util.tree_map(lambda a, b: jnp.where(stop.stop, a, b), (stop.R, stop.y), state)
+            t_end = jnp.where(stop.stop, stop.t, t_end)
+            stopped = stopped | stop.stop | ev.nan
+        carry = (state, node1, k + 1, taken + live.astype(taken.dtype), ev, stopped, t_end)
+        if not saveat.dense:
+            return carry, None
+        record = (jnp.where(live, t, jnp.inf), jnp.where(live, h, jnp.zeros_like(h)), R, y, Fu, Fy)
+        return carry, (record, state if every else None)
+
+    izero = jnp.asarray(0)
+    carry = ((R0, y0), solver.dense_node(problem, t0, R0, y0), izero, izero, ev0, stopped0, t0)
+    n_chunks, rem = divmod(n, every) if every else (0, n)
+    interpolation = None
+    if saveat.dense:
+        # Every step's interpolant is kept: memory O(n) is what was asked for.
+        # (At least one step, of size 0 when t1 = t0, so that t0 has an interpolant.)
+        carry, (records, states) = jax.lax.scan(jax.checkpoint(one, prevent_cse=False), carry, None, length=max(n, 1))
+        middle = None
+        if n_chunks:
+            saved = jax.tree_util.tree_map(lambda x: x[every - 1 :: every][:n_chunks], states)
+            middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
+    else:
+        carry, middle = _chunked(one, carry, n, every, time)
+    state, _, _, taken, ev, stopped, t_end = carry
+    if saveat.dense:
+        interpolation = DenseInterpolation(*records, t0=t0, t1=t_end, n=taken)
+    unreached = 0
+    fills = n_chunks and not rem  # the last chunk's end is the t1 row
+    if middle is not None:
+        times, saved = middle
+        # Rows past a terminating event were never reached.
+        reached = times <= t_end
+        if saveat.t1 and fills:
+            # The t1 row holds the state where the solve ended.
+            reached = reached.at[-1].set(True)
+            times = times.at[-1].set(t_end)
+            saved = jax.tree_util.tree_map(lambda x, v: x.at[-1].set(v), saved, state)
+        saved = jax.tree_util.tree_map(lambda x: jnp.where(reached.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan), saved)
+        middle, unreached = (times, saved), jnp.sum(~reached)
+    end = (t_end, state) if saveat.t1 and not fills else None
+    ts, R, y, n_saved = _assemble(saveat, t0, (R0, y0), middle, end)
+    n_saved = jnp.asarray(n_saved) - unreached
+    result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
+    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
+    records_out = None
+    if events:
+        result = jnp.where(jnp.any(ev.stopped), RESULTS.event_occurred, result)
+        result = jnp.where(ev.nan, RESULTS.event_condition_nan, result)
+        records_out = event_lib.records(events, ev)
+    return Solution(
+        ts, R, y, n_saved, _fixed_stats(taken, solver), result, interpolation=interpolation, events=records_out
+    )
 
 
 def _save_init(saveat: SaveAt, t0, R0, y0, max_steps: int):
@@ -251,12 +361,17 @@ class _Carry(NamedTuple):
     save_index: Array
     saved: Any  # (ts, R, y) buffers, or None
     decisions: Any  # per-attempt record for reverse-mode replay (see _adaptive_loop), or None
+    # Only with dense output or events (None otherwise, which leaves the
+    # program of other solves as it was):
+    node: Any = None  # `AbstractSolver.dense_node` at (t, R, y)
+    ev: Any = None  # `lierk.event.State`
+    dense: Any = None  # the `DenseInterpolation` buffers (ts, hs, R, y, Fu, Fy), max_steps rows
 
 
 @eqx.filter_jit
 def solve_adaptive(
     problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: AbstractStepController, adjoint,
-    floor_eps: float = 50.0,
+    floor_eps: float = 50.0, events: tuple = (),
 ) -> Solution:
     """Steps chosen by ``controller`` from ``t0`` to ``t1``, at most
     ``max_steps`` attempts (accepted plus rejected); ``dt0`` is the first step
@@ -272,14 +387,16 @@ def solve_adaptive(
         # loop only replays them: every pass of it takes the same steps.
         _, replay = _adaptive_loop(
             frozen(problem), solver, frozen(t0), frozen(t1), frozen(dt0), saveat, max_steps, frozen(controller),
-            ForwardMode(), floor_eps, record=True,
+            ForwardMode(), floor_eps, record=True, events=events,
         )
-    return _adaptive_loop(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, floor_eps, replay=replay)[0]
+    return _adaptive_loop(
+        problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, floor_eps, replay=replay, events=events
+    )[0]
 
 
 def _adaptive_loop(
     problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: AbstractStepController, adjoint,
-    floor_eps: float, record: bool = False, replay: Array | None = None,
+    floor_eps: float, record: bool = False, replay: Array | None = None, events: tuple = (),
 ) -> tuple[Solution, Array | None]:
     """The while loop: ``(Solution, decisions)``.  ``decisions``
     ``(max_steps,)`` holds each attempt's next step, negative if the attempt
@@ -316,6 +433,11 @@ def _adaptive_loop(
     record = controller.decides and replay is None and (record or adjoint.kind == "checkpointed")
     decisions = jnp.full((max_steps,), jnp.nan, R0.dtype) if record else None
 
+    # Dense output and events build every step's interpolant.
+    tracked = saveat.dense or bool(events)
+    ev0 = event_lib.init(events, t0, R0, y0) if events else None
+    node0 = solver.dense_node(problem, t0, R0, y0) if tracked else None
+    dense0 = _dense_init(problem, solver, t0, dt0 if dt0 is not None else h0, node0, max_steps) if saveat.dense else None
     init = _Carry(
         t=t0,
         h=h0,
@@ -326,11 +448,16 @@ def _adaptive_loop(
         num_accepted=izero,
         num_rejected=izero,
         rejected_last=jnp.asarray(False),
-        done=t1 <= t0,
-        result=jnp.asarray(RESULTS.successful, jnp.int32),
+        done=(t1 <= t0) if ev0 is None else (t1 <= t0) | ev0.nan,
+        result=jnp.asarray(RESULTS.successful, jnp.int32)
+        if ev0 is None
+        else jnp.where(ev0.nan, RESULTS.event_condition_nan, RESULTS.successful).astype(jnp.int32),
         save_index=izero,
         saved=_save_init(saveat, t0, R0, y0, max_steps),
         decisions=decisions,
+        node=node0,
+        ev=ev0,
+        dense=dense0,
     )
 
     def cond(c: _Carry):
@@ -347,7 +474,10 @@ def _adaptive_loop(
         # Step by exactly the time the clock advances: far from t = 0, c.t + h
         # rounds, and a state advanced by h would drift from its time stamp.
         h = jax.lax.stop_gradient(t_new - c.t)
-        st = solver.step(problem, c.t, h, c.R, c.y, c.f)
+        if tracked:
+            st, (Fu, Fy), node1 = solver.dense_step(problem, c.t, h, c.R, c.y, c.f, c.node)
+        else:
+            st = solver.step(problem, c.t, h, c.R, c.y, c.f)
         d = controller.adapt(
             ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=c.h, clipped=clipped, t1=t1, y=c.y,
             f=c.f, rejected_last=c.rejected_last,
@@ -367,22 +497,49 @@ def _adaptive_loop(
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, z: jnp.where(accept, x, z), a, b)
 
-        saved, save_index = _save_update(saveat, c.saved, c.save_index, accept, t_new, st.R, st.y, max_steps)
+        # Where the step ends: its end, or where a terminating event stopped it.
+        t_end, R_end, y_end = t_new, st.R, st.y
+        ev, stopped, nan = c.ev, jnp.asarray(False), jnp.asarray(False)
+        if events:
+            ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y, Fu, Fy), st.R, st.y, accept)
+            stopped, nan = stop.stop, ev.nan
+            t_end = jnp.where(stopped, stop.t, t_new)
+            R_end = jnp.where(stopped, stop.R, st.R)
+            y_end = jax.tree_util.tree_map(lambda a, b: jnp.where(stopped, a, b), stop.y, st.y)
+        dense = c.dense
+        if saveat.dense:
+            dense = _dense_update(c.dense, c.num_accepted, accept, (c.t, h, c.R, c.y, Fu, Fy))
+        saved, save_index = _save_update(saveat, c.saved, c.save_index, accept, t_end, R_end, y_end, max_steps)
+
+        # A terminating event or a NaN condition ends the solve too.  (Applied
+        # in place in the carry below, so that a solve without events
+        # compiles to the program it always did.)
+        def finished(done):
+            return done | stopped | nan if events else done
+
+        def coded(result):
+            if not events:
+                return result
+            return jnp.where(stopped, RESULTS.event_occurred, jnp.where(nan, RESULTS.event_condition_nan, result))
+
         return _Carry(
-            t=jnp.where(accept, t_new, c.t),
+            t=jnp.where(accept, t_end, c.t),
             h=h_out,
-            R=jnp.where(accept, st.R, c.R),
-            y=pick(st.y, c.y),
+            R=jnp.where(accept, R_end, c.R),
+            y=pick(y_end, c.y),
             f=pick(d.fsal, c.f),
             num_steps=c.num_steps + 1,
             num_accepted=c.num_accepted + accept.astype(jnp.int32),
             num_rejected=c.num_rejected + (~accept).astype(jnp.int32),
             rejected_last=~accept,
-            done=(accept & last) | d.stuck | d.end,
-            result=jnp.where(d.stuck, RESULTS.dt_min_reached, c.result).astype(jnp.int32),
+            done=finished((accept & last) | d.stuck | d.end),
+            result=coded(jnp.where(d.stuck, RESULTS.dt_min_reached, c.result)).astype(jnp.int32),
             save_index=save_index,
             saved=saved,
             decisions=decisions,
+            node=pick(node1, c.node) if tracked else None,
+            ev=ev,
+            dense=dense,
         )
 
     final = eqxi.while_loop(
@@ -406,7 +563,13 @@ def _adaptive_loop(
         n_saved = n_saved - (max_steps - final.save_index)
     if ts_req is not None:
         n_saved = n_saved - jnp.sum(ts_req > final.t)
-    return Solution(ts, R, y, jnp.asarray(n_saved), _adaptive_stats(solver, final, f0, dt0), result), final.decisions
+    interpolation = None
+    if saveat.dense:
+        interpolation = DenseInterpolation(*final.dense, t0=t0, t1=final.t, n=final.num_accepted)
+    records = event_lib.records(events, final.ev) if events else None
+    n_saved = jnp.asarray(n_saved)
+    stats = _adaptive_stats(solver, final, f0, dt0)
+    return Solution(ts, R, y, n_saved, stats, result, interpolation=interpolation, events=records), final.decisions
 
 
 def _adaptive_stats(solver, final: _Carry, f0, dt0) -> dict[str, Array]:
@@ -424,3 +587,26 @@ def _adaptive_stats(solver, final: _Carry, f0, dt0) -> dict[str, Array]:
         "num_rejected_steps": final.num_rejected,
         "num_fevals": fevals_setup + final.num_steps * fevals_per_attempt,
     }
+
+
+def _dense_init(problem, solver, t0, h, node0, max_steps: int):
+    """Empty `DenseInterpolation` buffers of ``max_steps`` rows: no step
+    (``ts = inf``, ``hs = 0``), each at the initial state, so that ``t0`` is
+    covered before any step is taken."""
+    R0, y0 = problem.R0, problem.y0
+    _, (Fu, Fy), _ = jax.eval_shape(lambda: solver.dense_step(problem, t0, h, R0, y0, None, node0))
+    rows = lambda x: jnp.broadcast_to(x, (max_steps,) + jnp.shape(x))  # noqa: E731
+    zeros = lambda s: jnp.zeros((max_steps,) + s.shape, s.dtype)  # noqa: E731
+    return (
+        jnp.full((max_steps,), jnp.inf, R0.dtype),
+        jnp.zeros((max_steps,), R0.dtype),
+        rows(R0),
+        jax.tree_util.tree_map(rows, y0),
+        zeros(Fu),
+        jax.tree_util.tree_map(zeros, Fy),
+    )
+
+
+def _dense_update(buffers, i, accept, row):
+    """The buffers with row ``i`` set to an accepted step's ``(t, h, R, y, Fu, Fy)``."""
+    return jax.tree_util.tree_map(lambda b, v: b.at[i].set(jnp.where(accept, v, b[i])), buffers, row)

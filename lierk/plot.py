@@ -50,11 +50,28 @@ def _figure(figsize, title: str | None) -> Figure:
     return fig
 
 
-def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None) -> Figure:
+def _mark_events(axs, events, legend_ax) -> None:
+    """Vertical lines at the times of ``events`` (``{name: times (s)}``) on
+    every axis of ``axs``, one style per event, named in ``legend_ax``'s legend."""
+    if not events:
+        return
+    styles = ["--", ":", "-.", (0, (5, 1, 1, 1))]
+    for k, (name, times) in enumerate(events.items()):
+        for ax in np.ravel(axs):
+            for j, tf in enumerate(np.ravel(times)):
+                label = name if ax is legend_ax and j == 0 else None
+                ax.axvline(tf, color=f"0.{3 + k % 4}", ls=styles[k % 4], lw=0.8, zorder=0, label=label)
+    if any(np.size(t) for t in events.values()):
+        legend_ax.legend(loc="upper right", fontsize=8)
+
+
+def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None, events=None) -> Figure:
     """3x3 grid of the entries ``R_ij(t)`` of the attitude (the report's figures
     14-16): row ``i`` is the space-frame axis, column ``j`` the body axis, so
     column ``j`` is body axis ``j`` seen in space.  All panels share ``[-1, 1]``.
-    ``flips``: times (s) of intermediate-axis flips, marked with dashed lines."""
+    ``events``: ``{name: times (s)}`` (`lierk.scene.Scene.event_times`),
+    marked with vertical lines; ``flips``: times of flips, the same as
+    ``events={"flip": flips}``."""
     ts, R, _ = trajectory(sol)
     fig = _figure(figsize, title)
     axs = fig.subplots(3, 3, sharex=True, sharey=True)
@@ -65,11 +82,8 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None)
             ax.plot(ts, R[:, i, j], color=colours[j], lw=0.9)
             ax.set_title(f"$R_{{{i + 1}{j + 1}}}$", fontsize=10)
             ax.axhline(0.0, color="0.8", lw=0.5, zorder=0)
-            for k, tf in enumerate(() if flips is None else np.ravel(flips)):
-                ax.axvline(tf, color="0.35", ls="--", lw=0.8, zorder=0, label="flip" if (i, j, k) == (0, 2, 0) else None)
             ax.grid(True, alpha=0.3)
-    if flips is not None and np.size(flips):
-        axs[0, 2].legend(loc="upper right", fontsize=8)
+    _mark_events(axs, {**({} if flips is None else {"flip": flips}), **(events or {})}, axs[0, 2])
     axs[0, 0].set_ylim(-1.08, 1.08)
     axs[0, 0].set_yticks([-1.0, -0.5, 0.0, 0.5, 1.0])
     if len(ts):
@@ -82,7 +96,7 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None)
 
 
 def euler_angles(
-    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5)
+    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5), events=None
 ) -> Figure:
     """Euler angles (`lierk.so3.to_euler`) against time, one panel each.
 
@@ -90,7 +104,7 @@ def euler_angles(
     ``"zxz"``, the classical angles of a top ``R = Rz(phi) Rx(theta) Rz(psi)``:
     precession, nutation and spin, so a top's precession and nutation show
     apart from its spin.  ``phi`` and ``psi`` are unwrapped so a steady spin
-    shows as a ramp rather than a saw-tooth."""
+    shows as a ramp rather than a saw-tooth.  ``events``: as for `components`."""
     ts, R, _ = trajectory(sol)
     angles = np.asarray(so3.to_euler(R, convention)).reshape(-1, 3)
     angles = np.unwrap(angles, axis=0)
@@ -107,6 +121,7 @@ def euler_angles(
         ax.plot(ts, angles[:, k], color=f"C{k}", lw=1.0)
         ax.set_ylabel(f"{names[k]} [{unit}]")
         ax.grid(True, alpha=0.3)
+    _mark_events(axs, events, axs[0])
     if len(ts):
         axs[0].set_xlim(ts[0], ts[-1])
     axs[-1].set_xlabel("t [s]")

@@ -60,6 +60,21 @@ Schema (every table rejects keys it does not know)::
     #                        axes = [[1, 0, 0], ...], momentum = [h1, ...] (per wheel),
     #                        optional torque = [[u1, ...], ...] at times = [...] (N m, s)
 
+    [[events]]                  # zero or more: when they happen is reported (lierk.Event)
+    kind = "flip"               # the intermediate-axis flip (lierk.conditions.flip)
+    # kind = "tilt"           angle = 0.5 (rad): a body axis leaning that far from space z
+    #                         axis = [0, 0, 1] (body; default gravity's pivot -> centre
+    #                         of mass, else body z)
+    # kind = "tilt_extremum"  axis = ... (as tilt): the turning points of its tilt (nutation);
+    #                         extremum = "both" | "max" | "min"
+    # kind = "pointing"       axis = [1, 0, 0] (body), target = [0, 0, 1] (space),
+    #                         angle = 0.2 (rad): the axis at that angle from the target
+    # kind = "energy"         threshold = 0.01: the energy's relative change passes it
+    # kind = "momentum"       threshold = 0.01: the same for |L|
+    # crossing = "both"       # tilt, pointing: "up" (the angle grows through it), "down", "both"
+    # terminate = false       # true: end the run at the first event; n: at the n-th
+    # name = "..."            # its label in reports and figures (default: the kind)
+
     [run]
     solver = "RKMK4"            # any lierk solver: ExplicitEuler, LieEuler, NaiveLieRK4,
                                 # RKMK4, CF4, Strang, Yoshida4, BlanesMoan4, Yoshida6,
@@ -161,6 +176,8 @@ class Scene:
             space: the pivot with gravity, else the centre of mass (m).
             A body point ``x`` is drawn at ``R (x - fixed_point)``.
         description: free text from the file.
+        events: ``(name, lierk.Event)`` pairs from ``[[events]]``, in file
+            order; `solve` passes the events to `lierk.solve`.
     """
 
     name: str
@@ -176,6 +193,7 @@ class Scene:
     center_of_mass: np.ndarray
     fixed_point: np.ndarray
     description: str = ""
+    events: tuple = ()
 
     @property
     def adaptive(self) -> bool:
@@ -306,7 +324,7 @@ class Scene:
                 including the failed piece comes back with its result code.
         """
         if n_pieces is None and not progress:
-            kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **overrides}
+            kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **self._event_kwargs(), **overrides}
             return _solve(self.problem, self.solver, self.t1, **kwargs)
         if n_pieces is not None and not (isinstance(n_pieces, (int, np.integer)) and not isinstance(n_pieces, bool) and n_pieces >= 1):
             raise ValueError(f"n_pieces must be a positive int, got {n_pieces!r}")
@@ -317,6 +335,34 @@ class Scene:
 
         return solve_in_pieces(self, N_PIECES if n_pieces is None else int(n_pieces), progress,
                                overrides.get("throw", True))
+
+    def _event_kwargs(self) -> dict:
+        return {"event": tuple(e for _, e in self.events)} if self.events else {}
+
+    def with_flip_event(self) -> "Scene":
+        """This scene with the intermediate-axis flip among its events
+        (`lierk.conditions.flip`, named ``"flip"``), when its body has three
+        distinct principal moments and the scene has no flip event yet; the
+        scene itself otherwise, and for a ``target_error`` run (which takes
+        no events).  ``lierk simulate`` reports and marks flips this way."""
+        if self.target_error is not None or any(name == "flip" for name, _ in self.events):
+            return self
+        moments = np.linalg.eigvalsh(np.asarray(self.problem.inertia, dtype=float))
+        if not (moments[0] < moments[1] < moments[2]):
+            return self
+        from .conditions import flip
+
+        return dataclasses.replace(self, events=self.events + (("flip", flip(self.problem)),))
+
+    def event_times(self, solution: Solution) -> dict[str, np.ndarray]:
+        """The times (s) each of the scene's events happened in ``solution``
+        (a solve of this scene), by name, in order (host NumPy arrays)."""
+        records = solution.events if solution.events is not None else ()
+        out = {}
+        for (name, _), r in zip(self.events, records):
+            ts = np.asarray(r.ts)
+            out[name] = ts[np.isfinite(ts)]
+        return out
 
     def saved_count(self) -> int:
         """How many states a run of this scene saves (times included)."""
@@ -375,7 +421,7 @@ def from_dict(d: dict, name: str = "scene", directory: str | os.PathLike = ".") 
 
 
 def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
-    _table(d, "scene", {"name", "description", "body", "initial", "effects", "run"}, required={"body", "initial", "run"})
+    _table(d, "scene", {"name", "description", "body", "initial", "effects", "events", "run"}, required={"body", "initial", "run"})
     name = _string(d.get("name", name), "name")
     description = _string(d.get("description", ""), "description")
     body = _body(d["body"], directory)
@@ -405,7 +451,13 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
         problem = FreeRigidBody(inertia, omega0, R0)
     else:
         problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
+    events_list = d.get("events", [])
+    if not isinstance(events_list, list):
+        raise ValueError(f"events must be an array of tables ([[events]]), got {events_list!r}")
+    if events_list and "target_error" in solve_kwargs:
+        raise ValueError("events: a run with target_error takes no events (its solves stop at different times); give dt or rtol")
     return Scene(
+        events=_events(events_list, problem, pivot_to_com),
         name=name,
         problem=problem,
         solver=solver,
@@ -773,6 +825,65 @@ def _rotor(t: dict, p: str, body: _Body):
 
 
 _SPACECRAFT = {"gravity_gradient": _gravity_gradient, "magnetic": _magnetic, "rotor": _rotor}
+
+# --- events --------------------------------------------------------------------
+
+_EVENT_KEYS = {
+    "flip": (set(), set()),
+    "tilt": ({"angle", "axis", "crossing"}, {"angle"}),
+    "tilt_extremum": ({"axis", "extremum"}, set()),
+    "pointing": ({"axis", "target", "angle", "crossing"}, {"axis", "target", "angle"}),
+    "energy": ({"threshold"}, {"threshold"}),
+    "momentum": ({"threshold"}, {"threshold"}),
+}
+_CROSSING = {"both": 0, "up": 1, "down": -1}
+_EXTREMUM = {"both": 0, "max": 1, "min": -1}
+
+
+def _events(items: list, problem, pivot_to_com: np.ndarray | None) -> tuple:
+    from . import conditions
+
+    events, names = [], set()
+    for i, t in enumerate(items):
+        p = f"events[{i}]"
+        if not isinstance(t, dict):
+            raise ValueError(f"{p} must be a table, got {t!r}")
+        kind = _choice(t.get("kind"), f"{p}.kind", tuple(_EVENT_KEYS))
+        allowed, required = _EVENT_KEYS[kind]
+        _table(t, p, {"kind", "terminate", "name", *allowed}, required=required)
+        terminate = t.get("terminate", False)
+        if not (isinstance(terminate, bool) or (isinstance(terminate, int) and terminate >= 1)):
+            raise ValueError(f"{p}.terminate must be true, false or a positive integer (end at the n-th), got {terminate!r}")
+        name = _string(t.get("name", kind), f"{p}.name")
+        if name in names:
+            raise ValueError(f"{p}.name = {name!r} is taken by an earlier event; give each a name of its own")
+        names.add(name)
+        default_axis = pivot_to_com if pivot_to_com is not None else np.array([0.0, 0.0, 1.0])
+        axis = _vec(t["axis"], f"{p}.axis") if "axis" in t else default_axis
+        for key in ("axis", "target"):
+            if key in t and not np.any(_vec(t[key], f"{p}.{key}")):
+                raise ValueError(f"{p}.{key} must be a non-zero vector, got {t[key]!r}")
+        if "angle" in t:
+            angle = _number(t["angle"], f"{p}.angle", nonnegative=True)
+            if angle > math.pi:
+                raise ValueError(f"{p}.angle must be in [0, pi] rad, got {angle:g}")
+        crossing = _CROSSING[_choice(t.get("crossing", "both"), f"{p}.crossing", tuple(_CROSSING))]
+        if kind == "flip":
+            event = conditions.flip(problem, terminate=terminate)
+        elif kind == "tilt":
+            event = conditions.tilt(angle, axis, terminate=terminate, direction=crossing)
+        elif kind == "tilt_extremum":
+            extremum = _EXTREMUM[_choice(t.get("extremum", "both"), f"{p}.extremum", tuple(_EXTREMUM))]
+            event = conditions.tilt_extremum(problem, axis, terminate=terminate, direction=extremum)
+        elif kind == "pointing":
+            event = conditions.pointing(axis, _vec(t["target"], f"{p}.target"), angle, terminate=terminate,
+                                        direction=crossing)
+        else:
+            threshold = _number(t["threshold"], f"{p}.threshold", positive=True)
+            drift = conditions.energy_drift if kind == "energy" else conditions.momentum_drift
+            event = drift(problem, threshold, terminate=terminate)
+        events.append((name, event))
+    return tuple(events)
 
 
 # --- run -----------------------------------------------------------------------

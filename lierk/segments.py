@@ -11,6 +11,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._progress import Progress
+from .event import EventRecord
 from .solution import RESULTS, SaveAt, Solution
 from .solve import num_steps, solve
 
@@ -26,6 +27,12 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
     dtype = problem.R0.dtype
     kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
     bar = Progress(f"{scene.name}: t", t1, "s", quiet=not progress)
+    events = tuple(e for _, e in scene.events)
+    if any(e.stop_at > 1 for e in events):
+        # Each piece counts crossings from zero: an event that ends the run at
+        # its n-th crossing needs one piece.
+        n_pieces = 1
+    kw.update({"event": events} if events else {})
 
     if scene.target_error is not None:
         run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=scene.saveat(), throw=False,
@@ -60,7 +67,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         def piece(problem, ta, tb):
             # Padding steps past tb are exact no-ops, so every piece has the
             # same static length and compiles once.
-            return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
+            return solve(problem, solver, tb, t0=ta, max_steps=per, saveat=SaveAt(steps=every), throw=False, **kw)
 
         pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
     else:
@@ -91,15 +98,27 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
     ts_out, R_out = [np.zeros(1)], [np.asarray(problem.R0)[None]]
     y_out = [jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)]
     stats, code = None, RESULTS.successful
+    found = [[] for _ in events]  # per event: each piece's record
     for ta, tb, group in pieces:
         sol = piece(*arguments(problem, ta, tb, group))
         code = int(sol.result)
         ts = np.asarray(sol.ts)
-        # Padding repeats the end state; keep each time once.
+        # Padding repeats the end state; keep each time once.  Rows past a
+        # terminating event were not reached (NaN).
         keep = np.concatenate([[True], ts[1:] > ts[:-1]]) & (ts > ts_out[-1][-1])
+        keep &= np.isfinite(np.asarray(sol.R)).all(axis=(1, 2)) | (code != RESULTS.event_occurred)
+        for i, r in enumerate(sol.events or ()):
+            found[i].append(jax.tree_util.tree_map(np.asarray, r))
         ts_out.append(ts[keep])
         R_out.append(np.asarray(sol.R)[keep])
         y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
+        if code == RESULTS.event_occurred:
+            # The run ends with the state at the event, as one solve's t1 row does.
+            r = next(f[-1] for f in found if bool(f[-1].stopped))
+            j = min(int(r.count), len(r.ts)) - 1
+            ts_out.append(r.ts[j : j + 1])
+            R_out.append(r.R[j : j + 1])
+            y_out.append(jax.tree_util.tree_map(lambda x: x[j : j + 1], r.y))
         stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
         if _check(code, ta, tb, throw):
             break
@@ -120,13 +139,35 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         n_saved=jnp.asarray(len(ts)),
         stats={k: int(v) for k, v in stats.items()},
         result=jnp.asarray(code),
+        events=tuple(_joined(e, records) for e, records in zip(events, found)) if events else None,
+    )
+
+
+def _joined(event, records) -> EventRecord:
+    """One `EventRecord` from the pieces' records of ``event``, in time
+    order: the first ``max_count`` crossings, the count of all."""
+    kept = [(r.ts[: min(int(r.count), len(r.ts))], r) for r in records]
+    n = event.max_count
+    ts = np.concatenate([k for k, _ in kept])[:n]
+    R = np.concatenate([r.R[: len(k)] for k, r in kept])[:n]
+    y = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *[jax.tree_util.tree_map(lambda a: a[: len(k)], r.y) for k, r in kept])
+    pad = n - len(ts)
+    return EventRecord(
+        ts=jnp.asarray(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
+        R=jnp.asarray(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
+        y=jax.tree_util.tree_map(lambda a: jnp.asarray(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
+        count=jnp.asarray(sum(int(r.count) for r in records), jnp.int32),
+        stopped=jnp.asarray(any(bool(r.stopped) for r in records)),
     )
 
 
 def _check(code: int, ta: float, tb: float, throw: bool) -> bool:
-    """True if the piece from ``ta`` to ``tb`` failed (raised with ``throw``)."""
+    """True if the solve ends after the piece from ``ta`` to ``tb``: it
+    failed (raised with ``throw``) or a terminating event stopped it."""
     if code == RESULTS.successful:
         return False
+    if code == RESULTS.event_occurred:
+        return True
     if throw:
         raise RuntimeError(f"integration failed between t = {ta:g} s and {tb:g} s: {RESULTS.message(code)}")
     return True

@@ -1,8 +1,10 @@
 """A scene run once and read: what ``lierk simulate`` computes, as one
 library call.
 
-`simulate` solves a `lierk.scene.Scene` (in pieces, with progress if asked)
-and takes its `lierk.diagnostics.diagnostics`; the `Simulation` it returns
+`simulate` solves a `lierk.scene.Scene` (in pieces, with progress if asked),
+with the scene's events and the intermediate-axis flip
+(`lierk.scene.Scene.with_flip_event`), and takes its
+`lierk.diagnostics.diagnostics`; the `Simulation` it returns
 gives the arrays ``lierk simulate`` saves (`Simulation.record`, one
 ``.npz``) and the report it prints (`Simulation.summary`).
 
@@ -52,6 +54,12 @@ class Simulation:
         problem = self.scene.problem
         return float(flip_interval(problem.inertia, problem.omega0)) if problem.torque_free else None
 
+    @property
+    def event_times(self) -> dict[str, np.ndarray]:
+        """The times (s) of each of the scene's events, by name
+        (`lierk.scene.Scene.event_times`)."""
+        return self.scene.event_times(self.solution)
+
     def record(self) -> dict[str, np.ndarray]:
         """The arrays ``lierk simulate`` saves, for `numpy.savez`: ``ts``
         ``(n,)``; ``R`` ``(n, 3, 3)`` (body -> space); ``quaternion``
@@ -60,8 +68,9 @@ class Simulation:
         ``solver`` and ``scene`` (names); ``invariant_<name>`` ``(n,)`` per
         invariant (`lierk.scene.identifier` of its name: ``|L|`` ->
         ``invariant_abs_L``); ``y``, the state besides ``R`` (when the
-        problem has one); and ``error_estimate`` ``(n,)`` (when the solve
-        estimated its error)."""
+        problem has one); ``error_estimate`` ``(n,)`` (when the solve
+        estimated its error); and ``event_<name>``, the times of each event
+        (`event_times`)."""
         from .plot import trajectory
         from .scene import identifier
 
@@ -86,6 +95,7 @@ class Simulation:
             data["y"] = y
         if sol.error_estimate is not None:
             data["error_estimate"] = np.asarray(sol.error_estimate)[: len(ts)]
+        data.update({f"event_{identifier(k)}": v for k, v in self.event_times.items()})
         return data
 
     def summary(self) -> str:
@@ -93,7 +103,8 @@ class Simulation:
         solver, settings, steps, field evaluations and wall time; with
         ``target_error``, the setting chosen and the estimated error; the
         largest relative change of each invariant; ``max ||R^T R - I||``;
-        for a torque-free body, the exact flip interval."""
+        for a torque-free body, the exact flip interval; the times of each
+        event, and the one that ended the run."""
         scene, sol, diag = self.scene, self.solution, self.diagnostics
         st = sol.stats
         lines = [
@@ -119,18 +130,27 @@ class Simulation:
             lines.append(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
         elif flip is not None:
             lines.append("  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+        for (name, _), times, record in zip(scene.events, self.event_times.values(), sol.events or ()):
+            shown = ", ".join(f"{t:.6g}" for t in times[:8]) + (", ..." if len(times) > 8 else "")
+            count = int(record.count)
+            lines.append(f"  event {name}: {count} at t = {shown} s" if count else f"  event {name}: none")
+            if bool(record.stopped):
+                lines.append(f"  the run ended at the {name} event, t = {times[min(count, len(times)) - 1]:.9g} s")
         return "\n".join(lines)
 
 
 def simulate(scene, *, n_pieces: int | None = None, progress: bool = False) -> Simulation:
     """Solve ``scene`` (`lierk.scene.Scene.solve`, in ``n_pieces`` with
-    ``progress`` on stderr if asked) and read the solution's diagnostics.
+    ``progress`` on stderr if asked), with its events and the flip
+    (`lierk.scene.Scene.with_flip_event`; `Simulation.scene` is that scene),
+    and read the solution's diagnostics.
 
     Raises:
         RuntimeError: the solve failed (`lierk.scene.Scene.solve`).
     """
     from .diagnostics import diagnostics
 
+    scene = scene.with_flip_event()
     start = time.perf_counter()
     sol = scene.solve(n_pieces=n_pieces, progress=progress)
     wall = time.perf_counter() - start

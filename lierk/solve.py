@@ -3,6 +3,8 @@ when asked, to a global-error estimate (`lierk.global_error`)."""
 
 from __future__ import annotations
 
+from typing import Sequence
+
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
@@ -13,6 +15,7 @@ from . import validation
 from . import global_error
 from .adjoint import AbstractAdjoint, ForwardSensitivity
 from .controller import Controller
+from .event import Event, events_tuple
 from .problems import AbstractProblem
 from .loops import num_steps, solve_adaptive, solve_fixed
 from .solution import RESULTS, SaveAt, Solution, raise_if_failed
@@ -40,6 +43,7 @@ def solve(
     adjoint: AbstractAdjoint | None = None,
     estimate_error: bool = False,
     target_error: ArrayLike | None = None,
+    event: Event | Sequence[Event] | None = None,
 ) -> Solution:
     """Integrate ``problem`` from ``t0`` to ``t1`` (s) with ``solver``.
 
@@ -87,6 +91,15 @@ def solve(
     `RESULTS.target_error_not_reached`.  Not differentiable: to
     differentiate, solve again at the chosen setting.
 
+    Dense output (``saveat=SaveAt(dense=True)``): every step's interpolant
+    on SO(3) is kept, and `Solution.evaluate` gives the state at any time
+    (`lierk.interpolation`; memory O(steps)).
+
+    Events (``event=lierk.Event(cond, ...)``, or a sequence): the zero
+    crossings of ``cond(t, R, y)`` are found on each step's interpolant, to
+    the solver's accuracy, and come back in `Solution.events`; a terminating
+    event ends the solve at its time (`lierk.event`).
+
     Args:
         problem: e.g. `FreeRigidBody`.
         solver: e.g. `RKMK4()` or `DP54()`.
@@ -110,6 +123,8 @@ def solve(
         estimate_error: fill `Solution.error_estimate`.
         target_error: the attitude error wanted at every saved time
             (Frobenius norm, dimensionless), ``> 0``.
+        event: a `lierk.Event` or a sequence of them.  `Solution.events` is
+            then an `EventRecord` (a tuple of them for a sequence).
 
     Returns:
         A `Solution`.
@@ -119,6 +134,7 @@ def solve(
             values that are bad raise at run time (`eqx.error_if`).
     """
     saveat = _check_call(problem, solver, saveat, max_steps, estimate_error)
+    events = _check_events(event, saveat, estimate_error, target_error)
     dtype = problem.R0.dtype
     t0, t1 = _check_times(t0, t1, dtype)
     saveat = _check_save_times(saveat, t0, t1, dtype)
@@ -139,14 +155,14 @@ def solve(
             raise ValueError(f"dt= asks for fixed steps, so {', '.join(given)} would be ignored; pass one or the other")
         dt, n = _check_fixed(dt, t0, t1, saveat, max_steps, dtype)
         adjoint = _check_adjoint(adjoint)
-        sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n)
+        sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events)
         if estimate_error:
             sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
     else:
         controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
         max_steps = max_steps or DEFAULT_ADAPTIVE_MAX_STEPS
         try:
-            sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, max_steps, controller)
+            sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events)
         except TypeError as e:
             if "custom_vjp" not in str(e):
                 raise
@@ -157,7 +173,28 @@ def solve(
             ) from None
         if estimate_error:
             sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, max_steps, controller, adjoint)
+    if isinstance(event, Event):
+        sol = eqx.tree_at(lambda s: s.events, sol, sol.events[0])
     return raise_if_failed(_flag_drift(problem, sol), throw)
+
+
+def _check_events(event, saveat: SaveAt, estimate_error: bool, target_error) -> tuple[Event, ...]:
+    """``event=`` as a tuple of `Event` (empty for None), refused where it
+    cannot be honoured."""
+    if saveat.dense and (estimate_error or target_error is not None):
+        raise ValueError(
+            "SaveAt(dense=True) cannot be combined with estimate_error=True or target_error= (yet): the error "
+            "estimate covers the saved times only; solve with dense output at the chosen setting instead"
+        )
+    if event is None:
+        return ()
+    events = events_tuple(event)
+    if estimate_error or target_error is not None:
+        raise ValueError(
+            "event= cannot be combined with estimate_error=True or target_error= (yet): a finer solve would stop "
+            "at another time; solve with the event at the chosen setting instead"
+        )
+    return events
 
 
 def _check_call(problem, solver, saveat, max_steps, estimate_error) -> SaveAt:
@@ -169,6 +206,9 @@ def _check_call(problem, solver, saveat, max_steps, estimate_error) -> SaveAt:
     saveat = SaveAt(t1=True) if saveat is None else saveat
     if not isinstance(saveat, SaveAt):
         raise ValueError(f"saveat must be a lierk.SaveAt, got {saveat!r}")
+    if saveat.dense and not (saveat.t0 or saveat.t1 or saveat.steps or saveat.ts is not None):
+        # Dense output alone saves the final state too.
+        saveat = SaveAt(t1=True, dense=True)
     # (A bool is an int to Python: max_steps=True would run one step.)
     if max_steps is not None and not (
         isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool) and max_steps >= 1
@@ -279,12 +319,12 @@ def _check_adjoint(adjoint) -> AbstractAdjoint:
 
 # The loops as `AbstractAdjoint.run` calls them: the adjoint first (the
 # fixed-step scan has no use for it).
-def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n):
-    return solve_fixed(problem, solver, t0, t1, dt, saveat, n)
+def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n, events):
+    return solve_fixed(problem, solver, t0, t1, dt, saveat, n, events)
 
 
-def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller):
-    return solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint)
+def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events):
+    return solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, events=events)
 
 
 # A conserved quantity that moves by more than this (relative to its scale)
@@ -304,6 +344,7 @@ def _flag_drift(problem, sol: Solution) -> Solution:
         d = jnp.abs(q[k] - q0[k]) / jnp.where(scales[k] > 0, scales[k], 1.0)
         # Padding rows are NaN; a non-finite run has its own code.
         worst = jnp.maximum(worst, jnp.max(jnp.where(jnp.isfinite(d), d, 0.0)))
-    drifted = (sol.result == RESULTS.successful) & (worst > _DRIFT_LIMIT)
+    finished = sol.result == RESULTS.successful if sol.events is None else sol.ok
+    drifted = finished & (worst > _DRIFT_LIMIT)
     result = jnp.where(drifted, RESULTS.invariant_drift, sol.result).astype(sol.result.dtype)
     return eqx.tree_at(lambda s: s.result, sol, result)

@@ -54,6 +54,17 @@ class ButcherTableau:
             ``tol * tolerance_calibration``, a measured constant that makes the
             global attitude error of the pair come out near ``tol`` (see
             `lierk.controller`).
+        dense_c: nodes of the extra stages of a continuous extension (dense
+            output), evaluated after the step; ``()`` for none.
+        dense_a: their rows of ``a``; row ``i`` has ``stages + i`` entries
+            (it may use every stage, the extra ones before it included).
+        dense_b: ``(d, stages + len(dense_c))`` weights of the continuous
+            extension in the nested basis of `lierk.interpolation`: with
+            ``F_j = h sum_i dense_b[j][i] k_i``, the solution at ``t + theta h``
+            is ``y + theta (F_0 + (1 - theta)(F_1 + theta (F_2 + ...)))``.
+            Empty without a continuous extension.
+        dense_order: the order ``q`` of the continuous extension (its error
+            is ``O(h^(q+1))`` at every ``theta`` in ``[0, 1]``).
     """
 
     name: str
@@ -66,6 +77,10 @@ class ButcherTableau:
     b_error3: tuple | None = None
     fsal: bool = False
     tolerance_calibration: float = 1.0
+    dense_c: tuple = ()
+    dense_a: tuple = ()
+    dense_b: tuple = ()
+    dense_order: int | None = None
 
     def __post_init__(self):
         s = len(self.c)
@@ -99,6 +114,36 @@ class ButcherTableau:
         for k, value, want in conditions:
             if self.order > k and abs(value - want) > 1e-10:
                 raise ValueError(f"{self.name}: an order-{k + 1} condition fails ({value} != {want})")
+        self._check_dense(tol)
+
+    def _check_dense(self, tol: float) -> None:
+        """A continuous extension's extra rows are consistent and its weights
+        interpolate: the solution of ``y' = 1`` is ``theta h`` (row sums 1, 0,
+        0, ...), and at ``theta = 1`` (where only ``F_0`` is left) it is the
+        step's (``dense_b[0] = b``)."""
+        if not self.dense_b:
+            if self.dense_c or self.dense_a or self.dense_order is not None:
+                raise ValueError(f"{self.name}: dense_c, dense_a and dense_order need dense_b")
+            return
+        s, extra = self.stages, len(self.dense_c)
+        if len(self.dense_a) != extra or self.dense_order is None:
+            raise ValueError(f"{self.name}: give one row of dense_a per dense_c, and dense_order")
+        for i, (c, row) in enumerate(zip(self.dense_c, self.dense_a)):
+            if len(row) != s + i or abs(sum(row) - c) > tol:
+                raise ValueError(f"{self.name}: dense row {i} must have {s + i} entries summing to dense_c[{i}] = {c}")
+        B = np.asarray(self.dense_b)
+        if B.ndim != 2 or B.shape[1] != s + extra:
+            raise ValueError(f"{self.name}: dense_b must have rows of {s + extra} entries, got shape {B.shape}")
+        sums = B.sum(axis=1)
+        if abs(sums[0] - 1) > tol or np.abs(sums[1:]).max(initial=0.0) > 1e-10:
+            raise ValueError(f"{self.name}: the continuous weights must sum to theta, got row sums {sums}")
+        if np.abs(B[0] - np.concatenate([self.b, np.zeros(extra)])).max() > tol:
+            raise ValueError(f"{self.name}: the continuous weights at theta = 1 (dense_b[0]) must equal b")
+
+    @property
+    def dense(self) -> bool:
+        """Whether the tableau has a continuous extension (`dense_b`)."""
+        return bool(self.dense_b)
 
     @property
     def stages(self) -> int:
@@ -194,6 +239,35 @@ _DOP853_A = (
 _DOP853_B = (0.054293734116568765, 0.0, 0.0, 0.0, 0.0, 4.450312892752409, 1.8915178993145003, -5.801203960010585, 0.3111643669578199, -0.1521609496625161, 0.20136540080403034, 0.04471061572777259, 0.0)
 _DOP853_E5 = (0.01312004499419488, 0.0, 0.0, 0.0, 0.0, -1.2251564463762044, -0.4957589496572502, 1.6643771824549864, -0.35032884874997366, 0.3341791187130175, 0.08192320648511571, -0.022355307863886294, 0.0)
 _DOP853_E3 = (-0.18980075407240762, 0.0, 0.0, 0.0, 0.0, 4.450312892752409, 1.8915178993145003, -5.801203960010585, -0.4226823213237919, -0.1521609496625161, 0.20136540080403034, 0.02265179219836082, 0.0)
+# DOP853's continuous extension of order 7 (Hairer, Norsett, Wanner I, II.6,
+# and Hairer's DOP853 code; coefficients as distributed with SciPy): three more
+# stages after the step, at c = 0.1, 0.2 and 7/9, and a polynomial of degree 7
+# in the nested form (SciPy's)
+#     y(x) = y0 + x (F0 + (1 - x)(F1 + x (F2 + (1 - x)(F3 + x (F4 + (1 - x)(F5 + x F6))))))
+# with F0 = h sum_i b_i k_i, F1 = h k_1 - F0, F2 = 2 F0 - h (k_1 + k_13) and
+# F3..F6 = h D k (k_13 is the FSAL stage, the field at the new point).
+_DOP853_DENSE_C = (0.1, 0.2, 0.7777777777777778)
+_DOP853_DENSE_A = (
+    (0.056167502283047954, 0.0, 0.0, 0.0, 0.0, 0.0, 0.25350021021662483, -0.2462390374708025, -0.12419142326381637, 0.15329179827876568, 0.00820105229563469, 0.007567897660545699, -0.008298),
+    (0.03183464816350214, 0.0, 0.0, 0.0, 0.0, 0.028300909672366776, 0.053541988307438566, -0.05492374857139099, 0.0, 0.0, -0.00010834732869724932, 0.0003825710908356584, -0.00034046500868740456, 0.1413124436746325),
+    (-0.42889630158379194, 0.0, 0.0, 0.0, 0.0, -4.697621415361164, 7.683421196062599, 4.06898981839711, 0.3567271874552811, 0.0, 0.0, 0.0, -0.0013990241651590145, 2.9475147891527724, -9.15095847217987),
+)
+_DOP853_DENSE_D = (
+    (-8.428938276109013, 0.0, 0.0, 0.0, 0.0, 0.5667149535193777, -3.0689499459498917, 2.38466765651207, 2.117034582445028, -0.871391583777973, 2.2404374302607883, 0.6315787787694688, -0.08899033645133331, 18.148505520854727, -9.194632392478356, -4.436036387594894),
+    (10.427508642579134, 0.0, 0.0, 0.0, 0.0, 242.28349177525817, 165.20045171727028, -374.5467547226902, -22.113666853125306, 7.733432668472264, -30.674084731089398, -9.332130526430229, 15.697238121770845, -31.139403219565178, -9.35292435884448, 35.81684148639408),
+    (19.985053242002433, 0.0, 0.0, 0.0, 0.0, -387.0373087493518, -189.17813819516758, 527.8081592054236, -11.57390253995963, 6.8812326946963, -1.0006050966910838, 0.7777137798053443, -2.778205752353508, -60.19669523126412, 84.32040550667716, 11.99229113618279),
+    (-25.69393346270375, 0.0, 0.0, 0.0, 0.0, -154.18974869023643, -231.5293791760455, 357.6391179106141, 93.40532418362432, -37.45832313645163, 104.0996495089623, 29.8402934266605, -43.53345659001114, 96.32455395918828, -39.17726167561544, -149.72683625798564),
+)
+
+
+def _dop853_dense_b() -> tuple:
+    """The rows ``F_0 .. F_6`` above as weights of the 16 stages."""
+    b = np.concatenate([_DOP853_B, np.zeros(3)])
+    k1, k13 = np.eye(16)[0], np.eye(16)[12]
+    rows = [b, k1 - b, 2 * b - (k1 + k13)] + [np.asarray(r) for r in _DOP853_DENSE_D]
+    return tuple(tuple(float(x) for x in row) for row in rows)
+
+
 DOP853 = ButcherTableau(
     "DOP853",
     c=_DOP853_C,
@@ -206,6 +280,10 @@ DOP853 = ButcherTableau(
     fsal=True,
     # Near-axis batches of four bodies (T = 10 s) measured error/tol of 13 to 30.
     tolerance_calibration=1 / 3,
+    dense_c=_DOP853_DENSE_C,
+    dense_a=_DOP853_DENSE_A,
+    dense_b=_dop853_dense_b(),
+    dense_order=7,
 )
 
 

@@ -30,7 +30,9 @@ def test_record_holds_the_solve_and_its_diagnostics():
     np.testing.assert_array_equal(np.asarray(sol.R), np.asarray(plain.R))
     record = sim.record()
     assert set(record) == {"ts", "R", "quaternion", "omega", "L", "inertia", "omega0", "R0", "t1", "solver", "scene", "y",
-                           "invariant_energy", "invariant_abs_L"}
+                           "invariant_energy", "invariant_abs_L", "event_flip"}
+    # The flip event of an asymmetric body (none in 0.5 s).
+    assert [name for name, _ in sim.scene.events] == ["flip"] and record["event_flip"].shape == (0,)
     # The quaternions are those of R (against SciPy, w >= 0).
     from scipy.spatial.transform import Rotation
 
@@ -62,12 +64,17 @@ def test_summary_reports_steps_drifts_and_the_flip_interval():
     assert lines[4] == f"  max ||R^T R - I||: {d.orthogonality:.2e}"
     tau = float(lierk.exact.flip_interval(sim.scene.problem.inertia, [1.0, 0.05, 0.3]))
     assert sim.flip_interval == tau and lines[5] == f"  intermediate-axis flip interval (exact): {tau:.3f} s"
-    assert len(lines) == 6
+    assert lines[6] == "  event flip: none" and len(lines) == 7
     # Spin about the largest axis: it never flips.
     stable = simulate(_scene(omega=(0.05, 0.0, 1.0)))
     assert stable.flip_interval == np.inf
-    assert stable.summary().splitlines()[-1] == (
+    assert stable.summary().splitlines()[-2] == (
         "  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+    # Long enough to flip (the report's case a): the flip event's times.
+    flips = simulate(_scene(omega=(1.0, 0.05, 0.0), t1=40.0, save_every=100))
+    times = flips.event_times["flip"]
+    assert flips.summary().splitlines()[-1] == f"  event flip: 2 at t = {times[0]:.6g}, {times[1]:.6g} s"
+    assert abs(times[1] - times[0] - 23.6307) < 1e-3
 
 
 def test_summary_with_effects_and_with_a_target_error():
@@ -75,7 +82,8 @@ def test_summary_with_effects_and_with_a_target_error():
     assert damped.flip_interval is None
     lines = damped.summary().splitlines()
     assert lines[2].startswith("  max relative change of energy: ") and lines[2].endswith("  (not conserved by this scene)")
-    assert lines[-1].startswith("  max ||R^T R - I||: ")  # no flip line for a body with effects
+    # No exact flip interval for a body with effects; the flip event's line.
+    assert lines[-2].startswith("  max ||R^T R - I||: ") and lines[-1] == "  event flip: none"
     scene = _scene().with_target_error(1e-6)
     sim = simulate(scene)
     record = sim.record()

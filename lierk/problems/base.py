@@ -126,7 +126,7 @@ class AbstractRigidBody(AbstractProblem):
     restarts from another ``m0``; `_momentum_state` is the ``y`` that goes with
     a new momentum.  Everything else is written once, here:
 
-    - `omega0`, `with_omega0` and `torque_free`;
+    - `body_momentum`, `omega0`, `with_omega0` and `torque_free`;
     - the splitting interface: `drift` (the exact torque-free flow), `kick`
       (the torques' flow), `kick_reads_momentum` and `closed_form_drift`;
     - `invariants` and `conserved`.
@@ -146,6 +146,12 @@ class AbstractRigidBody(AbstractProblem):
 
     def _with_initial_momentum(self, m0: Array) -> "AbstractRigidBody":
         raise NotImplementedError
+
+    def body_momentum(self, R: Array, y: Any) -> Array:
+        """The body angular momentum ``m`` (kg m^2/s, body frame) ``(..., 3)``
+        at attitudes ``R`` ``(..., 3, 3)`` and states ``y``, wherever this
+        body keeps it (``y`` itself, or ``R^T L``)."""
+        return self._body_momenta(R, y)
 
     @property
     def omega0(self) -> Array:

@@ -8,6 +8,8 @@ import equinox as eqx
 import jax
 from jax import Array
 
+from .. import interpolation
+
 
 class Step(NamedTuple):
     """The outcome of one step from ``(t, R, y)`` with step size ``h``.
@@ -45,6 +47,23 @@ class AbstractSolver(eqx.Module):
 
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
+
+    def dense_node(self, problem, t: Array, R: Array, y: Any) -> Any:
+        """What `dense_step` needs to know about the point a step starts
+        from, computed once per point (the end of one step is the start of
+        the next): here `lierk.interpolation.node`, the field and its rate."""
+        return interpolation.node(problem, t, R, y)
+
+    def dense_step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None, node: Any = None):
+        """`step`, and the step's interpolant for dense output and events:
+        ``(Step, (F_u, F_y), node)``, with the coefficients of
+        `lierk.interpolation` and ``node`` the `dense_node` of the new point.
+        Here a quintic Hermite interpolant from the ends of the step
+        (`lierk.interpolation.hermite`); a tableau with a continuous extension
+        uses that instead (`lierk.AbstractRKMK`)."""
+        st = self.step(problem, t, h, R, y, fsal)
+        node1 = interpolation.node(problem, t + h, st.R, st.y)
+        return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
 
     def error_norm(self, error: tuple, norm) -> Array:
         """One scaled error norm from `Step.error`, with ``norm(e_u, e_y)``

@@ -71,8 +71,10 @@ class AbstractRKMK(AbstractSolver):
     def error_order(self):  # type: ignore[override]
         return self.tableau.error_order
 
-    def step(self, problem, t, h, R, y, fsal=None):
-        tab = self.tableau
+    def _stages(self, problem, t, h, R, y, fsal, c, a):
+        """The stage slopes for nodes ``c`` and rows ``a``: ``(ks, unravel,
+        (omega, ydot))``, each ``ks[i]`` the flat ``(k_i, ydot_i)`` of one
+        stage and ``(omega, ydot)`` the last stage's field."""
         base = problem.base(t, R, y)
         # Each stage's algebra slope and y slope are kept as one flat vector,
         # so every stage sum (for u and y together) is a single small matrix
@@ -82,27 +84,58 @@ class AbstractRKMK(AbstractSolver):
         ks = []
         unravel = None
         omega = ydot = None
-        for i in range(tab.stages):
+        for i in range(len(c)):
             if i == 0:
                 omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
                 k = omega
             else:
-                (du,) = _stage_sums(h, [tab.a[i]], ks)
+                (du,) = _stage_sums(h, [a[i]], ks)
                 u, dy = unravel(du)
                 yi = _add(y, dy)
                 # One evaluation per stage serves the effects' rotations and dexpinv.
                 coefficients = so3.exp_coefficients(so3._sq(u))
-                omega, ydot = problem.local(base, t + tab.c[i] * h, u, yi, coefficients)
+                omega, ydot = problem.local(base, t + c[i] * h, u, yi, coefficients)
                 k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
             flat, unravel = ravel_pytree((k, ydot))
             ks.append(flat)
+        return ks, unravel, (omega, ydot)
+
+    def _step(self, problem, t, h, R, y, fsal):
+        tab = self.tableau
+        ks, unravel, last = self._stages(problem, t, h, R, y, fsal, tab.c, tab.a)
         rows = [r for r in (tab.b, tab.b_error, tab.b_error3) if r is not None]
         sums = [unravel(x) for x in _stage_sums(h, rows, ks)]
         u1, dy1 = sums[0]
         y1 = _add(y, dy1)
         error = None if tab.b_error is None else tuple(tuple(e) for e in sums[1:])
-        return Step(so3.right_exp(R, u1), y1, error, (omega, ydot) if tab.fsal else None)
+        return Step(so3.right_exp(R, u1), y1, error, last if tab.fsal else None), ks, unravel
 
+    def step(self, problem, t, h, R, y, fsal=None):
+        return self._step(problem, t, h, R, y, fsal)[0]
+
+    def dense_node(self, problem, t, R, y):
+        return None if self.tableau.dense else super().dense_node(problem, t, R, y)
+
+    def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
+        tab = self.tableau
+        if not tab.dense:
+            return super().dense_step(problem, t, h, R, y, fsal, node)
+        st, ks, unravel = self._step(problem, t, h, R, y, fsal)
+        # The extension's extra stages continue the same RKMK stages (the
+        # ODE for u at R_n), after the tableau's own.
+        s = tab.stages
+        c = tab.c + tab.dense_c
+        a = tab.a + tab.dense_a
+        base = problem.base(t, R, y)
+        for i in range(s, len(c)):
+            (du,) = _stage_sums(h, [a[i]], ks)
+            u, dy = unravel(du)
+            coefficients = so3.exp_coefficients(so3._sq(u))
+            omega, ydot = problem.local(base, t + c[i] * h, u, _add(y, dy), coefficients)
+            ks.append(ravel_pytree((so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients), ydot))[0])
+        F = jnp.stack(_stage_sums(h, list(tab.dense_b), ks))
+        Fu, Fy = jax.vmap(unravel)(F)
+        return st, (Fu, Fy), None
 
     def error_norm(self, error, norm):
         if len(error) == 1:
