@@ -1,6 +1,6 @@
-"""Work-precision with torques: heavy tops and a damped satellite, lierk against diffrax, MuJoCo and SciPy.
+"""Work-precision with torques: heavy tops and satellites, lierk against diffrax, MuJoCo and SciPy.
 
-Four families of scenes, each a batch of bodies (256; ``--quick``: 8) with
+Five families of scenes, each a batch of bodies (256; ``--quick``: 8) with
 initial conditions drawn from a fixed seed, in float64 and SI units (kg m^2,
 kg, m, m/s^2, N m, N m s, rad/s, s).  Inertias are about the point the body
 turns about: the pivot for the tops (`lierk.effects.Gravity`'s convention),
@@ -17,6 +17,12 @@ the centre of mass for the satellite.  ``R`` maps body -> space, space z up.
 - ``satellite``: I = diag(310, 420, 560), no gravity, `Damping` c = 6 N m s,
   `BodyTorque` (1.5, -1, 2) N m, `SpaceTorque` (-1, 2, 1) N m; omega0 uniform
   in direction with |omega0| ~ U(0.1, 1); R0 uniform; T = 60 s.
+- ``spacecraft``: I = diag(10, 14, 6) in a circular orbit at n = 0.0011
+  rad/s: `GravityGradient`, a constant `Rotor` (0, 0.3, 0) kg m^2/s and a
+  B-dot `MagneticTorque` (gain 1e7 A m^2 s/T) in Earth's dipole field tilted
+  1.1 rad from the orbit normal; omega0 uniform in direction with |omega0| ~
+  U(0.02, 0.1); R0 uniform; T = 320 s.  MuJoCo has no model of these
+  effects and sits it out.
 
 Programs, every one on both cores:
 
@@ -153,6 +159,13 @@ class Family:
     tau_b: tuple = (0.0, 0.0, 0.0)  # body-frame torque (N m)
     tau_s: tuple = (0.0, 0.0, 0.0)  # space-frame torque (N m)
     speed: tuple | None = None
+    # spacecraft (lierk.problems.spacecraft): circular orbit rate (rad/s) for
+    # the gravity gradient and the dipole field, a constant rotor momentum
+    # (kg m^2/s, body frame), the B-dot gain (A m^2 s/T) and the field's tilt
+    orbit_n: float = 0.0
+    rotor: tuple = (0.0, 0.0, 0.0)
+    bdot: float = 0.0
+    field_tilt: float = 1.1
     # step sizes (s), each dividing T
     dts4: tuple = ()  # RKMK4, CF4, MuJoCo RK4, Strang, Yoshida4, BlanesMoan4
     # RKMK(DOP853), the order-6 splittings and BlanesMoanRKN4 (order 4, but as
@@ -173,13 +186,34 @@ class Family:
             out.append(lierk.BodyTorque(jnp.asarray(self.tau_b)))
         if any(self.tau_s):
             out.append(lierk.SpaceTorque(jnp.asarray(self.tau_s)))
+        if self.orbit_n:
+            out.append(lierk.GravityGradient(np.diag(self.inertia), mean_motion=self.orbit_n))
+        if any(self.rotor):
+            out.append(lierk.Rotor(np.asarray(self.rotor)))
+        if self.bdot:
+            out.append(lierk.MagneticTorque(lierk.dipole_field(self.orbit_n, tilt=self.field_tilt), bdot_gain=self.bdot))
         return tuple(out)
 
-    def torque(self, xp, R, omega):
+    @property
+    def spacecraft(self) -> bool:
+        """Orbit effects: MuJoCo has no model of them, so it sits this family out."""
+        return bool(self.orbit_n)
+
+    def torque(self, xp, R, omega, t=0.0):
         """Body-frame torque (N m), written out for the peers (``xp``: numpy or jax.numpy)."""
         tau = -self.c * omega + xp.asarray(self.tau_b) + R.T @ xp.asarray(self.tau_s)
         if self.gravity:
             tau = tau + self.mass * self.g * xp.cross(R[2], xp.asarray(self.chi))
+        if self.orbit_n:
+            n = self.orbit_n
+            u = xp.stack([xp.cos(n * t), xp.sin(n * t), 0.0 * t])  # unit position, orbit in space x-y
+            ub = R.T @ u
+            tau = tau + 3 * n**2 * xp.cross(ub, xp.asarray(self.inertia) * ub)
+            # Earth's dipole along the orbit: B = B0 (R_E/a)^3 (3 (d.u) u - d).
+            a = (3.986004418e14 / n**2) ** (1 / 3)
+            d = -np.array([np.sin(self.field_tilt), 0.0, np.cos(self.field_tilt)])
+            B = R.T @ (3.12e-5 * (6.371e6 / a) ** 3 * (3 * (xp.asarray(d) @ u) * u - xp.asarray(d)))
+            tau = tau + xp.cross(xp.asarray(self.rotor), omega) + self.bdot * xp.cross(xp.cross(omega, B), B)
         return tau
 
     def initial(self, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -212,6 +246,9 @@ class Family:
             "damping_N_m_s": self.c,
             "body_torque_N_m": list(self.tau_b),
             "space_torque_N_m": list(self.tau_s),
+            "orbit_mean_motion_rad_s": self.orbit_n,
+            "rotor_momentum_kg_m2_s": list(self.rotor),
+            "bdot_gain_A_m2_s_T": self.bdot,
             "omega0_rad_s": (
                 f"body axes ~ U{tuple(self.omega)}" if self.omega else f"uniform direction, |omega| ~ U{self.speed}"
             ),
@@ -243,6 +280,12 @@ FAMILIES = [
         inertia=(310.0, 420.0, 560.0), omega=None, speed=(0.1, 1.0), tilt=None,
         c=6.0, tau_b=(1.5, -1.0, 2.0), tau_s=(-1.0, 2.0, 1.0),
         dts4=(0.8, 0.4, 0.2, 0.1, 0.05, 0.025), dts8=(2.0, 1.0, 0.5, 0.25, 0.125),
+    ),
+    Family(
+        "spacecraft", "satellite in orbit: gravity gradient, pitch rotor, B-dot", 320.0,
+        inertia=(10.0, 14.0, 6.0), omega=None, speed=(0.02, 0.1), tilt=None,
+        orbit_n=0.0011, rotor=(0.0, 0.3, 0.0), bdot=1e7,
+        dts4=(8.0, 4.0, 2.0, 1.0, 0.5, 0.25), dts8=(32.0, 16.0, 8.0, 4.0, 2.0),
     ),
 ]
 # Tolerances (rtol = atol): every decade for the eighth-order pairs, the contenders;
@@ -300,7 +343,7 @@ def twelve_component_field(fam: Family, xp):
         m, R = y[:3], y[3:].reshape(3, 3)
         w = I_inv * m
         W = xp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        return xp.concatenate([xp.cross(m, w) + fam.torque(xp, R, w), (R @ W).ravel()])
+        return xp.concatenate([xp.cross(m, w) + fam.torque(xp, R, w, t), (R @ W).ravel()])
 
     return f
 
@@ -533,11 +576,11 @@ def run_family(fam: Family) -> dict:
     # lierk's fixed-step programs are measured, so the peer's are too.
     fixed("diffrax Dopri8 fixed", diffrax.Dopri8(), sweep(fam.dts8, 1), program="diffrax")
 
-    check = mujoco_check(fam, omegas_np[0], R0_np[0])
+    check = mujoco_check(fam, omegas_np[0], R0_np[0]) if not fam.spacecraft else "no orbit effects in MuJoCo: not run"
     print(f"  MuJoCo check against lierk at dt 1e-4: {check}", flush=True)
     # The finest dt is left out for MuJoCo (it is the slowest program per step
     # and its finest point would take a quarter of the whole run).
-    for dt in sweep(fam.dts4[:-1]):
+    for dt in sweep(fam.dts4[:-1]) if not fam.spacecraft else ():
         go, model = mujoco_runner(fam, omegas_np, R0_np, dt)
         final, s, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
         R, _, t_end = mujoco_final(model, final)
@@ -565,7 +608,7 @@ def run_family(fam: Family) -> dict:
         "reference_vs_scipy_dop853": dict(zip(map(str, CHECK_IDS), check_scipy)),
         "reference_agreement": agreement,
         "mujoco_check": check,
-        "mujoco_model": mujoco_xml(fam, fam.dts4[0]),
+        "mujoco_model": mujoco_xml(fam, fam.dts4[0]) if not fam.spacecraft else None,
         "splitting_skipped": skipped,
         "runtime_s": total,
         "records": records,
@@ -658,11 +701,13 @@ def write_markdown(p):
             f"Reference {f['reference']} ({f['reference_s']:.1f} s with compilation); |ref - diffrax Dopri8 at the same tolerance| "
             f"= {f['reference_vs_diffrax_dopri8']:.1e} (batch max), |ref - SciPy DOP853 at {SCIPY_CHECK_TOL:.1e}| = "
             + ", ".join(f"{v:.1e}" for v in f["reference_vs_scipy_dop853"].values())
-            + f" (members {', '.join(f['reference_vs_scipy_dop853'])}). MuJoCo against lierk at dt 1e-4 over "
-            f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, |qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
-            + (f"; with the motors' torque read as a space-frame torque instead: {c['R_error_if_motor_torque_were_space_frame']:.1e}"
-               if "R_error_if_motor_torque_were_space_frame" in c else "")
-            + "."
+            + f" (members {', '.join(f['reference_vs_scipy_dop853'])}). "
+            + (f"MuJoCo: {c}." if isinstance(c, str) else (
+                f"MuJoCo against lierk at dt 1e-4 over "
+                f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, |qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
+                + (f"; with the motors' torque read as a space-frame torque instead: {c['R_error_if_motor_torque_were_space_frame']:.1e}"
+                   if "R_error_if_motor_torque_were_space_frame" in c else "")
+                + "."))
             + (f" Splitting solvers not run: {f['splitting_skipped']}." if f["splitting_skipped"] else ""),
             "",
             "| error <= | " + " | ".join(h for _, h in PROGRAMS) + " | lierk / best peer |",
