@@ -406,7 +406,6 @@ def _adaptive_loop(
     problem) makes the loop take those decisions instead of its own."""
     R0, y0 = problem.R0, problem.y0
     ctrl_state, h0, f0 = controller.init(problem, solver, t0, t1, dt0, floor_eps)
-    izero = jnp.asarray(0, dtype=jnp.int32)
     ts_req = None if saveat.ts is None else jnp.asarray(saveat.ts, dtype=R0.dtype)
 
     # Reverse mode through the checkpointed loop recomputes the steps between
@@ -435,30 +434,7 @@ def _adaptive_loop(
 
     # Dense output and events build every step's interpolant.
     tracked = saveat.dense or bool(events)
-    ev0 = event_lib.init(events, t0, R0, y0) if events else None
-    node0 = solver.dense_node(problem, t0, R0, y0) if tracked else None
-    dense0 = _dense_init(problem, solver, t0, dt0 if dt0 is not None else h0, node0, max_steps) if saveat.dense else None
-    init = _Carry(
-        t=t0,
-        h=h0,
-        R=R0,
-        y=y0,
-        f=f0,
-        num_steps=izero,
-        num_accepted=izero,
-        num_rejected=izero,
-        rejected_last=jnp.asarray(False),
-        done=(t1 <= t0) if ev0 is None else (t1 <= t0) | ev0.nan,
-        result=jnp.asarray(RESULTS.successful, jnp.int32)
-        if ev0 is None
-        else jnp.where(ev0.nan, RESULTS.event_condition_nan, RESULTS.successful).astype(jnp.int32),
-        save_index=izero,
-        saved=_save_init(saveat, t0, R0, y0, max_steps),
-        decisions=decisions,
-        node=node0,
-        ev=ev0,
-        dense=dense0,
-    )
+    init = _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat, max_steps, decisions, events, tracked)
 
     def cond(c: _Carry):
         return ~c.done
@@ -482,17 +458,7 @@ def _adaptive_loop(
             ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=c.h, clipped=clipped, t1=t1, y=c.y,
             f=c.f, rejected_last=c.rejected_last,
         )
-        accept = d.accept
-        h_out = jax.lax.stop_gradient(jnp.where(d.stuck, h, d.h_next))
-        decisions = c.decisions
-        if record or replay is not None:
-            # c.num_steps < max_steps inside the loop: one slot per attempt.
-            recorded = (decisions if replay is None else replay)[c.num_steps]
-            known = ~jnp.isnan(recorded)
-            accept = jnp.where(known, ~jnp.signbit(recorded), accept)
-            h_out = jnp.where(known, jnp.abs(recorded), h_out)
-        if record:
-            decisions = decisions.at[c.num_steps].set(jnp.where(accept, h_out, -h_out))
+        accept, h_out, decisions = _decide(c, d, h, record, replay)
 
         def pick(a, b):
             return jax.tree_util.tree_map(lambda x, z: jnp.where(accept, x, z), a, b)
@@ -501,11 +467,7 @@ def _adaptive_loop(
         t_end, R_end, y_end = t_new, st.R, st.y
         ev, stopped, nan = c.ev, jnp.asarray(False), jnp.asarray(False)
         if events:
-            ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y, Fu, Fy), st.R, st.y, accept)
-            stopped, nan = stop.stop, ev.nan
-            t_end = jnp.where(stopped, stop.t, t_new)
-            R_end = jnp.where(stopped, stop.R, st.R)
-            y_end = jax.tree_util.tree_map(lambda a, b: jnp.where(stopped, a, b), stop.y, st.y)
+            ev, stopped, nan, (t_end, R_end, y_end) = _events_in_step(events, c, (h, Fu, Fy), st, t_new, accept)
         dense = c.dense
         if saveat.dense:
             dense = _dense_update(c.dense, c.num_accepted, accept, (c.t, h, c.R, c.y, Fu, Fy))
@@ -551,13 +513,81 @@ def _adaptive_loop(
         checkpoints=adjoint.checkpoints,
         buffers=(lambda c: c.decisions) if record and adjoint.kind == "checkpointed" else None,
     )
+    return _adaptive_solution(final, solver, saveat, t0, (R0, y0), ts_req, max_steps, events, f0, dt0), final.decisions
+
+
+def _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat: SaveAt, max_steps: int, decisions, events, tracked) -> _Carry:
+    """The adaptive loop's first carry: at ``t0``, the first step ``h0`` and
+    field ``f0`` (the controller's), empty buffers."""
+    R0, y0 = problem.R0, problem.y0
+    izero = jnp.asarray(0, dtype=jnp.int32)
+    ev0 = event_lib.init(events, t0, R0, y0) if events else None
+    node0 = solver.dense_node(problem, t0, R0, y0) if tracked else None
+    dense0 = _dense_init(problem, solver, t0, dt0 if dt0 is not None else h0, node0, max_steps) if saveat.dense else None
+    return _Carry(
+        t=t0,
+        h=h0,
+        R=R0,
+        y=y0,
+        f=f0,
+        num_steps=izero,
+        num_accepted=izero,
+        num_rejected=izero,
+        rejected_last=jnp.asarray(False),
+        done=(t1 <= t0) if ev0 is None else (t1 <= t0) | ev0.nan,
+        result=jnp.asarray(RESULTS.successful, jnp.int32)
+        if ev0 is None
+        else jnp.where(ev0.nan, RESULTS.event_condition_nan, RESULTS.successful).astype(jnp.int32),
+        save_index=izero,
+        saved=_save_init(saveat, t0, R0, y0, max_steps),
+        decisions=decisions,
+        node=node0,
+        ev=ev0,
+        dense=dense0,
+    )
+
+
+def _decide(c: _Carry, d, h, record: bool, replay):
+    """An attempt's ``(accept, next step, decisions)``: the controller's, or
+    the recorded ones when the loop replays (see `_adaptive_loop`)."""
+    accept = d.accept
+    h_out = jax.lax.stop_gradient(jnp.where(d.stuck, h, d.h_next))
+    decisions = c.decisions
+    if record or replay is not None:
+        # c.num_steps < max_steps inside the loop: one slot per attempt.
+        recorded = (decisions if replay is None else replay)[c.num_steps]
+        known = ~jnp.isnan(recorded)
+        accept = jnp.where(known, ~jnp.signbit(recorded), accept)
+        h_out = jnp.where(known, jnp.abs(recorded), h_out)
+    if record:
+        decisions = decisions.at[c.num_steps].set(jnp.where(accept, h_out, -h_out))
+    return accept, h_out, decisions
+
+
+def _events_in_step(events, c: _Carry, slopes, st, t_new, accept):
+    """The events of one attempt: ``(event state, stopped, NaN condition,
+    (t, R, y) where the step ends)``, the stop of a terminating event or the
+    step's end."""
+    h, Fu, Fy = slopes
+    ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y, Fu, Fy), st.R, st.y, accept)
+    stopped = stop.stop
+    end = (
+        jnp.where(stopped, stop.t, t_new),
+        jnp.where(stopped, stop.R, st.R),
+        jax.tree_util.tree_map(lambda a, b: jnp.where(stopped, a, b), stop.y, st.y),
+    )
+    return ev, stopped, ev.nan, end
+
+
+def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req, max_steps: int, events, f0, dt0) -> Solution:
+    """The `Solution` from the adaptive loop's final carry."""
     finite = validation.all_finite((final.R, final.y))
     result = jnp.where(
         final.done & finite, final.result, jnp.where(finite, RESULTS.max_steps_reached, RESULTS.nonfinite)
     ).astype(jnp.int32)
     middle = None if final.saved is None else (final.saved[0], (final.saved[1], final.saved[2]))
     end = (final.t, (final.R, final.y)) if saveat.t1 and not saveat.steps else None
-    ts, R, y, n_saved = _assemble(saveat, t0, (R0, y0), middle, end)
+    ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
     # Rows of the buffers that were never written.
     if saveat.steps:
         n_saved = n_saved - (max_steps - final.save_index)
@@ -567,9 +597,8 @@ def _adaptive_loop(
     if saveat.dense:
         interpolation = DenseInterpolation(*final.dense, t0=t0, t1=final.t, n=final.num_accepted)
     records = event_lib.records(events, final.ev) if events else None
-    n_saved = jnp.asarray(n_saved)
     stats = _adaptive_stats(solver, final, f0, dt0)
-    return Solution(ts, R, y, n_saved, stats, result, interpolation=interpolation, events=records), final.decisions
+    return Solution(ts, R, y, jnp.asarray(n_saved), stats, result, interpolation=interpolation, events=records)
 
 
 def _adaptive_stats(solver, final: _Carry, f0, dt0) -> dict[str, Array]:
