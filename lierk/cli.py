@@ -192,14 +192,15 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
     from . import plot
     from .exact import flip_times
 
-    scene, sol, problem = sim.scene, sim.solution, sim.scene.problem
+    scene, sol, problem, diag = sim.scene, sim.solution, sim.scene.problem, sim.diagnostics
     stem, settings = scene.file_stem, scene.describe_run(sol)
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     np.savez(tmp / f"{stem}.npz", **sim.record())
     figures = {
         "components": plot.components(sol, title, flips=flip_times(problem, sol)),
-        "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention),
-        "invariants": plot.invariants(sol, problem, title),
+        "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention,
+                                   angles=diag.euler_angles),
+        "invariants": plot.invariants(sol, problem, title, quantities=diag.invariants),
     }
     names = [f"{stem}.npz"]
     for what, fig in figures.items():

@@ -16,6 +16,7 @@ import warnings
 from pathlib import Path
 from typing import Any, Sequence
 
+import jax
 import numpy as np
 from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
@@ -37,10 +38,16 @@ def trajectory(sol) -> tuple[np.ndarray, np.ndarray, Any]:
     if ts.ndim != 1:
         raise ValueError(f"plotting needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
     n = int(np.asarray(sol.n_saved))
-    import jax
-
     y = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], sol.y)
     return ts[:n], np.asarray(sol.R)[:n], y
+
+
+def _to_euler(R, convention: str) -> np.ndarray:
+    """`lierk.so3.to_euler` of ``R`` ``(n, 3, 3)`` in one compiled program."""
+    return np.asarray(_to_euler_program(R, convention))
+
+
+_to_euler_program = jax.jit(so3.to_euler, static_argnums=1)
 
 
 def _figure(figsize, title: str | None) -> Figure:
@@ -82,7 +89,8 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None)
 
 
 def euler_angles(
-    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5)
+    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5),
+    angles=None,
 ) -> Figure:
     """Euler angles (`lierk.so3.to_euler`) against time, one panel each.
 
@@ -90,10 +98,13 @@ def euler_angles(
     ``"zxz"``, the classical angles of a top ``R = Rz(phi) Rx(theta) Rz(psi)``:
     precession, nutation and spin, so a top's precession and nutation show
     apart from its spin.  ``phi`` and ``psi`` are unwrapped so a steady spin
-    shows as a ramp rather than a saw-tooth."""
+    shows as a ramp rather than a saw-tooth.  ``angles``: the ``(n, 3)``
+    angles if already computed (`lierk.diagnostics.Diagnostics.euler_angles`
+    in ``convention``), else they are computed here."""
     ts, R, _ = trajectory(sol)
-    angles = np.asarray(so3.to_euler(R, convention)).reshape(-1, 3)
-    angles = np.unwrap(angles, axis=0)
+    if angles is None:
+        angles = _to_euler(R, convention)
+    angles = np.unwrap(np.asarray(angles).reshape(-1, 3), axis=0)
     unit = "deg" if degrees else "rad"
     if degrees:
         angles = np.degrees(angles)
@@ -113,7 +124,7 @@ def euler_angles(
     return fig
 
 
-def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5)) -> Figure:
+def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5), quantities=None) -> Figure:
     """The quantities of ``problem.invariants(R, y)`` (energy and ``|L|`` for
     the free body) against time.
 
@@ -122,11 +133,15 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5)) -
     ``(Q(t) - Q(0)) / |Q(0)|`` on a symmetric-log axis whose linear band is the
     dtype's machine epsilon: round-off sits inside the band, drift shows on log
     scale with its sign.  The others (e.g. energy under damping) get a second
-    panel with the ratio ``Q(t) / Q(0)`` on a linear axis."""
+    panel with the ratio ``Q(t) / Q(0)`` on a linear axis.  ``quantities``:
+    the invariants if already computed (`lierk.diagnostics.Diagnostics.invariants`),
+    else they are computed here."""
     ts, R, y = trajectory(sol)
-    import jax.numpy as jnp
+    if quantities is None:
+        from .diagnostics import diagnostics
 
-    quantities = {k: np.asarray(v).reshape(len(ts), -1) for k, v in problem.invariants(jnp.asarray(R), y).items()}
+        quantities = diagnostics(problem, sol).invariants
+    quantities = {k: np.asarray(v).reshape(len(ts), -1) for k, v in quantities.items()}
     conserved = problem.conserved() if hasattr(problem, "conserved") else tuple(quantities)
     kept = {k: v for k, v in quantities.items() if k in conserved}
     other = {k: v for k, v in quantities.items() if k not in conserved}

@@ -7,12 +7,12 @@ import math
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._progress import Progress
 from .solution import RESULTS, SaveAt, Solution
 from .solve import num_steps, solve
+from .validation import as_jax
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -82,17 +82,19 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
             ta = float(group[-1])
 
     def arguments(problem, ta, tb, group):
-        args = (problem, jnp.asarray(ta, dtype), jnp.asarray(tb, dtype))
-        return args if group is None else args + (jnp.asarray(group, dtype),)
+        args = (problem, as_jax(ta, dtype), as_jax(tb, dtype))
+        return args if group is None else args + (as_jax(group, dtype),)
 
     with bar.compiling():
         piece = piece.lower(*arguments(problem, *pieces[0])).compile()
 
+    # Host-side bookkeeping is NumPy: an eager jax.numpy operation would
+    # compile a program of its own.
     ts_out, R_out = [np.zeros(1)], [np.asarray(problem.R0)[None]]
     y_out = [jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)]
-    stats, code = None, RESULTS.successful
+    stats, code = {}, RESULTS.successful
     for ta, tb, group in pieces:
-        sol = piece(*arguments(problem, ta, tb, group))
+        sol = jax.device_get(piece(*arguments(problem, ta, tb, group)))
         code = int(sol.result)
         ts = np.asarray(sol.ts)
         # Padding repeats the end state; keep each time once.
@@ -100,10 +102,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         ts_out.append(ts[keep])
         R_out.append(np.asarray(sol.R)[keep])
         y_out.append(jax.tree_util.tree_map(lambda x: np.asarray(x)[keep], sol.y))
-        stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
+        stats = {k: stats.get(k, 0) + int(v) for k, v in sol.stats.items()}
         if _check(code, ta, tb, throw):
             break
-        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
+        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: as_jax(x[-1]), sol.y))
         bar.update(tb)
 
     ts = np.concatenate(ts_out)
@@ -114,12 +116,12 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[: len(ts)]
     y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
     return Solution(
-        ts=jnp.asarray(ts, dtype),
-        R=jnp.asarray(np.concatenate(R_out), dtype),
-        y=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y),
-        n_saved=jnp.asarray(len(ts)),
-        stats={k: int(v) for k, v in stats.items()},
-        result=jnp.asarray(code),
+        ts=as_jax(ts, dtype),
+        R=as_jax(np.concatenate(R_out), dtype),
+        y=jax.tree_util.tree_map(lambda x: as_jax(x, dtype), y),
+        n_saved=as_jax(len(ts)),
+        stats=stats,
+        result=as_jax(code),
     )
 
 

@@ -125,21 +125,23 @@ class AbstractEffect(eqx.Module):
     def conserved(self, inertia: Array) -> tuple[str, ...]:
         """Keys of `invariants` that the body with this effect alone conserves,
         for a body of ``inertia`` ``(3, 3)`` (kg m^2)."""
-        return tuple(self.invariants(jnp.eye(3), jnp.zeros(3)))
+        # Only the keys: traced abstractly, nothing computed or compiled.
+        keys = jax.eval_shape(self.invariants, jax.ShapeDtypeStruct((3, 3), float), jax.ShapeDtypeStruct((3,), float))
+        return tuple(keys)
 
     def _cast(self, dtype) -> "AbstractEffect":
         """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
-        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self)
+        return jax.tree_util.tree_map(lambda x: validation.as_jax(x, dtype) if eqx.is_array(x) else x, self)
 
 
 def _scalar(x, name: str, positive: bool = False) -> Array:
     x = validation.check_scalar(x, name, bound="positive" if positive else "non-negative")
-    return jnp.asarray(x)
+    return validation.as_jax(x)
 
 
 def _vector(x, name: str) -> Array:
-    x = jnp.asarray(x)
-    return validation.check_vector(x, name, x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float))
+    x = validation.asarray(x, name=name)
+    return validation.check_vector(x, name, x.dtype)
 
 
 class Gravity(AbstractEffect):
@@ -319,7 +321,7 @@ class TimedTorque(AbstractEffect):
             times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
         )
         self.fn = None
-        self.times, self.values = jnp.asarray(times, dtype), jnp.asarray(values, dtype)
+        self.times, self.values = validation.as_jax(times, dtype), validation.as_jax(values, dtype)
 
     def at_time(self, t: Array) -> Array:
         """The torque ``(3,)`` (N m) at time ``t`` (s), in the effect's frame."""

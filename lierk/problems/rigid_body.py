@@ -98,8 +98,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
                 raise ValueError(
                     f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, Damping), got {e!r}"
                 )
-        self.inertia, self.inertia_inv, omega0, self.R0 = validation.rigid_body_state(inertia, omega0, R0)
-        self.y0 = self.inertia @ omega0
+        self.inertia, omega0, self.R0 = validation.rigid_body_inputs(inertia, omega0, R0)
+        self.inertia_inv, self.y0 = _inverse_and_momentum(self.inertia, omega0)
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
@@ -244,6 +244,22 @@ class FreeRigidBody(RigidBodyWithEffects):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         super().__init__(inertia, omega0, R0, effects=())
+
+
+def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:
+    """``(I^-1, I omega0)``: one compiled program for concrete values (eager
+    ``jax.numpy`` would compile one per operation), the same operations
+    inline when traced; the same numbers either way."""
+    if validation.is_traced(inertia, omega0):
+        return _inverse_and_momentum_ops(inertia, omega0)
+    return _inverse_and_momentum_jit(inertia, omega0)
+
+
+def _inverse_and_momentum_ops(inertia, omega0):
+    return jnp.linalg.inv(inertia), inertia @ omega0
+
+
+_inverse_and_momentum_jit = jax.jit(_inverse_and_momentum_ops)
 
 
 def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
