@@ -12,7 +12,7 @@ import numpy as np
 from ._progress import Progress
 from .solution import RESULTS, SaveAt, Solution
 from .solve import num_steps, solve
-from .validation import as_jax
+from .validation import as_jax, checked_on_host
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -28,8 +28,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
     bar = Progress(f"{scene.name}: t", t1, "s", quiet=not progress)
 
     if scene.target_error is not None:
-        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=scene.saveat(), throw=False,
-                                                   **scene.solve_kwargs))
+        # The save times are made here, concrete, so they are checked now
+        # rather than by a run-time check in the program.
+        saveat = scene.saveat()
+        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs))
         with bar.compiling():
             run = run.lower(problem).compile()
         sol = jax.block_until_ready(run(problem))
@@ -59,8 +61,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         @eqx.filter_jit
         def piece(problem, ta, tb):
             # Padding steps past tb are exact no-ops, so every piece has the
-            # same static length and compiles once.
-            return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
+            # same static length and compiles once.  The times are this
+            # function's own (finite, increasing): checked on the host.
+            with checked_on_host():
+                return solve(problem, solver, tb, t0=ta, dt=dt, max_steps=per, saveat=SaveAt(steps=every), throw=False)
 
         pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
     else:
@@ -71,7 +75,8 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
 
         @eqx.filter_jit
         def piece(problem, ta, tb, ts):
-            return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
+            with checked_on_host():
+                return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
 
         pieces, ta = [], 0.0
         for k in range(0, len(rest), size):

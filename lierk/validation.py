@@ -10,6 +10,8 @@ cannot be inspected, so the same condition becomes a run-time check with
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import warnings
 from typing import Callable
 
@@ -69,12 +71,34 @@ def is_traced(*xs) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
 
 
+_CHECKED_ON_HOST = contextvars.ContextVar("lierk_checked_on_host", default=False)
+
+
+@contextlib.contextmanager
+def checked_on_host():
+    """Trace a block whose traced inputs the caller has already checked on
+    the host (say, the step times it computed itself): `check` then passes
+    them through instead of adding a run-time check.
+
+    A run-time check is a host callback, and JAX's persistent compilation
+    cache does not keep programs with host callbacks: a program traced in
+    this block can be loaded from the cache in a later process."""
+    token = _CHECKED_ON_HOST.set(True)
+    try:
+        yield
+    finally:
+        _CHECKED_ON_HOST.reset(token)
+
+
 def check(x, ok: Callable, message: str):
     """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
 
     ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
-    the array's own methods).  For traced ``x`` the check is deferred to run time.
+    the array's own methods).  For traced ``x`` the check is deferred to run time
+    (not made at all inside `checked_on_host`).
     """
+    if is_traced(x) and _CHECKED_ON_HOST.get():
+        return x
     if is_traced(x):
         import jax.numpy as jnp
 

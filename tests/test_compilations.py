@@ -14,8 +14,10 @@ from pathlib import Path
 import jax
 import pytest
 
+import lierk
 from lierk import cli
 from lierk.compilations import Compilations, counting
+from lierk.simulation import simulate
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -43,6 +45,32 @@ def test_simulate_compiles_a_handful_of_programs(scene, most, tmp_path):
     assert "jit(piece)" in seen.names
     assert seen.count <= most, f"{seen.count} programs compiled: {seen.names}"
     assert 0 < seen.seconds
+
+
+@pytest.mark.parametrize(
+    "run",
+    [
+        {"solver": "RKMK4", "dt": 0.01, "save_every": 5},
+        {"solver": "DOP853", "rtol": 1e-8, "n_save": 11},
+        {"solver": "RKMK4", "target_error": 1e-6, "n_save": 11},
+    ],
+    ids=["fixed", "adaptive", "target_error"],
+)
+def test_every_program_of_a_simulation_can_be_kept_in_the_cache(run, tmp_path):
+    # A run-time check on a traced value is a host callback, and JAX keeps
+    # no program with one: the solve compiled again in every process.
+    scene = lierk.scene.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
+                                   "run": {**run, "t1": 0.5}})
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.clear_caches()
+    try:
+        with lierk.cache.using_cache() as use:
+            simulate(scene, n_pieces=2)
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
+    assert use.path is not None and use.counts["hits"] + use.counts["misses"] >= 2  # the pieces, the diagnostics
+    assert use.counts["unsaved"] == 0, use.counts
 
 
 def test_seconds_count_nested_phases_once():

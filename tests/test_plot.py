@@ -135,6 +135,27 @@ def test_animation_has_the_requested_frames_and_size(flip, tmp_path):
     assert _changed(first, last) < 0.002
 
 
+@pytest.mark.parametrize("parts", ["tee", "none"])
+def test_blitted_frames_are_the_pixels_of_full_draws(flip, parts):
+    # Each frame draws only what moves over a saved background; a full draw
+    # of the same figure per frame must give the very same pixels (the body
+    # hides the lines behind it, the legend covers what passes under it).
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    problem, sol = flip
+    parts = lierk.inertia.tee_handle_parts() if parts == "tee" else None
+    make = lambda: plot._animation(sol, parts, problem.L, frames=4, title="t", inertia=None, origin=None,  # noqa: E731
+                                   trail=True)
+    blitted = plot._frames(make())
+    full = make()
+    canvas = FigureCanvasAgg(full.fig)
+    for k, frame in enumerate(blitted):
+        full.update(k)
+        canvas.draw()
+        np.testing.assert_array_equal(frame, np.asarray(canvas.buffer_rgba())[..., :3])
+    assert _changed(blitted[0], blitted[-1]) > 0.01
+
+
 def _changed(a, b) -> float:
     """The fraction of pixels whose colour differs visibly (RGB sum > 60)."""
     return float((np.abs(a.astype(int) - b.astype(int)).sum(axis=-1) > 60).mean())
