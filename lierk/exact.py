@@ -249,7 +249,11 @@ def free_rigid_body(
         Landau & Lifshitz, "Mechanics", section 37.
     """
     inertia, omega0, R0 = _validated(inertia, omega0, R0)
-    return _free_motion(inertia, omega0, t, R0)
+    if is_traced(inertia, omega0, t, R0):
+        return _free_motion(inertia, omega0, t, R0)
+    # Concrete values (a reference for a report): one compiled program, not
+    # an eager operation (and a compilation) at a time.
+    return _free_motion_program(inertia, omega0, np.asarray(t, dtype=inertia.dtype), R0)
 
 
 def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
@@ -359,6 +363,9 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
     """`free_rigid_body` on inputs that are already checked."""
     return _free_motion_ad(inertia, omega0, jnp.asarray(t, dtype=inertia.dtype), R0)
+
+
+_free_motion_program = jax.jit(_free_motion)
 
 
 @jax.custom_jvp

@@ -3,6 +3,8 @@
 - `solve_fixed`: a static number of fixed steps through `lax.scan`
   (checkpointed in blocks for reverse mode).  It saves by structure: an outer
   scan over chunks of ``SaveAt(steps=k)`` steps stacks the chunk ends.
+  `solve_fixed_counted` takes the same steps with a traced ``k`` (one
+  compilation for every step size, as `lierk.accuracy` needs).
 - `solve_adaptive`: a while loop driven by a step-size controller
   (`lierk.controller`: `Controller` for embedded pairs, `ConstantStep` for a
   fixed step whose count is not static), differentiated as its adjoint says
@@ -31,7 +33,7 @@ from .adjoint import ForwardMode
 from .controller import AbstractStepController
 from .solution import RESULTS, SaveAt, Solution
 
-__all__ = ["solve_fixed", "solve_adaptive", "num_steps", "step_count", "frozen"]
+__all__ = ["solve_fixed", "solve_fixed_counted", "solve_adaptive", "num_steps", "step_count", "frozen"]
 
 # Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`solve_fixed`).
@@ -106,10 +108,19 @@ def _assemble(saveat: SaveAt, t0, state0, middle, end) -> tuple[Array, Any, Any,
     return jnp.concatenate(ts), R, y, sum(len(t) for t in ts)
 
 
-@eqx.filter_jit
-def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
-    """``n`` (static) fixed steps of ``dt`` from ``t0``, the last shortened to
-    end exactly at ``t1``; steps past ``t1`` are exact no-ops."""
+class _FixedSteps(NamedTuple):
+    """The steps of a fixed-step run (`_fixed_steps`)."""
+
+    one: Any  # the scan body: ((R, y), k, taken) -> (next carry, None)
+    time: Any  # k -> the time (s) at which step k starts (t1 past the end)
+    needed: Array  # steps that reach t1
+    count: Array  # steps taken: needed, at most n
+
+
+def _fixed_steps(problem, solver, t0, t1, dt, n) -> _FixedSteps:
+    """Steps of ``dt`` from ``t0``, at most ``n`` (a Python int, or traced),
+    the last shortened to end exactly at ``t1``; steps past ``t1`` are exact
+    no-ops."""
     # `count` steps reach t1 (the host's `num_steps` when it chose n; fewer
     # when max_steps set n).  Every step but the last is exactly dt, and the
     # last is what remains of t1 - t0: step sizes are not differences of the
@@ -135,6 +146,30 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution
         # Past t1, h = 0 and every solver's step is exactly the identity.
         st = solver.step(problem, time(k), size(k), R, y)
         return ((st.R, st.y), k + 1, taken + (k < count).astype(taken.dtype)), None
+
+    return _FixedSteps(one, time, needed, count)
+
+
+def _fixed_solution(solver, saveat: SaveAt, t0, state0, middle, end, state, taken, needed, n) -> Solution:
+    """The `Solution` of a fixed-step run of at most ``n`` steps that needed
+    ``needed``: what it saved (`_assemble`), its counts, and its result."""
+    ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
+    result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
+    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
+    stats = {
+        "num_steps": taken,
+        "num_accepted_steps": taken,
+        "num_rejected_steps": jnp.zeros_like(taken),
+        "num_fevals": taken * solver.stages,
+    }
+    return Solution(ts, R, y, jnp.asarray(n_saved), stats, result)
+
+
+@eqx.filter_jit
+def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
+    """``n`` (static) fixed steps of ``dt`` from ``t0``, the last shortened to
+    end exactly at ``t1``; steps past ``t1`` are exact no-ops."""
+    one, time, needed, _ = _fixed_steps(problem, solver, t0, t1, dt, n)
 
     # In reverse mode each step keeps only its starting state and is
     # recomputed in the backward pass: saved as they fall out of the step's
@@ -178,16 +213,33 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution
     state, _, taken = carry
     # (The last chunk's end is t1 already when the chunks fill the run.)
     end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
-    ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
-    result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
-    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
-    stats = {
-        "num_steps": taken,
-        "num_accepted_steps": taken,
-        "num_rejected_steps": jnp.zeros_like(taken),
-        "num_fevals": taken * solver.stages,
-    }
-    return Solution(ts, R, y, jnp.asarray(n_saved), stats, result)
+    return _fixed_solution(solver, saveat, t0, state0, middle, end, state, taken, needed, n)
+
+
+@eqx.filter_jit
+def solve_fixed_counted(problem, solver, t0, t1, dt, every, n_saves: int) -> Solution:
+    """`solve_fixed` saving ``t0`` and every ``every``-th step
+    (``SaveAt(t0=True, steps=every)``) with ``every`` traced: ``n_saves``
+    (static) states after ``t0``, at most ``n_saves * every`` steps.
+
+    One compilation serves every step count, and a run costs its own steps
+    (no padding): each save interval is a loop whose trip count is
+    ``every``.  The steps, and so the numbers, are `solve_fixed`'s, and a
+    run takes the same time to within a few percent.  Forward mode only
+    (a loop of traced length cannot be reverse-differentiated).
+    """
+    n = (n_saves * every).astype(dt.dtype)  # (compared with step counts, which are floats)
+    one, time, needed, _ = _fixed_steps(problem, solver, t0, t1, dt, n)
+
+    def chunk(carry, _):
+        carry = jax.lax.fori_loop(0, every, lambda _, c: one(c, None)[0], carry)
+        return carry, carry[0]
+
+    state0 = (problem.R0, problem.y0)
+    carry, saved = jax.lax.scan(chunk, (state0, jnp.asarray(0), jnp.asarray(0)), None, length=n_saves)
+    middle = (time((jnp.arange(n_saves) + 1) * every), saved)
+    state, _, taken = carry
+    return _fixed_solution(solver, SaveAt(t0=True, steps=1), t0, state0, middle, None, state, taken, needed, n)
 
 
 def _save_init(saveat: SaveAt, t0, R0, y0, max_steps: int):
