@@ -78,7 +78,9 @@ class AbstractEffect(eqx.Module):
         return self.torque_from(t, so3.compose(jnp.asarray(S, R.dtype), R), m, omega)
 
     def space_vectors(self) -> Array | None:
-        """The space-frame vectors ``s_j`` ``(k, 3)`` whose body-frame images
+        """The space-frame vectors ``s_j`` ``(k, 3)`` (a NumPy array when they
+        are constants, so that tracing a stage adds no operation to build
+        them) whose body-frame images
         ``R^T s_j`` are all the torque needs of the attitude (``(0, 3)`` for a
         torque that ignores it), or None if it reads ``R`` another way.
 
@@ -184,7 +186,7 @@ class Gravity(AbstractEffect):
         self.g = _scalar(g, "g")
 
     def space_vectors(self):
-        return jnp.eye(3, dtype=self.pivot_to_com.dtype)[2:]  # the vertical e3
+        return np.eye(3, dtype=self.pivot_to_com.dtype)[2:]  # the vertical e3
 
     def torque_from(self, t, v, m, omega):
         # v[0] = Gamma = R^T e3, the vertical in the body frame.
@@ -224,7 +226,7 @@ class BodyTorque(AbstractEffect):
         self.tau = _vector(tau, "tau")
 
     def space_vectors(self):
-        return jnp.zeros((0, 3), self.tau.dtype)
+        return np.zeros((0, 3), self.tau.dtype)
 
     def torque_from(self, t, v, m, omega):
         return self.tau
@@ -330,9 +332,9 @@ class TimedTorque(AbstractEffect):
         return jnp.stack([jnp.interp(t, self.times, self.values[:, j]) for j in range(3)])
 
     def space_vectors(self):
-        dtype = (self.values if self.values is not None else jnp.zeros(())).dtype
+        dtype = self.values.dtype if self.values is not None else jnp.result_type(float)
         # In space frame the whole R^T is needed: the images of e1, e2, e3.
-        return jnp.eye(3, dtype=dtype) if self.frame == "space" else jnp.zeros((0, 3), dtype)
+        return np.eye(3, dtype=dtype) if self.frame == "space" else np.zeros((0, 3), dtype)
 
     def torque_from(self, t, v, m, omega):
         tau = self.at_time(t).astype(m.dtype)
@@ -354,7 +356,7 @@ class Damping(AbstractEffect):
         self.c = _scalar(c, "c")
 
     def space_vectors(self):
-        return jnp.zeros((0, 3), self.c.dtype)
+        return np.zeros((0, 3), self.c.dtype)
 
     def torque_from(self, t, v, m, omega):
         return -self.c * omega

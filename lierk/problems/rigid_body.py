@@ -128,7 +128,10 @@ class RigidBodyWithEffects(AbstractRigidBody):
         vs = [e.space_vectors() for e in self.effects]
         if any(v is None for v in vs):
             return None
-        return jnp.concatenate([jnp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [jnp.zeros((0, 3), self.y0.dtype)])
+        # Constants stay NumPy: every stage asks for them, and jax.numpy would
+        # trace the same constant operations again each time.
+        xp = np if all(isinstance(v, np.ndarray) for v in vs) else jnp
+        return xp.concatenate([xp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.y0.dtype)])
 
     # Stages never need the whole attitude when every effect reads it only
     # through the body images R^T s of a few space-fixed vectors s (gravity's
