@@ -60,6 +60,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -92,6 +93,8 @@ _FIRST_ANGLE = 0.5
 _FIRST_ANGLE_SPLITTING = 32.0
 _DEFAULT_MAX_STEPS = 2**17
 _DEFAULT_MAX_SETTINGS = 10
+# Timed calls of a run stop once at least two have taken this long (s) in all.
+_TIMING_BUDGET = 0.2
 _REFERENCE_RTOL_CAP = 1e-13  # float64; float32 uses 100 eps
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "*")
 
@@ -279,7 +282,8 @@ def work_precision(
         max_steps: bound on the steps of one solve: default fixed steps stay
             within it, and it is the adaptive solves' ``max_steps``.
         n_times: number of saved times, ``>= 2``, including 0 and ``t1``.
-        repeats: timed calls per run (fewer once they take over 0.5 s in all).
+        repeats: timed calls per run (fewer once two of them take over
+            `_TIMING_BUDGET`, 0.2 s, in all).
 
     Returns:
         An `AccuracyReport`, with the number of programs compiled and the
@@ -319,6 +323,8 @@ def work_precision(
     with counting() as compiled:
         bar.update(0)
         programs = _Programs(problem, t1, ts_np, max_steps)
+        reference = [method("DOP853"), method("DP54")] if numerical else []
+        programs.compile(programs.key(m) for m in [*reference, *(m for m, _, _ in plan)])
         rtols = [v for m, values, _ in plan if m.adaptive for v in values]
         ref = _reference(programs, rtols, numerical, tick)
         # Defaults stop once a run is below what the decades (or the reference) can resolve.
@@ -474,7 +480,8 @@ class _Programs:
     """The compiled solves of one `work_precision` call: one program per
     method (and per ``max_steps``), whose times, step or tolerance are traced
     arguments, so every setting, its finer twin (the error estimate) and the
-    reference reuse it."""
+    reference reuse it.  `compile` builds them all first, several at once
+    (XLA compiles outside Python's lock), before anything is timed."""
 
     def __init__(self, problem, t1: float, ts: np.ndarray, max_steps: int):
         from .validation import as_jax
@@ -484,41 +491,65 @@ class _Programs:
         self.ts_np = ts
         self.t0, self.t1, self.ts = as_jax(0.0, dtype), as_jax(t1, dtype), as_jax(ts, dtype)
         self.dtype = dtype
-        self._compiled: dict = {}
+        self._programs: dict = {}  # key -> the jitted function, or once compiled its executable
+        self._compiled: set = set()
 
-    def fixed(self, m: _Method, dt: float, every: int):
-        """``m`` with ``every`` steps of ``dt`` between saved times (`lierk.loops.solve_fixed_counted`,
+    def compile(self, keys) -> None:
+        """Compile the programs of ``keys`` (`_key`) that are not built yet:
+        each traced and lowered in turn, then compiled by up to as many
+        threads as there are cores."""
+        import concurrent.futures
+
+        todo = {k: self._jitted(k).lower(*self._arguments(k, 1.0, 1)) for k in dict.fromkeys(keys)
+                if k not in self._compiled}
+        if not todo:
+            return
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(todo), os.cpu_count() or 1))) as pool:
+            compiled = dict(zip(todo, pool.map(lambda lowered: lowered.compile(), todo.values())))
+        self._programs.update(compiled)
+        self._compiled.update(compiled)
+
+    def key(self, m: _Method, max_steps: int | None = None) -> tuple:
+        """The program ``m`` runs in (adaptive: with ``max_steps``, default the rows')."""
+        if m.adaptive:
+            return (m, "adaptive", self.max_steps if max_steps is None else max_steps)
+        return (m, "fixed", None)
+
+    def run(self, m: _Method, value: float, every: int = 1, max_steps: int | None = None):
+        """A call of ``m``'s program at ``value``: ``rtol = atol`` (adaptive,
+        ``lierk.solve(..., saveat=SaveAt(ts=ts))``), or ``every`` fixed steps
+        of ``value`` between saved times (`lierk.loops.solve_fixed_counted`,
         flagged for invariant drift as `lierk.solve` flags it)."""
-        import equinox as eqx
         import jax
 
-        from .loops import solve_fixed_counted
-        from .solve import _flag_drift
+        key = self.key(m, max_steps)
+        if key not in self._programs:
+            self._programs[key] = self._jitted(key)
+        program, args = self._programs[key], self._arguments(key, value, every)
+        return lambda: jax.block_until_ready(program(*args))
+
+    def _arguments(self, key, value: float, every: int) -> tuple:
         from .validation import as_jax
 
-        key = (m.name, "fixed")
-        if key not in self._compiled:
+        if key[1] == "fixed":
+            return (self.problem, self.t0, self.t1, as_jax(value, self.dtype), as_jax(every))
+        return (self.problem, self.t0, self.t1, self.ts, as_jax(value, self.dtype))
+
+    def _jitted(self, key):
+        import equinox as eqx
+
+        from .loops import solve_fixed_counted
+        from .solution import SaveAt
+        from .solve import _flag_drift, solve
+        from .validation import checked_on_host
+
+        m, kind, steps = key
+        if kind == "fixed":
             n_saves = len(self.ts_np) - 1
 
             def run(problem, t0, t1, dt, every):
                 return _flag_drift(problem, solve_fixed_counted(problem, m.solver, t0, t1, dt, every, n_saves))
-
-            self._compiled[key] = eqx.filter_jit(run)
-        args = (self.problem, self.t0, self.t1, as_jax(dt, self.dtype), as_jax(every))
-        return lambda: jax.block_until_ready(self._compiled[key](*args))
-
-    def adaptive(self, m: _Method, rtol: float, max_steps: int | None = None):
-        """``lierk.solve(problem, m, t1, rtol=rtol, atol=rtol, saveat=SaveAt(ts=ts))``."""
-        import equinox as eqx
-        import jax
-
-        from .solution import SaveAt
-        from .solve import solve
-        from .validation import as_jax, checked_on_host
-
-        steps = self.max_steps if max_steps is None else max_steps
-        key = (m.name, "adaptive", steps)
-        if key not in self._compiled:
+        else:
 
             def run(problem, t0, t1, ts, rtol):
                 # The times and tolerances are this module's own, checked here.
@@ -526,9 +557,7 @@ class _Programs:
                     return solve(problem, m.solver, t1, t0=t0, rtol=rtol, atol=rtol, saveat=SaveAt(ts=ts),
                                  max_steps=steps, throw=False)
 
-            self._compiled[key] = eqx.filter_jit(run)
-        args = (self.problem, self.t0, self.t1, self.ts, as_jax(rtol, self.dtype))
-        return lambda: jax.block_until_ready(self._compiled[key](*args))
+        return eqx.filter_jit(run)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -578,7 +607,7 @@ def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
     # The rows' programs, with their max_steps first, then with more room.
     for steps in (max_steps, 16 * max_steps):
-        ref = programs.adaptive(method("DOP853"), rtol_ref, steps)()
+        ref = programs.run(method("DOP853"), rtol_ref, max_steps=steps)()
         if int(ref.result) == RESULTS.successful:
             break
     if int(ref.result) != RESULTS.successful:
@@ -590,11 +619,11 @@ def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     # Its own error: Richardson's estimate from a solve at rtol / 10, as for the rows.
     from .global_error import TOLERANCE_RATIO
 
-    fine = programs.adaptive(method("DOP853"), rtol_ref / TOLERANCE_RATIO, steps)()
+    fine = programs.run(method("DOP853"), rtol_ref / TOLERANCE_RATIO, max_steps=steps)()
     error = _richardson(ref, fine, TOLERANCE_RATIO)
     tick()
     for steps in (max_steps, 16 * max_steps):
-        chk = programs.adaptive(method("DP54"), rtol_ref, steps)()
+        chk = programs.run(method("DP54"), rtol_ref, max_steps=steps)()
         if int(chk.result) == RESULTS.successful:
             break
     check = f"DP54, rtol = atol = {rtol_ref:.0e}"
@@ -619,15 +648,15 @@ def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
     eps = float(np.finfo(programs.dtype).eps)
     t1 = float(programs.t1)
     if m.adaptive:
-        run = programs.adaptive(m, v)
-        fine, ratio = programs.adaptive(m, v / TOLERANCE_RATIO), TOLERANCE_RATIO
+        run = programs.run(m, v)
+        fine, ratio = programs.run(m, v / TOLERANCE_RATIO), TOLERANCE_RATIO
     else:
         every = max(1, round((ts_np[1] - ts_np[0]) / v))
-        run = programs.fixed(m, v, every)
+        run = programs.run(m, v, every)
         # The finer solve takes 3 steps for every 2, or 2 for 1 when an odd
         # save interval leaves no other common grid (`global_error.estimate_fixed`).
         num, den = (2, 1) if every % 2 else (3, 2)
-        fine, ratio = programs.fixed(m, v * den / num, every * num // den), (num / den) ** m.solver.order
+        fine, ratio = programs.run(m, v * den / num, every * num // den), (num / den) ** m.solver.order
     sol = run()  # compiles; the timed calls follow
     if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
         raise AssertionError(f"{m.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
@@ -635,12 +664,12 @@ def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
     ok = result == RESULTS.successful
     estimate = _richardson(sol, fine(), ratio) if ok else math.nan
     best, spent = math.inf, 0.0
-    for _ in range(max(1, repeats)):
+    for k in range(max(1, repeats)):
         start = time.perf_counter()
         run()
         took = time.perf_counter() - start
         best, spent = min(best, took), spent + took
-        if spent > 0.5:
+        if k >= 1 and spent > _TIMING_BUDGET:
             break
     return Row(
         solver=m.name,
