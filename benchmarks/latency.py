@@ -1,119 +1,165 @@
-"""Time to first result: wall time of the command line, cold and warm.
+"""Time to first result: the command line's wall time, split into import,
+compilation and run, cold and warm.
 
-Each command runs in a fresh process (``python -m lierk.cli`` would measure
-the same; the console script is what users run), with its own compilation
-cache directory (``LIERK_CACHE_DIR``, JAX's own cache settings removed):
+Each command runs in a fresh process (this script with ``--one``, which
+calls ``lierk.cli.main`` as the console script does), with its own
+compilation cache directory (``LIERK_CACHE_DIR``; JAX's own cache settings
+removed), in three states:
 
-- cold: an empty cache (every program compiled), and ``--no-cache``;
+- no cache: ``--no-cache``, every program compiled;
+- cold: an empty cache directory (every program compiled and saved);
 - warm: the same command again, with the cache the cold run filled.
 
-Runs alternate cold and warm, ``--repeats`` times (default 3), and the
-medians are reported with their ratio: on a shared machine only numbers
-measured side by side compare.  The ``lierk simulate`` summary line says how
-many programs were loaded and how many compiled, and the solve's own
-"compiled in" time is read from its progress lines.  Import time (``python
--c "import lierk"``) is measured the same way.
+The process reports its split, and the parent measures the whole:
 
-Run: ``python benchmarks/latency.py [--repeats N] [--out DIR]``; writes
-latency.{json,md} (default benchmarks/results).
+- start: the interpreter starting, up to the first line of the script;
+- import: ``import lierk.cli`` and ``import lierk`` (jax, equinox, ...);
+- compile: the wall time spent tracing, lowering and compiling (or loading
+  from the cache) every program, `lierk.compilations.counting`;
+- run: the rest of the command (parsing the scene, the solves, diagnostics,
+  figures, files).
+
+Runs alternate no cache, cold and warm, ``--repeats`` times (default 3), and
+the medians are reported: on a shared machine only numbers measured side by
+side compare.  The ``programs`` columns are the compilations counted (cold)
+and the cache's own count of programs loaded (warm).
+
+Run: ``python benchmarks/latency.py [--quick] [--repeats N] [--out DIR]``
+(``--quick``: one repeat of a 1 s simulation without the GIF and
+``accuracy --quick`` of the T-handle, into a temporary directory); writes
+latency.{json,md}.  ``--md`` rewrites latency.md from latency.json.
 """
 
 from __future__ import annotations
 
-import argparse
-import json
-import os
-import re
-import shutil
-import statistics
-import subprocess
-import sys
-import tempfile
 import time
-from pathlib import Path
 
-import common
+_STARTED = time.perf_counter()
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import shutil  # noqa: E402
+import statistics  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+import tempfile  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-LIERK = str(Path(sys.executable).parent / "lierk")
+RESULTS = Path(__file__).resolve().parent / "results"
+EXAMPLES = ROOT / "examples"
 COMMANDS = {
-    "simulate --no-gif": ["simulate", str(ROOT / "examples" / "tee_handle_a.toml"), "--no-gif"],
-    "simulate (with GIF)": ["simulate", str(ROOT / "examples" / "tee_handle_a.toml")],
+    "simulate --no-gif": ["simulate", str(EXAMPLES / "tee_handle_a.toml"), "--no-gif"],
+    "simulate (with GIF)": ["simulate", str(EXAMPLES / "tee_handle_a.toml")],
+    "accuracy (heavy top)": ["accuracy", str(EXAMPLES / "heavy_top.toml")],
 }
+QUICK = {
+    "simulate --no-gif, 1 s": ["simulate", str(EXAMPLES / "tee_handle_a.toml"), "--no-gif", "--t1", "1"],
+    "accuracy --quick (T-handle, 1 s)": ["accuracy", str(EXAMPLES / "tee_handle_a.toml"), "--quick", "--t1", "1"],
+}
+STATES = ("no cache", "cold", "warm")
+PHASES = ("start", "import", "compile", "run")
+
+
+def one(argv: list[str]) -> dict:
+    """Run ``lierk ARGV`` in this process: its split (s) and what it compiled."""
+    import io
+    from contextlib import redirect_stderr, redirect_stdout
+
+    begin = time.perf_counter()
+    import lierk.cli
+    import lierk  # noqa: F401  (the package: what a command imports before it runs)
+
+    imported = time.perf_counter()
+    import jax
+
+    from lierk.compilations import counting
+
+    hits = []
+    jax.monitoring.register_event_listener(lambda event, **_: hits.append(event) if event.endswith("/cache_hits") else None)
+    out, err = io.StringIO(), io.StringIO()
+    with counting() as c, redirect_stdout(out), redirect_stderr(err):
+        code = lierk.cli.main([*argv, "--quiet"])
+    done = time.perf_counter()
+    if code != 0:
+        raise RuntimeError(f"lierk {' '.join(argv)} exited with {code}: {err.getvalue()[-2000:]}")
+    return dict(start=begin - _STARTED, import_=imported - begin, compile=c.seconds, run=done - imported - c.seconds,
+                programs=c.count, loaded=len(hits))
 
 
 def _env(cache: Path | None) -> dict:
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}
+    env.pop("LIERK_NO_CACHE", None)
     if cache is not None:
         env["LIERK_CACHE_DIR"] = str(cache)
     return env
 
 
 def run(argv: list[str], cache: Path | None, out: Path) -> dict:
-    """One command in a fresh process: wall time, programs loaded/compiled,
-    and the solve's compile time from its progress lines."""
+    """``lierk ARGV --out OUT`` in a fresh process (``cache`` None: ``--no-cache``):
+    its wall time and split."""
     shutil.rmtree(out, ignore_errors=True)
     extra = ["--no-cache"] if cache is None else []
     start = time.perf_counter()
-    p = subprocess.run([LIERK, *argv, "--out", str(out), *extra], env=_env(cache), capture_output=True, text=True)
+    p = subprocess.run([sys.executable, __file__, "--one", json.dumps([*argv, "--out", str(out), *extra])],
+                       env=_env(cache), capture_output=True, text=True)
     wall = time.perf_counter() - start
     if p.returncode != 0:
         raise RuntimeError(f"{argv} failed: {p.stderr[-2000:]}")
-    counts = re.search(r"compiled programs: (\d+) loaded from the cache, (\d+) compiled", p.stderr)
-    solve = re.search(r"compiled in ([\d.]+) s", p.stderr)
-    return dict(
-        wall=wall,
-        loaded=int(counts.group(1)) if counts else 0,
-        compiled=int(counts.group(2)) if counts else None,
-        solve_compile=float(solve.group(1)) if solve else None,
-    )
-
-
-def import_time() -> float:
-    start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", "import lierk"], env=_env(None), check=True)
-    return time.perf_counter() - start
+    split = json.loads(p.stdout.strip().splitlines()[-1])
+    split["import"] = split.pop("import_")
+    # What the child cannot see of itself: the interpreter's start, and its exit.
+    split["start"] = wall - split["import"] - split["compile"] - split["run"]
+    return dict(wall=wall, **split)
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=3)
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
+    parser.add_argument("--quick", action="store_true", help="one repeat of two short commands, into a temp dir")
+    parser.add_argument("--repeats", type=int, default=None, help="runs of each state (default 3; --quick 1)")
+    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
     parser.add_argument("--md", action="store_true", help="only rewrite latency.md from latency.json")
+    parser.add_argument("--one", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
-    results = Path(args.out) if args.out else common.RESULTS
+    if args.one:
+        print(json.dumps(one(json.loads(args.one))))
+        return
+    results = Path(args.out) if args.out else (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
     if args.md:
         data = json.loads((results / "latency.json").read_text())
         (results / "latency.md").write_text("\n".join(markdown(data["meta"], data["rows"])) + "\n")
         return
-    machine = common.machine_info()
+    repeats = args.repeats or (1 if args.quick else 3)
+    commands = QUICK if args.quick else COMMANDS
+    start_load = os.getloadavg()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
-        imports = [import_time() for _ in range(args.repeats)]
-        for name, command in COMMANDS.items():
-            runs = {"no cache": [], "cold": [], "warm": []}
-            for i in range(args.repeats):
-                cache = tmp / f"cache-{name}-{i}"
+        for name, command in commands.items():
+            runs = {state: [] for state in STATES}
+            for i in range(repeats):
+                cache = tmp / f"cache-{len(rows)}-{i}"
                 runs["no cache"].append(run(command, None, tmp / "out"))
                 runs["cold"].append(run(command, cache, tmp / "out"))
                 runs["warm"].append(run(command, cache, tmp / "out"))
             row = dict(command=f"lierk {name}", runs=runs)
-            for kind, rs in runs.items():
-                row[f"{kind} wall"] = statistics.median(r["wall"] for r in rs)
-                row[f"{kind} solve compile"] = statistics.median(r["solve_compile"] or 0.0 for r in rs)
-            row["warm programs loaded"] = runs["warm"][-1]["loaded"]
-            row["warm programs compiled"] = runs["warm"][-1]["compiled"]
-            row["cold programs compiled"] = runs["cold"][-1]["compiled"]
+            for state, rs in runs.items():
+                row[state] = {k: statistics.median(r[k] for r in rs) for k in ("wall", *PHASES, "programs", "loaded")}
             rows.append(row)
-            print(f"{row['command']}: no cache {row['no cache wall']:.1f} s, cold {row['cold wall']:.1f} s, "
-                  f"warm {row['warm wall']:.1f} s ({row['warm programs loaded']} programs loaded, "
-                  f"{row['warm programs compiled']} compiled)", flush=True)
-    meta = dict(machine=dict(machine, load_average_at_end=os.getloadavg()), repeats=args.repeats,
-                import_lierk=statistics.median(imports))
+            print(f"{row['command']}: " + ", ".join(f"{s} {row[s]['wall']:.1f} s" for s in STATES), flush=True)
+
+    import jax
+
+    import lierk
+
+    meta = dict(machine=dict(cpu_count=os.cpu_count(), jax=jax.__version__, lierk=lierk.__version__,
+                             load_average_at_start=start_load, load_average_at_end=os.getloadavg()),
+                repeats=repeats, quick=args.quick)
     results.mkdir(parents=True, exist_ok=True)
     (results / "latency.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
     (results / "latency.md").write_text("\n".join(markdown(meta, rows)) + "\n")
+    print(f"wrote {results / 'latency.md'}")
 
 
 def markdown(meta, rows) -> list[str]:
@@ -122,22 +168,24 @@ def markdown(meta, rows) -> list[str]:
     lines = [
         "# Time to first result: the command line, cold and warm",
         "",
-        f"Machine: {m['cpu_count']} cores, {m['cpu']}; jax {m['jax']}, lierk {m['lierk']}.  Each command in a fresh "
-        f"process, medians of {meta['repeats']} runs taken in turn (no cache, cold, warm), so the columns were measured "
-        f"side by side; load average at the start {load(m['load_average_at_start'])}, at "
-        f"the end {load(m['load_average_at_end'])} (1, 5, 15 min).  Cold: an empty cache directory; warm: the same command again "
-        f"with it.  `import lierk` alone: {meta['import_lierk']:.1f} s.  Solve compile: the `compiled in` time of "
-        "the progress lines (tracing and lowering, which a cache cannot skip, plus compiling or loading).",
+        f"{m['cpu_count']} cores; jax {m['jax']}, lierk {m['lierk']}.  Each command in a fresh process, medians of "
+        f"{meta['repeats']} runs taken in turn (no cache, cold, warm); load average at the start "
+        f"{load(m['load_average_at_start'])}, at the end {load(m['load_average_at_end'])} (1, 5, 15 min).  "
+        "Start: the interpreter; import: `import lierk`; compile: tracing, lowering and compiling or loading "
+        "every program; run: the rest (scene, solves, figures, files).  Cold: an empty cache; warm: the same "
+        "command again with it.",
         "",
-        "| command | no cache (s) | cold (s) | warm (s) | warm / no cache | solve compile: cold, warm (s) | programs: compiled cold, loaded warm |",
-        "|---|---:|---:|---:|---:|---:|---:|",
+        "| command | cache | wall (s) | start | import | compile | run | programs compiled / loaded |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
     ]
     for r in rows:
-        lines.append(
-            f"| `{r['command']}` | {r['no cache wall']:.1f} | {r['cold wall']:.1f} | {r['warm wall']:.1f} | "
-            f"{r['warm wall'] / r['no cache wall']:.2f} | {r['cold solve compile']:.1f}, {r['warm solve compile']:.1f} | "
-            f"{r['cold programs compiled']}, {r['warm programs loaded']} |"
-        )
+        for state in STATES:
+            s = r[state]
+            count = f"{s['loaded']:.0f} loaded" if state == "warm" else f"{s['programs']:.0f} compiled"
+            lines.append(
+                f"| `{r['command']}` | {state} | {s['wall']:.1f} | {s['start']:.1f} | {s['import']:.1f} | "
+                f"{s['compile']:.1f} | {s['run']:.1f} | {count} |"
+            )
     return lines
 
 

@@ -5,23 +5,20 @@ Data flows one way: scene -> problem (``problems``) -> ``solve(solver)`` ->
 `Solution` -> plot/CLI.
 """
 
-from . import accuracy as accuracy
+import importlib
+
 from . import adjoint as adjoint
 from . import batch as batch
 from . import body as body
 from . import cache as cache
 from . import conditions as conditions
 from . import effects as effects
-from . import diagnostics as diagnostics
 from . import exact as exact
 from . import fields as fields
 from . import inertia as inertia
 from . import interpolation as interpolation
-from . import omega_sweep as omega_sweep
 from . import problems as problems
 from . import rigid_body as rigid_body
-from . import scene as scene
-from . import simulation as simulation
 from . import so3 as so3
 from . import tableaux as tableaux
 from .adjoint import DirectAdjoint as DirectAdjoint
@@ -76,3 +73,18 @@ from .solvers import Yoshida4 as Yoshida4
 from .solvers import Yoshida6 as Yoshida6
 
 __version__ = "0.1.0"
+
+# What a scene's runs and reports need (scenes, simulations, accuracy,
+# sweeps of omega0, diagnostics, counting compilations) is imported when
+# first used, so that `import lierk` loads only the integrators.
+_APPLICATION = ("accuracy", "compilations", "diagnostics", "omega_sweep", "scene", "simulation")
+
+
+def __getattr__(name: str):
+    if name in _APPLICATION:
+        return importlib.import_module(f"{__name__}.{name}")
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
+
+def __dir__():
+    return sorted([*globals(), *_APPLICATION])

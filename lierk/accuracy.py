@@ -1,16 +1,28 @@
 """Work against precision for a scene: which solver and setting reach an error, and at what cost.
 
 `work_precision` runs the scene's problem with each solver over a range of
-settings: steps ``dt`` for the fixed-step solvers (`RKMK4`, `CF4`),
-tolerances ``rtol = atol`` for the adaptive ones (`DP54`, `DOP853`,
-`RKF45`).  For each run it records
+settings: steps ``dt`` for the fixed-step methods, tolerances
+``rtol = atol`` for the adaptive ones.  By default it runs every method that
+applies (`default_solvers`): the fixed-step Lie methods `RKMK4`, `CF4`,
+``RKMK(DOPRI54)`` and ``RKMK(DOP853)`` (the embedded pairs' tableaux at
+fixed steps), the adaptive pairs `DP54`, `DOP853` and `RKF45`, and, for a
+body under torques, the splittings `Strang`, `BlanesMoan4` and
+`BlanesMoan6`, with the Runge-Kutta-Nystrom `BlanesMoanRKN4` and
+`BlanesMoanRKN6` when no torque reads the momentum.  For each run it
+records
 
-- the wall time of one `lierk.solve` call after compilation (a warm-up call
-  first, then the minimum of a few repeats, each ended by
-  `jax.block_until_ready`);
+- the wall time of one call of the compiled solve (a warm-up call first,
+  then the minimum of a few repeats, each ended by `jax.block_until_ready`);
 - the true error ``max_t ||R(t) - R_ref(t)||_F`` over the saved times;
-- the solver's own estimate of it (``estimate_error=True``, the same maximum);
+- the method's own estimate of it (Richardson's, as ``estimate_error=True``
+  computes it: a solve at ``2 dt/3`` or ``rtol/10``, the same maximum);
 - the number of steps.
+
+Each method compiles once: ``dt`` and the tolerances are traced values of
+one program, and a fixed-step run's step count is a traced loop bound
+(`lierk.loops.solve_fixed_counted`: the same steps, numbers and cost as
+`lierk.solve`'s).  The report says how much of the wall time went to
+compiling.
 
 The saved times are ``n_times`` equally spaced times from 0 to ``t1``, the
 same for every run: fixed steps are chosen so that a whole number of them
@@ -20,7 +32,8 @@ fits between two saved times, and adaptive solves hit the times exactly
 The reference ``R_ref``:
 
 - a torque-free body (``problem.torque_free``): the closed form
-  `lierk.exact.free_rigid_body`;
+  `lierk.exact.free_rigid_body` (a splitting of such a body is that closed
+  form too, so none is run);
 - otherwise a `DOP853` solve two orders of magnitude tighter than the
   tightest tolerance (and than 1e-12, the smallest decade), but not below
   1e-13 in float64, cross-checked by a second method, `DP54` at the same
@@ -37,7 +50,7 @@ the report.
 Example:
     >>> scene = lierk.scene.load("examples/heavy_top.toml")
     >>> report = lierk.accuracy.work_precision(scene, max_settings=4)
-    >>> row = report.cheapest(1e-6)   # e.g. DOP853 at rtol = 1e-09
+    >>> row = report.cheapest(1e-6)   # e.g. BlanesMoanRKN4 at dt = 0.0039 s
     >>> print(report.summary())       # the cheapest run per decade
     >>> lierk.accuracy.figure(report).savefig("work_precision.png")
 """
@@ -47,6 +60,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import os
 import time
 from collections.abc import Mapping, Sequence
 from typing import Any
@@ -55,20 +69,32 @@ import numpy as np
 
 from ._progress import Progress
 
-__all__ = ["Row", "AccuracyReport", "work_precision", "figure", "to_json", "DECADES", "DEFAULT_SOLVERS"]
+__all__ = ["Row", "AccuracyReport", "work_precision", "figure", "to_json", "DECADES", "METHODS", "default_solvers",
+           "method"]
 
 DECADES: tuple[float, ...] = tuple(10.0**-k for k in range(2, 13))
 """The error levels of `AccuracyReport.best_per_decade`: 1e-2 ... 1e-12."""
 
-DEFAULT_SOLVERS: tuple[str, ...] = ("RKMK4", "CF4", "DP54", "DOP853", "RKF45")
-"""Solvers run by default: the order-4 Lie methods with fixed steps and the
-three adaptive pairs.  The first-order methods and the report's order-2 RK4
-are left out: they never reach the small decades within the step budget."""
+METHODS: tuple[str, ...] = (
+    "RKMK4", "CF4", "RKMK(DOPRI54)", "RKMK(DOP853)", "DP54", "DOP853", "RKF45",
+    "Strang", "BlanesMoan4", "BlanesMoan6", "BlanesMoanRKN4", "BlanesMoanRKN6",
+)
+"""Every method `default_solvers` may pick, in the order they run: the
+order-4 Lie methods and the two embedded pairs' tableaux at fixed steps, the
+adaptive pairs, the splittings.  The first-order methods, the report's
+order-2 RK4 and the Yoshida compositions (never cheaper than Blanes and
+Moan's in `benchmarks/torqued.py`) run only when named."""
 
-# Fixed steps start at about this many radians per step (|omega0| dt) and halve from there.
+# Fixed steps start at about this many radians per step (|omega0| dt) and
+# halve from there.  A splitting advances the torque-free motion exactly, so
+# its step is bounded by the torques, not by the spin: it starts 64x coarser
+# (its coarsest steps were the cheapest on the tops of benchmarks/torqued.py).
 _FIRST_ANGLE = 0.5
+_FIRST_ANGLE_SPLITTING = 32.0
 _DEFAULT_MAX_STEPS = 2**17
 _DEFAULT_MAX_SETTINGS = 10
+# Timed calls of a run stop once at least two have taken this long (s) in all.
+_TIMING_BUDGET = 0.2
 _REFERENCE_RTOL_CAP = 1e-13  # float64; float32 uses 100 eps
 _MARKERS = ("o", "s", "^", "D", "v", "P", "X", "<", ">", "*")
 
@@ -78,16 +104,17 @@ class Row:
     """One run of `work_precision`.
 
     Attributes:
-        solver: the solver's name.
+        solver: the method's name (`method`).
         setting: ``"dt"`` (fixed step, s) or ``"rtol"`` (adaptive, ``atol = rtol``).
         value: the step (s) or the tolerance.
-        time: wall time of one `lierk.solve` call after compilation (s),
-            the minimum over repeats; it includes the call's own dispatch
-            (below a millisecond), not the error estimate.
+        time: wall time of one call of the compiled solve (s), the minimum
+            over repeats; it includes the call's own dispatch (tens of
+            microseconds), not the error estimate.
         error: ``max_t ||R(t) - R_ref(t)||_F`` over the saved times; NaN if
             the solve failed.
-        error_estimate: ``max_t`` of `Solution.error_estimate` (the solver's
-            Richardson estimate of the same quantity).
+        error_estimate: Richardson's estimate of the same quantity from a
+            finer run (``2 dt/3``, or ``rtol/10``), what
+            `Solution.error_estimate` gives.
         num_steps: steps attempted (accepted and rejected).
         num_fevals: field evaluations.
         result: the `lierk.RESULTS` code; 0 is success.
@@ -135,6 +162,10 @@ class AccuracyReport:
             or None for `lierk.exact`.
         check_disagreement: ``max_t ||R_check - R_ref||_F``, or None.
         dtype: ``"float64"`` or ``"float32"``.
+        compilations: the programs compiled (or loaded from the persistent
+            cache) while it ran (`lierk.compilations`), or None if not counted.
+        compile_time: wall time (s) spent tracing, lowering and compiling
+            them, or None.
     """
 
     scene: str
@@ -146,6 +177,8 @@ class AccuracyReport:
     check: str | None
     check_disagreement: float | None
     dtype: str
+    compilations: int | None = None
+    compile_time: float | None = None
 
     @property
     def floor(self) -> float:
@@ -178,11 +211,12 @@ class AccuracyReport:
         """`best_per_decade` as a text table, a header and one line per
         decade: the cheapest solver, its setting, time, true error and
         estimate, or why no run is named (below `floor`, or none reached it)."""
-        lines = [f"{'error <=':>9}  {'cheapest':<8}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"]
+        width = max([8, *(len(name) for name in self.solvers)])
+        lines = [f"{'error <=':>9}  {'cheapest':<{width}}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"]
         for decade, row in self.best_per_decade(decades).items():
             if row is not None:
                 lines.append(
-                    f"{decade:>9.0e}  {row.solver:<8}  {row.label:<18}  {row.time:>9.3g}  {row.error:>8.1e}  "
+                    f"{decade:>9.0e}  {row.solver:<{width}}  {row.label:<18}  {row.time:>9.3g}  {row.error:>8.1e}  "
                     f"{row.error_estimate:>8.1e}"
                 )
             elif decade < self.floor:
@@ -193,11 +227,13 @@ class AccuracyReport:
 
     def summary(self, wall: float | None = None) -> str:
         """The report ``lierk accuracy`` prints: what ran (with ``wall``, the
-        whole run's wall time in s, compilation included), the reference and
-        its cross-check, then `table`."""
+        whole run's wall time in s, and how much of it went to compiling),
+        the reference and its cross-check, then `table`."""
         head = (f"scene {self.scene}: {len(self.rows)} runs of {', '.join(self.solvers)}, T = {self.t1:g} s, "
                 f"errors max_t ||R - R_ref||_F at {len(self.ts)} equally spaced times")
-        if wall is not None:
+        if wall is not None and self.compile_time is not None:
+            head += f", {wall:.1f} s wall ({self.compile_time:.1f} s of it compiling {self.compilations} programs)"
+        elif wall is not None:
             head += f", {wall:.1f} s wall (incl. compilation)"
         lines = [head, f"  reference: {self.reference}, error about {self.reference_error:.1e}"]
         if self.check is not None:
@@ -228,33 +264,38 @@ def work_precision(
     Args:
         scene: a `lierk.scene.Scene`; its problem and ``t1`` are used, its
             own solver and run settings are not.
-        solvers: solver names (as in `lierk.solvers.SOLVERS`) or instances;
-            default `DEFAULT_SOLVERS`.
-        settings: per solver name, the values to run: steps ``dt`` (s) for
-            fixed-step solvers, each rounded so a whole number of steps fits
+        solvers: method names (`method`: those of `lierk.solvers.SOLVERS`,
+            plus ``"RKMK(DOPRI54)"`` and ``"RKMK(DOP853)"``, the tableaux at
+            fixed steps) or solver instances; default `default_solvers`.
+        settings: per method name, the values to run: steps ``dt`` (s) for
+            fixed-step methods, each rounded so a whole number of steps fits
             between saved times, or tolerances ``rtol`` for adaptive ones.
-            Default: ``dt`` from about 0.5 rad per step (``|omega0| dt``),
-            halved each time; ``rtol`` 1e-3, 1e-4, ..., 1e-12.  Defaults stop
-            early once a run's error is below the smallest decade (or a tenth
-            of the reference's floor), when an adaptive run exceeds
-            ``max_steps``, or when the error stops falling (rounding).
+            Default: ``dt`` from about 0.5 rad per step (``|omega0| dt``; 32
+            rad for the splittings), halved each time; ``rtol`` 1e-3, 1e-4,
+            ..., 1e-12.  Defaults stop early once a run's error is below the
+            smallest decade (or a tenth of the reference's floor), when an
+            adaptive run exceeds ``max_steps``, or when the error stops
+            falling (rounding).
         progress: draw a progress bar on stderr, one tick per run.
-        max_settings: at most this many settings per solver (default 10);
+        max_settings: at most this many settings per method (default 10);
             default tolerances are then spread over 1e-3 ... 1e-12.
         max_steps: bound on the steps of one solve: default fixed steps stay
             within it, and it is the adaptive solves' ``max_steps``.
         n_times: number of saved times, ``>= 2``, including 0 and ``t1``.
-        repeats: timed calls per run (fewer once they take over 0.5 s in all).
+        repeats: timed calls per run (fewer once two of them take over
+            `_TIMING_BUDGET`, 0.2 s, in all).
 
     Returns:
-        An `AccuracyReport`.
+        An `AccuracyReport`, with the number of programs compiled and the
+        time that took.
 
     Raises:
-        ValueError: unknown solver names, settings for solvers not run, or
-            settings that are not finite numbers > 0.
+        ValueError: unknown method names, a method that cannot run this
+            problem, settings for methods not run, or settings that are not
+            finite numbers > 0.
         RuntimeError: the reference solve failed.
     """
-    import jax.numpy as jnp
+    from .compilations import counting
 
     problem, t1 = scene.problem, float(scene.t1)
     dtype = problem.R0.dtype
@@ -266,11 +307,10 @@ def work_precision(
     if max_settings is not None and not (isinstance(max_settings, int) and max_settings >= 1):
         raise ValueError(f"max_settings must be a positive int or None, got {max_settings!r}")
     n_max = _DEFAULT_MAX_SETTINGS if max_settings is None else max_settings
-    chosen = _solvers_to_run(solvers)
+    chosen = _methods_to_run(default_solvers(problem) if solvers is None else solvers, problem)
     settings = _checked_settings(settings, chosen)
 
     ts_np = np.linspace(0.0, t1, n_times)
-    ts = jnp.asarray(ts_np, dtype)
     plan = _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps)
     numerical = not problem.torque_free
     bar = Progress("accuracy", sum(len(v) for _, v, _ in plan) + (2 if numerical else 1), " runs", quiet=not progress)
@@ -280,23 +320,27 @@ def work_precision(
         done[0] += n
         bar.update(done[0])
 
-    bar.update(0)
-    rtols = [v for s, values, _ in plan if s.adaptive for v in values]
-    ref = _reference(problem, t1, ts, rtols, numerical, max_steps, tick)
-    # Defaults stop once a run is below what the decades (or the reference) can resolve.
-    stop_level = max(min(DECADES) / 10, max(ref.error, ref.disagreement or 0.0) / 10)
+    with counting() as compiled:
+        bar.update(0)
+        programs = _Programs(problem, t1, ts_np, max_steps)
+        reference = [method("DOP853"), method("DP54")] if numerical else []
+        programs.compile(programs.key(m) for m in [*reference, *(m for m, _, _ in plan)])
+        rtols = [v for m, values, _ in plan if m.adaptive for v in values]
+        ref = _reference(programs, rtols, numerical, tick)
+        # Defaults stop once a run is below what the decades (or the reference) can resolve.
+        stop_level = max(min(DECADES) / 10, max(ref.error, ref.disagreement or 0.0) / 10)
 
-    rows: list[Row] = []
-    for solver, values, is_default in plan:
-        previous = None
-        for i, v in enumerate(values):
-            row = _run(problem, solver, v, t1, ts, ts_np, max_steps, repeats, ref.R)
-            rows.append(row)
-            tick()
-            if is_default and _stop(row, previous, stop_level):
-                tick(len(values) - i - 1)
-                break
-            previous = row if row.ok else previous
+        rows: list[Row] = []
+        for m, values, is_default in plan:
+            previous = None
+            for i, v in enumerate(values):
+                row = _run(programs, m, v, repeats, ref.R)
+                rows.append(row)
+                tick()
+                if is_default and _stop(row, previous, stop_level):
+                    tick(len(values) - i - 1)
+                    break
+                previous = row if row.ok else previous
 
     return AccuracyReport(
         scene=scene.name,
@@ -308,21 +352,85 @@ def work_precision(
         check=ref.check,
         check_disagreement=ref.disagreement,
         dtype=str(np.dtype(dtype)),
+        compilations=compiled.count,
+        compile_time=compiled.seconds,
     )
 
 
-def _solvers_to_run(solvers) -> list:
-    """Solver instances from names (as in `lierk.solvers.SOLVERS`) or instances."""
-    from .solvers import solver_class
+@dataclasses.dataclass(frozen=True)
+class _Method:
+    """A solver as `work_precision` runs it: by ``name``, with tolerances
+    (``adaptive``) or at fixed steps."""
+
+    name: str
+    solver: Any
+    adaptive: bool
+
+
+def method(name: str) -> _Method:
+    """The method called ``name`` (any letter case): a solver of
+    `lierk.solvers.SOLVERS`, adaptive if it has an error estimate, or
+    ``"RKMK(DOPRI54)"``/``"RKMK(DOP853)"``, `lierk.RKMK` with the embedded
+    pairs' tableaux at fixed steps.
+
+    Raises:
+        ValueError: an unknown name; the message lists the known ones.
+    """
+    from . import tableaux
+    from .solvers import RKMK, SOLVERS, solver_class
+
+    fixed_pairs = {"RKMK(DOPRI54)": tableaux.DOPRI54, "RKMK(DOP853)": tableaux.DOP853}
+    for label, tableau in fixed_pairs.items():
+        if isinstance(name, str) and name.replace(" ", "").lower() == label.lower():
+            return _Method(label, RKMK(tableau), adaptive=False)
+    try:
+        solver = solver_class(name)()
+    except ValueError:
+        raise ValueError(f"unknown solver {name!r}; choose from: {', '.join([*SOLVERS, *fixed_pairs])}") from None
+    return _Method(solver.name, solver, solver.adaptive)
+
+
+def default_solvers(problem) -> tuple[str, ...]:
+    """The methods `work_precision` runs on ``problem`` by default (names of
+    `METHODS`): the Lie Runge-Kutta methods at fixed steps and the adaptive
+    pairs always; for a rigid body under torques also the splittings, with
+    the Runge-Kutta-Nystrom ones only when no torque reads the momentum
+    (``problem.kick_reads_momentum``).  A torque-free body has none: its
+    splitting is the closed form, the reference itself."""
+    from .problems import AbstractRigidBody
+
+    names = list(METHODS[:7])
+    if isinstance(problem, AbstractRigidBody) and not problem.torque_free:
+        names += ["Strang", "BlanesMoan4", "BlanesMoan6"]
+        if not problem.kick_reads_momentum:
+            names += ["BlanesMoanRKN4", "BlanesMoanRKN6"]
+    return tuple(names)
+
+
+def _methods_to_run(solvers, problem) -> list[_Method]:
+    """`_Method`s from names (`method`) or solver instances, each checked to
+    apply to ``problem``."""
+    from .problems import AbstractRigidBody
+    from .solvers import AbstractSplitting
     from .solvers.base import AbstractSolver
 
     chosen = []
-    for s in DEFAULT_SOLVERS if solvers is None else solvers:
+    for s in solvers:
         if isinstance(s, str):
-            s = solver_class(s)()
-        elif not isinstance(s, AbstractSolver):
+            m = method(s)
+        elif isinstance(s, AbstractSolver):
+            m = _Method(s.name, s, s.adaptive)
+        else:
             raise ValueError(f"solvers must be names or lierk solvers, got {s!r}")
-        chosen.append(s)
+        if isinstance(m.solver, AbstractSplitting):
+            if not isinstance(problem, AbstractRigidBody):
+                raise ValueError(f"{m.name} needs a rigid body with drift and kick, not a {type(problem).__name__}")
+            if m.solver.scheme.nystrom and problem.kick_reads_momentum:
+                raise ValueError(
+                    f"{m.name} is a Runge-Kutta-Nystrom splitting, and this scene's "
+                    f"{', '.join(problem.kick_reads_momentum)} reads the momentum; use BlanesMoan4 or BlanesMoan6"
+                )
+        chosen.append(m)
     if not chosen:
         raise ValueError("no solvers to run")
     return chosen
@@ -330,7 +438,7 @@ def _solvers_to_run(solvers) -> list:
 
 def _checked_settings(settings, chosen) -> dict:
     settings = dict(settings or {})
-    unknown = set(settings) - {s.name for s in chosen}
+    unknown = set(settings) - {m.name for m in chosen}
     if unknown:
         raise ValueError(f"settings given for solvers that are not run: {', '.join(sorted(unknown))}")
     for name, values in settings.items():
@@ -339,8 +447,10 @@ def _checked_settings(settings, chosen) -> dict:
     return settings
 
 
-def _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps) -> list[tuple[Any, list[float], bool]]:
-    """``(solver, values, defaults?)`` per solver; default ranges stop early."""
+def _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps) -> list[tuple[_Method, list[float], bool]]:
+    """``(method, values, defaults?)`` per method; default ranges stop early."""
+    from .solvers import AbstractSplitting
+
     interval = t1 / (n_times - 1)
     rtol_floor = max(1e-12, 100 * eps)
     default_rtols = [10.0**-k for k in range(3, 13) if 10.0**-k >= rtol_floor * (1 - 1e-9)]
@@ -348,21 +458,106 @@ def _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps) -> list
         keep = np.unique(np.round(np.linspace(0, len(default_rtols) - 1, n_max)).astype(int))
         default_rtols = [default_rtols[i] for i in keep]
     omega = float(np.linalg.norm(np.asarray(problem.omega0)))
-    m0 = 2 ** max(0, math.ceil(math.log2(max(1.0, interval * omega / _FIRST_ANGLE))))
     plan = []
-    for s in chosen:
-        if s.name in settings:
-            values = [float(v) for v in settings[s.name]]
-            if not s.adaptive:
+    for m in chosen:
+        if m.name in settings:
+            values = [float(v) for v in settings[m.name]]
+            if not m.adaptive:
                 # Whole steps between saved times, so every run saves the same times.
                 values = [interval / max(1, round(interval / v)) for v in values]
-            plan.append((s, values, False))
-        elif s.adaptive:
-            plan.append((s, default_rtols, True))
+            plan.append((m, values, False))
+        elif m.adaptive:
+            plan.append((m, default_rtols, True))
         else:
+            angle = _FIRST_ANGLE_SPLITTING if isinstance(m.solver, AbstractSplitting) else _FIRST_ANGLE
+            m0 = 2 ** max(0, math.ceil(math.log2(max(1.0, interval * omega / angle))))
             ms = [m0 * 2**k for k in range(n_max) if (n_times - 1) * m0 * 2**k <= max_steps]
-            plan.append((s, [interval / m for m in ms] or [interval / m0], True))
+            plan.append((m, [interval / k for k in ms] or [interval / m0], True))
     return plan
+
+
+class _Programs:
+    """The compiled solves of one `work_precision` call: one program per
+    method (and per ``max_steps``), whose times, step or tolerance are traced
+    arguments, so every setting, its finer twin (the error estimate) and the
+    reference reuse it.  `compile` builds them all first, several at once
+    (XLA compiles outside Python's lock), before anything is timed."""
+
+    def __init__(self, problem, t1: float, ts: np.ndarray, max_steps: int):
+        from .validation import as_jax
+
+        dtype = problem.R0.dtype
+        self.problem, self.max_steps = problem, max_steps
+        self.ts_np = ts
+        self.t0, self.t1, self.ts = as_jax(0.0, dtype), as_jax(t1, dtype), as_jax(ts, dtype)
+        self.dtype = dtype
+        self._programs: dict = {}  # key -> the jitted function, or once compiled its executable
+        self._compiled: set = set()
+
+    def compile(self, keys) -> None:
+        """Compile the programs of ``keys`` (`_key`) that are not built yet:
+        each traced and lowered in turn, then compiled by up to as many
+        threads as there are cores."""
+        import concurrent.futures
+
+        todo = {k: self._jitted(k).lower(*self._arguments(k, 1.0, 1)) for k in dict.fromkeys(keys)
+                if k not in self._compiled}
+        if not todo:
+            return
+        with concurrent.futures.ThreadPoolExecutor(max(1, min(len(todo), os.cpu_count() or 1))) as pool:
+            compiled = dict(zip(todo, pool.map(lambda lowered: lowered.compile(), todo.values())))
+        self._programs.update(compiled)
+        self._compiled.update(compiled)
+
+    def key(self, m: _Method, max_steps: int | None = None) -> tuple:
+        """The program ``m`` runs in (adaptive: with ``max_steps``, default the rows')."""
+        if m.adaptive:
+            return (m, "adaptive", self.max_steps if max_steps is None else max_steps)
+        return (m, "fixed", None)
+
+    def run(self, m: _Method, value: float, every: int = 1, max_steps: int | None = None):
+        """A call of ``m``'s program at ``value``: ``rtol = atol`` (adaptive,
+        ``lierk.solve(..., saveat=SaveAt(ts=ts))``), or ``every`` fixed steps
+        of ``value`` between saved times (`lierk.loops.solve_fixed_counted`,
+        flagged for invariant drift as `lierk.solve` flags it)."""
+        import jax
+
+        key = self.key(m, max_steps)
+        if key not in self._programs:
+            self._programs[key] = self._jitted(key)
+        program, args = self._programs[key], self._arguments(key, value, every)
+        return lambda: jax.block_until_ready(program(*args))
+
+    def _arguments(self, key, value: float, every: int) -> tuple:
+        from .validation import as_jax
+
+        if key[1] == "fixed":
+            return (self.problem, self.t0, self.t1, as_jax(value, self.dtype), as_jax(every))
+        return (self.problem, self.t0, self.t1, self.ts, as_jax(value, self.dtype))
+
+    def _jitted(self, key):
+        import equinox as eqx
+
+        from .loops import solve_fixed_counted
+        from .solution import SaveAt
+        from .solve import _flag_drift, solve
+        from .validation import checked_on_host
+
+        m, kind, steps = key
+        if kind == "fixed":
+            n_saves = len(self.ts_np) - 1
+
+            def run(problem, t0, t1, dt, every):
+                return _flag_drift(problem, solve_fixed_counted(problem, m.solver, t0, t1, dt, every, n_saves))
+        else:
+
+            def run(problem, t0, t1, ts, rtol):
+                # The times and tolerances are this module's own, checked here.
+                with checked_on_host():
+                    return solve(problem, m.solver, t1, t0=t0, rtol=rtol, atol=rtol, saveat=SaveAt(ts=ts),
+                                 max_steps=steps, throw=False)
+
+        return eqx.filter_jit(run)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -374,39 +569,45 @@ class _Reference:
     disagreement: float | None
 
 
+def _gaps(R, R_ref) -> np.ndarray:
+    """``||R - R_ref||_F`` at each saved time."""
+    return np.linalg.norm(np.asarray(R, dtype=float) - np.asarray(R_ref, dtype=float), axis=(-2, -1))
+
+
 def _max_gap(R, R_ref) -> float:
-    return float(np.max(np.linalg.norm(np.asarray(R, dtype=float) - R_ref, axis=(-2, -1))))
+    return float(np.max(_gaps(R, R_ref)))
 
 
-def _adaptive_solve(problem, solver, t1, ts, rtol, steps, **kw):
-    import jax
+def _richardson(sol, fine, ratio: float) -> float:
+    """Richardson's estimate of ``max_t ||R(t) - R_exact(t)||_F`` for ``sol``
+    from ``fine``, a solve ``ratio`` times more accurate (``inf`` if it
+    failed): ``||R - R_fine|| ratio/(ratio - 1)``, as `lierk.solve`'s
+    ``estimate_error=True`` computes it."""
+    from .solution import RESULTS
 
-    from .solution import SaveAt
-    from .solve import solve
-
-    return jax.block_until_ready(
-        solve(problem, solver, t1, rtol=rtol, saveat=SaveAt(ts=ts), max_steps=steps, throw=False, **kw)
-    )
+    if int(fine.result) != RESULTS.successful:
+        return math.inf
+    return float(np.max(_gaps(sol.R, fine.R) * (ratio / (ratio - 1.0))))
 
 
-def _reference(problem, t1, ts, rtols, numerical, max_steps, tick) -> _Reference:
+def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     """The closed form for a torque-free body, else DOP853 cross-checked by DP54."""
     from . import exact
     from .solution import RESULTS
 
+    problem, t1, max_steps = programs.problem, float(programs.t1), programs.max_steps
     eps = float(np.finfo(problem.R0.dtype).eps)
     if not numerical:
-        R_ref = np.asarray(exact.free_rigid_body(problem.inertia, problem.omega0, ts, problem.R0)[0], dtype=float)
+        R_ref = np.asarray(exact.free_rigid_body(problem.inertia, problem.omega0, programs.ts, problem.R0)[0], dtype=float)
         omega = float(np.linalg.norm(np.asarray(problem.omega0)))
         tick()
         # Its rounding grows with the angle turned: ~1e-12 after 100 periods in float64.
         return _Reference(R_ref, "lierk.exact.free_rigid_body (closed form)", 10 * eps * max(1.0, omega * t1), None, None)
-    from .solvers import DOP853, DP54
 
     rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
-    # The rows' max_steps first (same compilation as the DOP853 rows), then more room.
+    # The rows' programs, with their max_steps first, then with more room.
     for steps in (max_steps, 16 * max_steps):
-        ref = _adaptive_solve(problem, DOP853(), t1, ts, rtol_ref, steps, estimate_error=True)
+        ref = programs.run(method("DOP853"), rtol_ref, max_steps=steps)()
         if int(ref.result) == RESULTS.successful:
             break
     if int(ref.result) != RESULTS.successful:
@@ -415,9 +616,14 @@ def _reference(problem, t1, ts, rtols, numerical, max_steps, tick) -> _Reference
         )
     R_ref = np.asarray(ref.R, dtype=float)
     reference = f"DOP853, rtol = atol = {rtol_ref:.0e}, {int(ref.stats['num_steps'])} steps"
+    # Its own error: Richardson's estimate from a solve at rtol / 10, as for the rows.
+    from .global_error import TOLERANCE_RATIO
+
+    fine = programs.run(method("DOP853"), rtol_ref / TOLERANCE_RATIO, max_steps=steps)()
+    error = _richardson(ref, fine, TOLERANCE_RATIO)
     tick()
     for steps in (max_steps, 16 * max_steps):
-        chk = _adaptive_solve(problem, DP54(), t1, ts, rtol_ref, steps)
+        chk = programs.run(method("DP54"), rtol_ref, max_steps=steps)()
         if int(chk.result) == RESULTS.successful:
             break
     check = f"DP54, rtol = atol = {rtol_ref:.0e}"
@@ -428,48 +634,50 @@ def _reference(problem, t1, ts, rtols, numerical, max_steps, tick) -> _Reference
         check += f": failed ({RESULTS.message(int(chk.result))})"
         disagreement = None
     tick()
-    return _Reference(R_ref, reference, float(np.max(np.asarray(ref.error_estimate))), check, disagreement)
+    return _Reference(R_ref, reference, error, check, disagreement)
 
 
-def _run(problem, solver, v, t1, ts, ts_np, max_steps, repeats, R_ref) -> Row:
-    """One setting ``v`` of ``solver``: timed, and measured against ``R_ref``."""
-    import jax
+def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
+    """One setting ``v`` of method ``m``: timed, measured against ``R_ref``,
+    and with Richardson's estimate of its error from a finer run of the same
+    program (as ``lierk.solve(..., estimate_error=True)`` makes it)."""
+    from .global_error import TOLERANCE_RATIO
+    from .solution import RESULTS
 
-    from .solution import RESULTS, SaveAt
-    from .solve import solve
-
-    eps = float(np.finfo(problem.R0.dtype).eps)
-    if solver.adaptive:
-        run = lambda est: _adaptive_solve(problem, solver, t1, ts, v, max_steps, estimate_error=est)  # noqa: E731
+    ts_np = programs.ts_np
+    eps = float(np.finfo(programs.dtype).eps)
+    t1 = float(programs.t1)
+    if m.adaptive:
+        run = programs.run(m, v)
+        fine, ratio = programs.run(m, v / TOLERANCE_RATIO), TOLERANCE_RATIO
     else:
-        interval = t1 / (len(ts_np) - 1)
-        m = max(1, round(interval / v))
-        n_steps = (len(ts_np) - 1) * m
-        run = lambda est: jax.block_until_ready(  # noqa: E731
-            solve(problem, solver, t1, dt=v, saveat=SaveAt(t0=True, steps=m), max_steps=n_steps,
-                  estimate_error=est, throw=False)
-        )
-    sol = run(True)  # compiles both solves; the plain one is the one timed
+        every = max(1, round((ts_np[1] - ts_np[0]) / v))
+        run = programs.run(m, v, every)
+        # The finer solve takes 3 steps for every 2, or 2 for 1 when an odd
+        # save interval leaves no other common grid (`global_error.estimate_fixed`).
+        num, den = (2, 1) if every % 2 else (3, 2)
+        fine, ratio = programs.run(m, v * den / num, every * num // den), (num / den) ** m.solver.order
+    sol = run()  # compiles; the timed calls follow
     if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
-        raise AssertionError(f"{solver.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
-    run(False)  # warm-up of the timed call
-    best, spent = math.inf, 0.0
-    for _ in range(max(1, repeats)):
-        start = time.perf_counter()
-        run(False)
-        took = time.perf_counter() - start
-        best, spent = min(best, took), spent + took
-        if spent > 0.5:
-            break
+        raise AssertionError(f"{m.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")
     result = int(sol.result)
     ok = result == RESULTS.successful
+    estimate = _richardson(sol, fine(), ratio) if ok else math.nan
+    best, spent = math.inf, 0.0
+    for k in range(max(1, repeats)):
+        start = time.perf_counter()
+        run()
+        took = time.perf_counter() - start
+        best, spent = min(best, took), spent + took
+        if k >= 1 and spent > _TIMING_BUDGET:
+            break
     return Row(
-        solver=solver.name,
-        setting="rtol" if solver.adaptive else "dt",
+        solver=m.name,
+        setting="rtol" if m.adaptive else "dt",
         value=float(v),
         time=best,
         error=_max_gap(sol.R, R_ref) if ok else math.nan,
-        error_estimate=float(np.max(np.asarray(sol.error_estimate))) if ok else math.nan,
+        error_estimate=estimate,
         num_steps=int(sol.stats["num_steps"]),
         num_fevals=int(sol.stats["num_fevals"]),
         result=result,

@@ -28,7 +28,6 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
 
-from ._progress import Progress
 
 __all__ = ["sweep", "sweep_chunks"]
 
@@ -404,7 +403,11 @@ def sweep(
     """
     n = _batch_size(batched_args)
     chunk = n if chunk_size is None else _check_chunk_size(chunk_size)
-    bar = Progress("sweep", n, " members") if progress else None
+    bar = None
+    if progress:
+        from ._progress import Progress  # (tqdm is imported only for a bar)
+
+        bar = Progress("sweep", n, " members")
     pieces = []
     compiling = None if bar is None else bar.compiling
     for _, start, stop, out in _dispatch(fn, batched_args, n, chunk, frozenset(), shard, compiling):

@@ -116,21 +116,28 @@ class CacheUse:
 
     Attributes:
         path: the cache directory, as text; None while the cache is off.
-        counts: ``"hits"`` (programs loaded), ``"misses"`` (programs compiled,
-            and saved unless too quick to compile), ``"unreadable"`` (entries
-            that could not be read and were compiled again) and
-            ``"unwritable"`` (programs that could not be saved).
+        counts: ``"hits"`` (programs loaded), ``"misses"`` (programs compiled
+            and saved), ``"unsaved"`` (programs compiled and not saved: JAX
+            keeps no program with a host callback, such as an
+            ``eqx.error_if`` check on a traced value, nor one quicker to
+            compile than its threshold), ``"unreadable"`` (entries that could
+            not be read and were compiled again) and ``"unwritable"``
+            (programs that could not be saved).
     """
 
     def __init__(self):
         self.path: str | None = None
-        self.counts = {"hits": 0, "misses": 0, "unreadable": 0, "unwritable": 0}
+        self.counts = {"hits": 0, "misses": 0, "unsaved": 0, "unreadable": 0, "unwritable": 0}
+        self._requests = 0
 
     def _listen(self, event: str, **_) -> None:
-        if event == "/jax/compilation_cache/cache_hits":
+        if event == "/jax/compilation_cache/compile_requests_use_cache":
+            self._requests += 1
+        elif event == "/jax/compilation_cache/cache_hits":
             self.counts["hits"] += 1
         elif event == "/jax/compilation_cache/cache_misses":
             self.counts["misses"] += 1
+        self.counts["unsaved"] = self._requests - self.counts["hits"] - self.counts["misses"]
 
     def _count_warning(self, message) -> bool:
         """Count JAX's warning about one entry it could not read or write;
@@ -149,6 +156,8 @@ class CacheUse:
             return None
         c = self.counts
         line = f"compiled programs: {c['hits']} loaded from the cache, {c['misses']} compiled and saved ({self.path})"
+        if c["unsaved"]:
+            line += f"; {c['unsaved']} compiled and not saved"
         if c["unreadable"]:
             line += f"; {c['unreadable']} cached programs could not be read and were compiled again"
         if c["unwritable"]:
@@ -171,13 +180,15 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
     (after one warning, none if it cannot be written: the block then runs
     uncached) keeps every program, however quickly it compiled: many small
     programs add up to seconds.  Nothing happens if JAX's cache was turned
-    off (``jax_enable_compilation_cache``).
+    off (``jax_enable_compilation_cache``).  The settings hold for the block
+    even in a process that compiled before it, with or without a cache.
 
     JAX's warning about each entry it cannot read (then compiles again) or
     write is counted in the `CacheUse` instead of shown; other warnings pass
     through.
     """
     import jax
+    from jax.experimental.compilation_cache.compilation_cache import reset_cache
 
     before = {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}
     use = CacheUse()
@@ -200,6 +211,9 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
                 if use.path is not None:
                     jax.monitoring.register_event_listener(use._listen)
                     listening = True
+            # JAX decides at its first compilation whether a process uses the
+            # cache, and keeps to that: make it read the settings anew.
+            reset_cache()
             yield use
     finally:
         if listening:
@@ -207,6 +221,7 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
         for name, value in before.items():
             if getattr(jax.config, name) != value:
                 jax.config.update(name, value)
+        reset_cache()
 
 
 def _cache_path(given: str | None) -> str | None:

@@ -191,15 +191,15 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
 
     from . import plot
 
-    scene, sol, problem = sim.scene, sim.solution, sim.scene.problem
+    scene, sol, problem, diag = sim.scene, sim.solution, sim.scene.problem, sim.diagnostics
     stem, settings = scene.file_stem, scene.describe_run(sol)
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     np.savez(tmp / f"{stem}.npz", **sim.record())
     figures = {
         "components": plot.components(sol, title, events=sim.event_times),
         "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention,
-                                   events=sim.event_times),
-        "invariants": plot.invariants(sol, problem, title),
+                                   events=sim.event_times, angles=diag.euler_angles),
+        "invariants": plot.invariants(sol, problem, title, quantities=diag.invariants),
     }
     names = [f"{stem}.npz"]
     for what, fig in figures.items():

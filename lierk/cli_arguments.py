@@ -63,10 +63,10 @@ def parse_range(s: str) -> tuple[float, float, int]:
 
 
 def _solver_list(s: str) -> list[str]:
-    from .solvers import solver_class
+    from .accuracy import method
 
     try:
-        return [solver_class(part.strip()).__name__ for part in s.split(",")]
+        return [method(part.strip()).name for part in s.split(",")]
     except ValueError as e:
         raise argparse.ArgumentTypeError(str(e)) from None
 
@@ -259,7 +259,9 @@ def _add_accuracy(sub, common) -> None:
         "--solvers",
         type=_solver_list,
         metavar="A,B,...",
-        help="comma-separated solvers (default: RKMK4,CF4,DP54,DOP853,RKF45)",
+        help="comma-separated solvers (default: every one that applies: RKMK4, CF4, RKMK(DOPRI54) and "
+        "RKMK(DOP853) at fixed steps, DP54, DOP853, RKF45, and under torques the splittings Strang, BlanesMoan4, "
+        "BlanesMoan6, BlanesMoanRKN4 and BlanesMoanRKN6 where they apply)",
     )
     acc.add_argument(
         "--max-settings",

@@ -26,6 +26,9 @@ class Diagnostics(NamedTuple):
             taken as 1 when it is 0); conserved or not, see ``problem.conserved()``.
         orthogonality: ``max_t ||R^T R - I||_F``.
         quaternion: ``(n, 4)`` unit quaternions ``(w, x, y, z)`` of ``R``, ``w >= 0``.
+        euler_angles: ``(n, 3)`` `lierk.so3.to_euler` of ``R`` (rad, in
+            ``(-pi, pi]``, not unwrapped) in the convention asked for, or
+            None if none was.
     """
 
     omega: np.ndarray
@@ -34,27 +37,31 @@ class Diagnostics(NamedTuple):
     drift: dict[str, float]
     orthogonality: float
     quaternion: np.ndarray
+    euler_angles: np.ndarray | None = None
 
 
 @eqx.filter_jit
-def _compute(problem, R, y):
+def _compute(problem, R, y, euler_convention):
     from . import so3
     from .problems.kinematics import angular_momentum
 
     omega = problem.angular_velocity(R, y)
-    return (omega, angular_momentum(problem.inertia, omega, R), problem.invariants(R, y), so3.orthogonality_error(R),
-            so3.to_quaternion(R))
+    euler = None if euler_convention is None else so3.to_euler(R, euler_convention)
+    return (omega, angular_momentum(problem.inertia, omega, R), problem.invariants(R, y),
+            so3.orthogonality_error(R), so3.to_quaternion(R), euler)
 
 
-def diagnostics(problem, sol) -> Diagnostics:
+def diagnostics(problem, sol, *, euler_convention: str | None = None) -> Diagnostics:
     """The `Diagnostics` of ``sol``, an unbatched solve of the rigid body
-    ``problem``, over its valid saved points."""
+    ``problem``, over its valid saved points; with ``euler_convention``
+    (``"zyx"`` or ``"zxz"``, see `lierk.so3.to_euler`) the Euler angles too."""
     import jax
 
     from .plot import trajectory
 
     _, R, y = trajectory(sol)
-    omega, L, inv, orth, q = jax.device_get(_compute(problem, R, y))
+    omega, L, inv, orth, q, euler = jax.device_get(_compute(problem, R, y, euler_convention))
     inv = {k: np.asarray(v) for k, v in inv.items()}
     drift = {k: float(np.max(np.abs(v - v[0])) / (abs(v[0]) if v[0] != 0 else 1.0)) for k, v in inv.items()}
-    return Diagnostics(np.asarray(omega), np.asarray(L), inv, drift, float(np.max(orth)), np.asarray(q))
+    euler = None if euler is None else np.asarray(euler)
+    return Diagnostics(np.asarray(omega), np.asarray(L), inv, drift, float(np.max(orth)), np.asarray(q), euler)

@@ -43,7 +43,7 @@ integral has no pole.  All elliptic functions and integrals are evaluated by
 (no cancellation near the separatrix).
 
 Inputs are validated as `lierk.FreeRigidBody` validates them
-(`lierk.validation.rigid_body_state`): the inertia is ``(3, 3)`` symmetric
+(`lierk.validation.rigid_body_inputs`): the inertia is ``(3, 3)`` symmetric
 positive definite or ``(3,)`` principal moments, ``omega0`` is a finite
 ``(3,)`` vector and ``R0`` a rotation matrix.  Concrete values raise
 `ValueError` naming the value; traced values (under ``jit``/``vmap``/``grad``)
@@ -77,7 +77,7 @@ from jax.typing import ArrayLike
 
 from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
-from lierk.validation import rigid_body_state
+from lierk.validation import is_traced, rigid_body_inputs
 
 __all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "flip_times", "sphere", "principal_frame"]
 
@@ -116,8 +116,7 @@ def _validated(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = Non
     dtype, as `lierk.FreeRigidBody` checks them.  Traced values come back
     wrapped in their run-time checks, so callers must compute with the
     returned arrays (XLA drops a check whose result is unused)."""
-    inertia, _, omega0, R0 = rigid_body_state(inertia, omega0, R0)
-    return inertia, omega0, R0
+    return rigid_body_inputs(inertia, omega0, R0)
 
 
 def _working_constants(inertia: Array, omega0: Array):
@@ -250,7 +249,11 @@ def free_rigid_body(
         Landau & Lifshitz, "Mechanics", section 37.
     """
     inertia, omega0, R0 = _validated(inertia, omega0, R0)
-    return _free_motion(inertia, omega0, t, R0)
+    if is_traced(inertia, omega0, t, R0):
+        return _free_motion(inertia, omega0, t, R0)
+    # Concrete values (a reference for a report): one compiled program, not
+    # an eager operation (and a compilation) at a time.
+    return _free_motion_program(inertia, omega0, np.asarray(t, dtype=inertia.dtype), R0)
 
 
 def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
@@ -360,6 +363,9 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
     """`free_rigid_body` on inputs that are already checked."""
     return _free_motion_ad(inertia, omega0, jnp.asarray(t, dtype=inertia.dtype), R0)
+
+
+_free_motion_program = jax.jit(_free_motion)
 
 
 @jax.custom_jvp
@@ -636,6 +642,13 @@ def flip_interval(inertia: ArrayLike, omega0: ArrayLike) -> Array:
         Landau & Lifshitz, "Mechanics", section 37 (period ``4K/lambda``).
     """
     inertia, omega0, _ = _validated(inertia, omega0)
+    # Concrete values (a report, a figure) run as one compiled program, not
+    # an eager operation (and compilation) at a time.
+    return (_flip_interval if is_traced(inertia, omega0) else _flip_interval_program)(inertia, omega0)
+
+
+def _flip_interval(inertia: Array, omega0: Array) -> Array:
+    """`flip_interval` of a checked ``inertia`` ``(3, 3)`` and ``omega0`` ``(3,)``."""
     c = _working_constants(inertia, omega0)
     J = c["J"]
     regular = ~(c["stat"] | c["sep"])
@@ -646,6 +659,9 @@ def flip_interval(inertia: ArrayLike, omega0: ArrayLike) -> Array:
     K = ellipk(jnp.where(flips, c["k2"], 0.5), jnp.where(flips, c["k2c"], 0.5))
     lam = jnp.where(flips, jnp.abs(c["lam"]), 1.0)
     return jnp.where(flips, 2.0 * K / lam, jnp.inf)
+
+
+_flip_interval_program = jax.jit(_flip_interval)
 
 
 def sphere(omega0: ArrayLike, t: ArrayLike, R0: ArrayLike | None = None) -> tuple[Array, Array]:

@@ -16,6 +16,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from . import validation
 from .adjoint import ForwardMode
 from .controller import ConstantStep, Controller
 from .loops import frozen, solve_adaptive, solve_fixed
@@ -41,6 +42,15 @@ def finer(controller: Controller) -> Controller:
     return eqx.tree_at(
         lambda c: (c.rtol, c.atol), controller, (controller.rtol / TOLERANCE_RATIO, controller.atol / TOLERANCE_RATIO)
     )
+
+
+def _own_controller(tol: Array) -> Controller:
+    """A `Controller` with ``rtol = atol = tol``, a tolerance this module
+    computed itself (positive and finite): it is not checked again at run
+    time, so the program has no host callback and JAX's persistent cache can
+    keep it."""
+    with validation.checked_on_host():
+        return Controller(tol, tol)
 
 
 def _attitude_gap(sol: Solution, fine: Solution) -> Array:
@@ -111,7 +121,7 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
     def pair(s):
         # (first step, controller) of the setting and of its finer twin.
         if adaptive:
-            c = Controller(s, s)
+            c = _own_controller(s)
             twins = ((None, c), (None, finer(c)))
         else:
             twins = ((s, ConstantStep()), (s / 2, ConstantStep()))
@@ -163,7 +173,7 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
     def rounding_checked(est):
         s_fine = jnp.abs(s) / (ratio if adaptive else 2.0)
         if adaptive:
-            h, c = None, Controller(2 * s_fine, 2 * s_fine)
+            h, c = None, _own_controller(2 * s_fine)
         else:
             h, c = s_fine * 2.0 ** (1.0 / power), ConstantStep()
         twin = solve_adaptive(problem, solver, t0, t1, h, saveat, max_steps, c, adjoint, DIAGNOSTIC_FLOOR_EPS)

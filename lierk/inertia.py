@@ -3,6 +3,10 @@
 All tensors are ``(3, 3)`` arrays in the body frame.  Shapes are given by mass
 (kg) and dimensions (m).  `composite` combines parts with the parallel-axis
 theorem, which is how the report builds its T-handle.
+
+The arithmetic runs in NumPy on concrete values (a scene is built without
+compiling anything) and in ``jax.numpy`` when an offset or inertia is traced;
+the results are JAX arrays either way.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
+from .validation import as_jax, is_traced
 from .validation import check_inertia as tensor
 
 __all__ = [
@@ -45,7 +50,7 @@ def _positive(name: str, value) -> float:
 def sphere(mass: float, radius: float) -> Array:
     """Solid sphere: ``2/5 m r^2`` about every axis."""
     m, r = _positive("mass", mass), _positive("radius", radius)
-    return jnp.eye(3) * (0.4 * m * r * r)
+    return as_jax(np.eye(3) * (0.4 * m * r * r))
 
 
 def solid_cylinder(mass: float, radius: float, length: float, axis: str = "z") -> Array:
@@ -56,21 +61,27 @@ def solid_cylinder(mass: float, radius: float, length: float, axis: str = "z") -
         raise ValueError(f"axis must be one of {sorted(_AXES)}, got {axis!r}")
     d = np.full(3, m * (3 * r * r + length * length) / 12.0)
     d[_AXES[axis]] = 0.5 * m * r * r
-    return jnp.diag(jnp.asarray(d))
+    return as_jax(np.diag(d))
 
 
 def box(mass: float, lx: float, ly: float, lz: float) -> Array:
     """Solid box with edge lengths ``(lx, ly, lz)`` along the body axes."""
     m = _positive("mass", mass)
     lx, ly, lz = _positive("lx", lx), _positive("ly", ly), _positive("lz", lz)
-    return jnp.diag(jnp.asarray([ly * ly + lz * lz, lx * lx + lz * lz, lx * lx + ly * ly]) * (m / 12.0))
+    return as_jax(np.diag(np.array([ly * ly + lz * lz, lx * lx + lz * lz, lx * lx + ly * ly]) * (m / 12.0)))
 
 
 def parallel_axis(inertia_cm: ArrayLike, mass: float, offset: ArrayLike) -> Array:
     """Inertia about a point displaced by ``-offset`` from the centre of mass:
     ``I + m (|d|^2 E - d d^T)`` with ``d = offset`` (m)."""
-    d = jnp.asarray(offset, dtype=jnp.result_type(float))
-    return jnp.asarray(inertia_cm) + mass * (jnp.dot(d, d) * jnp.eye(3) - jnp.outer(d, d))
+    return as_jax(_shifted(jnp if is_traced(inertia_cm, mass, offset) else np, inertia_cm, mass, offset))
+
+
+def _shifted(xp, inertia_cm, mass, offset):
+    """`parallel_axis` in ``xp`` (NumPy or ``jax.numpy``)."""
+    dtype = jnp.result_type(float)  # as jax.numpy would compute it
+    d = xp.asarray(offset, dtype=dtype)
+    return xp.asarray(inertia_cm, dtype=dtype) + mass * (xp.dot(d, d) * xp.eye(3, dtype=dtype) - xp.outer(d, d))
 
 
 class Part(NamedTuple):
@@ -108,13 +119,15 @@ def composite(parts: Sequence[Part]) -> Composite:
         raise ValueError("composite needs at least one part")
     masses = [_positive(f"parts[{i}].mass", p.mass) for i, p in enumerate(parts)]
     total = sum(masses)
-    offsets = [jnp.asarray(p.offset, dtype=jnp.result_type(float)) for p in parts]
+    xp = jnp if is_traced([(p.offset, p.inertia, p.rotation) for p in parts]) else np
+    dtype = jnp.result_type(float)  # as jax.numpy would compute it
+    offsets = [xp.asarray(p.offset, dtype=dtype) for p in parts]
     com = sum(m * o for m, o in zip(masses, offsets)) / total
-    inertia = jnp.zeros((3, 3))
+    inertia = xp.zeros((3, 3), dtype)
     for p, m, o in zip(parts, masses, offsets):
-        Q = jnp.eye(3) if p.rotation is None else jnp.asarray(p.rotation)
-        inertia = inertia + parallel_axis(Q @ jnp.asarray(p.inertia) @ Q.T, m, o - com)
-    return Composite(total, com, inertia)
+        Q = xp.eye(3, dtype=dtype) if p.rotation is None else xp.asarray(p.rotation, dtype=dtype)
+        inertia = inertia + _shifted(xp, Q @ xp.asarray(p.inertia, dtype=dtype) @ Q.T, m, o - com)
+    return Composite(total, as_jax(com), as_jax(inertia))
 
 
 def tee_handle_parts(

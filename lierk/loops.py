@@ -3,6 +3,8 @@
 - `solve_fixed`: a static number of fixed steps through `lax.scan`
   (checkpointed in blocks for reverse mode).  It saves by structure: an outer
   scan over chunks of ``SaveAt(steps=k)`` steps stacks the chunk ends.
+  `solve_fixed_counted` takes the same steps with a traced ``k`` (one
+  compilation for every step size, as `lierk.accuracy` needs).
 - `solve_adaptive`: a while loop driven by a step-size controller
   (`lierk.controller`: `Controller` for embedded pairs, `ConstantStep` for a
   fixed step whose count is not static), differentiated as its adjoint says
@@ -33,7 +35,7 @@ from .interpolation import DenseInterpolation
 from .controller import AbstractStepController
 from .solution import RESULTS, SaveAt, Solution
 
-__all__ = ["solve_fixed", "solve_adaptive", "num_steps", "step_count", "frozen"]
+__all__ = ["solve_fixed", "solve_fixed_counted", "solve_adaptive", "num_steps", "step_count", "frozen"]
 
 # Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`solve_fixed`).
@@ -191,7 +193,24 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tup
     `_solve_fixed_tracked`."""
     if saveat.dense or events:
         return _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat, n, events)
-    needed, count, time, size = _schedule(t0, t1, dt, n)
+    needed, count, time, size = schedule = _schedule(t0, t1, dt, n)
+    one = _fixed_step(problem, solver, schedule)
+    state0 = (problem.R0, problem.y0)
+    every = saveat.every
+    n_chunks, rem = divmod(n, every) if every else (0, n)
+    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time)
+    state, _, taken = carry
+    # (The last chunk's end is t1 already when the chunks fill the run.)
+    end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
+    ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
+    result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
+    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
+    return Solution(ts, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)
+
+
+def _fixed_step(problem, solver, schedule: _Schedule):
+    """The scan body of a fixed-step loop, ``((R, y), k, taken) -> (next, None)``."""
+    _, count, time, size = schedule
 
     # The step index and the count of steps taken ride in the loop's carry:
     # scanning over an array of indices (or of step times) would allocate a
@@ -202,14 +221,34 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tup
         st = solver.step(problem, time(k), size(k), R, y)
         return ((st.R, st.y), k + 1, taken + (k < count).astype(taken.dtype)), None
 
+    return one
+
+
+@eqx.filter_jit
+def solve_fixed_counted(problem, solver, t0, t1, dt, every, n_saves: int) -> Solution:
+    """`solve_fixed` saving ``t0`` and every ``every``-th step
+    (``SaveAt(t0=True, steps=every)``) with ``every`` traced: ``n_saves``
+    (static) states after ``t0``, at most ``n_saves * every`` steps.
+
+    One compilation serves every step count, and a run costs its own steps
+    (no padding): each save interval is a loop whose trip count is
+    ``every``.  The steps, and so the numbers, are `solve_fixed`'s, and a
+    run takes the same time to within a few percent.  Forward mode only
+    (a loop of traced length cannot be reverse-differentiated).
+    """
+    n = (n_saves * every).astype(dt.dtype)  # (compared with step counts, which are floats)
+    needed, _, time, _ = schedule = _schedule(t0, t1, dt, n)
+    one = _fixed_step(problem, solver, schedule)
+
+    def chunk(carry, _):
+        carry = jax.lax.fori_loop(0, every, lambda _, c: one(c, None)[0], carry)
+        return carry, carry[0]
+
     state0 = (problem.R0, problem.y0)
-    every = saveat.every
-    n_chunks, rem = divmod(n, every) if every else (0, n)
-    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time)
+    carry, saved = jax.lax.scan(chunk, (state0, jnp.asarray(0), jnp.asarray(0)), None, length=n_saves)
+    middle = (time((jnp.arange(n_saves) + 1) * every), saved)
     state, _, taken = carry
-    # (The last chunk's end is t1 already when the chunks fill the run.)
-    end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
-    ts, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
+    ts, R, y, n_saved = _assemble(SaveAt(t0=True, steps=1), t0, state0, middle, None)
     result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
     result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
     return Solution(ts, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)

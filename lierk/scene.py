@@ -123,7 +123,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from . import inertia as _inertia
-from . import so3
 from . import solvers as _solvers
 from .problems import spacecraft
 from .problems.effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
@@ -584,15 +583,39 @@ def _orientation(t: dict, path: str, allow_identity: bool) -> np.ndarray | None:
         q = _vec(t[k], p, 4)
         if not np.linalg.norm(q) > 1e-12:
             raise ValueError(f"{p} must be a nonzero quaternion [w, x, y, z], got {t[k]!r}")
-        R = np.asarray(so3.from_quaternion(q / np.linalg.norm(q)))
+        R = _quaternion_matrix(q / np.linalg.norm(q))
     elif k == "mrp":
-        R = np.asarray(so3.from_mrp(_vec(t[k], p)))
+        R = _mrp_matrix(_vec(t[k], p))
     else:
-        R = np.asarray(so3.from_euler(*_vec(t[k], p)))
+        R = _euler_matrix(*_vec(t[k], p))
     try:
-        return np.asarray(check_attitude(np.asarray(R, dtype=float), jnp.result_type(float)), dtype=float)
+        return np.asarray(check_attitude(R, jnp.result_type(float)), dtype=float)
     except ValueError as e:
         raise ValueError(f"{p}: {e}") from None
+
+
+def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
+    """`lierk.so3.from_quaternion` of a unit ``q = (w, x, y, z)``, in NumPy."""
+    w, x, y, z = q
+    K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + 2.0 * w * K + 2.0 * (K @ K)
+
+
+def _mrp_matrix(sigma: np.ndarray) -> np.ndarray:
+    """`lierk.so3.from_mrp` of modified Rodrigues parameters, in NumPy."""
+    x, y, z = sigma
+    S = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    s2 = float(sigma @ sigma)
+    return np.eye(3) + (8.0 * S @ S + 4.0 * (1.0 - s2) * S) / (1.0 + s2) ** 2
+
+
+def _euler_matrix(phi: float, theta: float, psi: float) -> np.ndarray:
+    """`lierk.so3.from_euler` (``R = Rz(phi) Ry(theta) Rx(psi)``), in NumPy."""
+    c, s = np.cos([phi, theta, psi]), np.sin([phi, theta, psi])
+    Rz = np.array([[c[0], -s[0], 0.0], [s[0], c[0], 0.0], [0.0, 0.0, 1.0]])
+    Ry = np.array([[c[1], 0.0, s[1]], [0.0, 1.0, 0.0], [-s[1], 0.0, c[1]]])
+    Rx = np.array([[1.0, 0.0, 0.0], [0.0, c[2], -s[2]], [0.0, s[2], c[2]]])
+    return Rz @ Ry @ Rx
 
 
 # --- body ----------------------------------------------------------------------

@@ -7,13 +7,13 @@ import math
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from ._progress import Progress
 from .event import EventRecord
 from .solution import RESULTS, SaveAt, Solution
 from .solve import num_steps, solve
+from .validation import as_jax, checked_on_host
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -35,8 +35,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
     kw.update({"event": events} if events else {})
 
     if scene.target_error is not None:
-        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=scene.saveat(), throw=False,
-                                                   **scene.solve_kwargs))
+        # The save times are made here, concrete, so they are checked now
+        # rather than by a run-time check in the program.
+        saveat = scene.saveat()
+        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs))
         with bar.compiling():
             run = run.lower(problem).compile()
         sol = jax.block_until_ready(run(problem))
@@ -66,8 +68,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         @eqx.filter_jit
         def piece(problem, ta, tb):
             # Padding steps past tb are exact no-ops, so every piece has the
-            # same static length and compiles once.
-            return solve(problem, solver, tb, t0=ta, max_steps=per, saveat=SaveAt(steps=every), throw=False, **kw)
+            # same static length and compiles once.  The times are this
+            # function's own (finite, increasing): checked on the host.
+            with checked_on_host():
+                return solve(problem, solver, tb, t0=ta, max_steps=per, saveat=SaveAt(steps=every), throw=False, **kw)
 
         pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
     else:
@@ -78,7 +82,8 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
 
         @eqx.filter_jit
         def piece(problem, ta, tb, ts):
-            return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
+            with checked_on_host():
+                return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
 
         pieces, ta = [], 0.0
         for k in range(0, len(rest), size):
@@ -89,18 +94,20 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
             ta = float(group[-1])
 
     def arguments(problem, ta, tb, group):
-        args = (problem, jnp.asarray(ta, dtype), jnp.asarray(tb, dtype))
-        return args if group is None else args + (jnp.asarray(group, dtype),)
+        args = (problem, as_jax(ta, dtype), as_jax(tb, dtype))
+        return args if group is None else args + (as_jax(group, dtype),)
 
     with bar.compiling():
         piece = piece.lower(*arguments(problem, *pieces[0])).compile()
 
+    # Host-side bookkeeping is NumPy: an eager jax.numpy operation would
+    # compile a program of its own.
     ts_out, R_out = [np.zeros(1)], [np.asarray(problem.R0)[None]]
     y_out = [jax.tree_util.tree_map(lambda x: np.asarray(x)[None], problem.y0)]
-    stats, code = None, RESULTS.successful
+    stats, code = {}, RESULTS.successful
     found = [[] for _ in events]  # per event: each piece's record
     for ta, tb, group in pieces:
-        sol = piece(*arguments(problem, ta, tb, group))
+        sol = jax.device_get(piece(*arguments(problem, ta, tb, group)))
         code = int(sol.result)
         ts = np.asarray(sol.ts)
         # Padding repeats the end state; keep each time once.  Rows past a
@@ -119,10 +126,10 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
             ts_out.append(r.ts[j : j + 1])
             R_out.append(r.R[j : j + 1])
             y_out.append(jax.tree_util.tree_map(lambda x: x[j : j + 1], r.y))
-        stats = sol.stats if stats is None else jax.tree_util.tree_map(lambda a, b: a + b, stats, sol.stats)
+        stats = {k: stats.get(k, 0) + int(v) for k, v in sol.stats.items()}
         if _check(code, ta, tb, throw):
             break
-        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
+        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: as_jax(x[-1]), sol.y))
         bar.update(tb)
 
     ts = np.concatenate(ts_out)
@@ -133,12 +140,12 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[: len(ts)]
     y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
     return Solution(
-        ts=jnp.asarray(ts, dtype),
-        R=jnp.asarray(np.concatenate(R_out), dtype),
-        y=jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype), y),
-        n_saved=jnp.asarray(len(ts)),
-        stats={k: int(v) for k, v in stats.items()},
-        result=jnp.asarray(code),
+        ts=as_jax(ts, dtype),
+        R=as_jax(np.concatenate(R_out), dtype),
+        y=jax.tree_util.tree_map(lambda x: as_jax(x, dtype), y),
+        n_saved=as_jax(len(ts)),
+        stats=stats,
+        result=as_jax(code),
         events=tuple(_joined(e, records) for e, records in zip(events, found)) if events else None,
     )
 
@@ -153,11 +160,11 @@ def _joined(event, records) -> EventRecord:
     y = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *[jax.tree_util.tree_map(lambda a: a[: len(k)], r.y) for k, r in kept])
     pad = n - len(ts)
     return EventRecord(
-        ts=jnp.asarray(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
-        R=jnp.asarray(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
-        y=jax.tree_util.tree_map(lambda a: jnp.asarray(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
-        count=jnp.asarray(sum(int(r.count) for r in records), jnp.int32),
-        stopped=jnp.asarray(any(bool(r.stopped) for r in records)),
+        ts=as_jax(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
+        R=as_jax(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
+        y=jax.tree_util.tree_map(lambda a: as_jax(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
+        count=as_jax(np.int32(sum(int(r.count) for r in records))),
+        stopped=as_jax(np.bool_(any(bool(r.stopped) for r in records))),
     )
 
 

@@ -36,7 +36,8 @@ class Simulation:
     Attributes:
         scene: the `lierk.scene.Scene` that was solved.
         solution: its `lierk.Solution`.
-        diagnostics: `lierk.diagnostics.diagnostics` of the solution.
+        diagnostics: `lierk.diagnostics.diagnostics` of the solution, with
+            its Euler angles in the scene's `lierk.scene.Scene.euler_convention`.
         wall: the solve's wall time (s), compilation included.
     """
 
@@ -154,4 +155,4 @@ def simulate(scene, *, n_pieces: int | None = None, progress: bool = False) -> S
     start = time.perf_counter()
     sol = scene.solve(n_pieces=n_pieces, progress=progress)
     wall = time.perf_counter() - start
-    return Simulation(scene, sol, diagnostics(scene.problem, sol), wall)
+    return Simulation(scene, sol, diagnostics(scene.problem, sol, euler_convention=scene.euler_convention), wall)

@@ -10,6 +10,8 @@ cannot be inspected, so the same condition becomes a run-time check with
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import warnings
 from typing import Callable
 
@@ -45,6 +47,21 @@ def asarray(x, dtype=None, name: str = "value"):
     return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 
+def as_jax(x, dtype=None):
+    """``x`` as a JAX array (in ``dtype`` if given): a traced value cast as
+    it is, a concrete one converted by NumPy and put on the device.  Unlike
+    ``jnp.asarray``, which compiles a small program per shape and dtype, this
+    compiles nothing on concrete values (host paths: validation, problems
+    built from a scene)."""
+    if is_traced(x):
+        x = jnp.asarray(x)
+        return x if dtype is None else x.astype(dtype)
+    if isinstance(x, jax.Array) and (dtype is None or x.dtype == jax.dtypes.canonicalize_dtype(dtype)):
+        return x
+    x = np.asarray(x)
+    return jax.device_put(x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype)))
+
+
 def all_finite(tree) -> jax.Array:
     """Whether every entry of every array leaf of ``tree`` is finite (a traced bool)."""
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
@@ -54,12 +71,34 @@ def is_traced(*xs) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
 
 
+_CHECKED_ON_HOST = contextvars.ContextVar("lierk_checked_on_host", default=False)
+
+
+@contextlib.contextmanager
+def checked_on_host():
+    """Trace a block whose traced inputs the caller has already checked on
+    the host (say, the step times it computed itself): `check` then passes
+    them through instead of adding a run-time check.
+
+    A run-time check is a host callback, and JAX's persistent compilation
+    cache does not keep programs with host callbacks: a program traced in
+    this block can be loaded from the cache in a later process."""
+    token = _CHECKED_ON_HOST.set(True)
+    try:
+        yield
+    finally:
+        _CHECKED_ON_HOST.reset(token)
+
+
 def check(x, ok: Callable, message: str):
     """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
 
     ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
-    the array's own methods).  For traced ``x`` the check is deferred to run time.
+    the array's own methods).  For traced ``x`` the check is deferred to run time
+    (not made at all inside `checked_on_host`).
     """
+    if is_traced(x) and _CHECKED_ON_HOST.get():
+        return x
     if is_traced(x):
         import jax.numpy as jnp
 
@@ -96,7 +135,7 @@ def check_scalar(x, name: str, dtype=None, *, bound: str = "finite"):
 def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
     if R0 is None:
-        return jnp.eye(3, dtype=dtype)
+        return as_jax(np.eye(3), dtype)
     R0 = asarray(R0, dtype, "R0")
     check_shape(R0, (3, 3), "R0")
     tol = 1e-6
@@ -107,24 +146,24 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
         lambda R: (xp.linalg.norm(R.T @ R - xp.eye(3)) < tol) & (xp.linalg.det(R) > 0),
         f"R0 must be a rotation matrix (||R^T R - I|| < {tol:g} and det R = +1), got {{value}}",
     )
-    return jnp.asarray(R0)
+    return as_jax(R0)
 
 
 def check_vector(x: ArrayLike, name: str, dtype) -> Array:
     x = asarray(x, dtype, name)
     check_shape(x, (3,), name)
     x = check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
-    return jnp.asarray(x)
+    return as_jax(x)
 
 
-def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
+def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
     """Validate a rigid body's inertia and initial state, in one common float dtype.
 
-    Returns ``(inertia (3, 3), inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``.
+    Returns ``(inertia (3, 3), omega0 (3,), R0 (3, 3))``.
     """
     inertia = check_inertia(inertia)
     dtype = jnp.result_type(inertia.dtype, asarray(omega0, name="omega0").dtype, float)
-    inertia = inertia.astype(dtype)
+    inertia = as_jax(inertia, dtype)
     if not is_traced(inertia):
         moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
         limit = 1e-10 if dtype == jnp.float64 else 1e-5
@@ -136,7 +175,14 @@ def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None
                 stacklevel=3,
             )
     omega0 = check_vector(omega0, "omega0", dtype)
-    return inertia, jnp.linalg.inv(inertia), omega0, check_attitude(R0, dtype)
+    return inertia, omega0, check_attitude(R0, dtype)
+
+
+def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
+    """`rigid_body_inputs` and the inverse inertia: ``(inertia (3, 3),
+    inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``."""
+    inertia, omega0, R0 = rigid_body_inputs(inertia, omega0, R0)
+    return inertia, jnp.linalg.inv(inertia), omega0, R0
 
 
 def check_inertia(inertia: ArrayLike) -> Array:
@@ -188,4 +234,4 @@ def check_inertia(inertia: ArrayLike) -> Array:
                 "no rigid body has these principal moments; the equations are solved as given",
                 stacklevel=3,
             )
-    return jnp.asarray(inertia)
+    return as_jax(inertia)

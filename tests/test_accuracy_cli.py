@@ -50,7 +50,7 @@ t1 = 0.3
 """
 
 LIERK = str(Path(sys.executable).parent / "lierk")
-TABLE_LINE = re.compile(r"^\s*(1e-\d\d)\s+(\w+)\s+(dt = \S+ s|rtol = \S+)\s+(\S+)\s+(\S+)\s+(\S+)\s*$")
+TABLE_LINE = re.compile(r"^\s*(1e-\d\d)\s+(\S+)\s+(dt = \S+ s|rtol = \S+)\s+(\S+)\s+(\S+)\s+(\S+)\s*$")
 
 
 def _exact_error(scene, row, ts):
@@ -263,3 +263,83 @@ def test_numerical_reference_is_cross_checked_with_effects():
                               saveat=lierk.SaveAt(t0=True, steps=round(0.03 / row.value)))
             err = float(np.max(np.linalg.norm(np.asarray(sol.R) - np.asarray(fine.R), axis=(-2, -1))))
             assert row.error == pytest.approx(err, rel=1e-3)
+
+
+GRAVITY_SCENE = """
+name = "top"
+[body]
+kind = "tensor"
+inertia = [5.0, 5.0, 1.0]
+mass = 1.0
+[initial]
+omega = [0.3, 0.0, 20.0]
+[[effects]]
+kind = "gravity"
+pivot_to_com = [0.0, 0.0, 2.0]
+g = 10.0
+[run]
+solver = "RKMK4"
+dt = 0.01
+t1 = 0.2
+"""
+
+
+def _scene(text):
+    return lierk.scene.from_dict(__import__("tomllib").loads(text))
+
+
+def test_every_applicable_solver_runs_by_default():
+    free = A.default_solvers(_scene(TINY_SCENE).problem)
+    assert free == ("RKMK4", "CF4", "RKMK(DOPRI54)", "RKMK(DOP853)", "DP54", "DOP853", "RKF45")
+    # Under torques the splittings too; the Runge-Kutta-Nystrom ones only
+    # where no torque reads the momentum.
+    assert A.default_solvers(_scene(GRAVITY_SCENE).problem) == free + (
+        "Strang", "BlanesMoan4", "BlanesMoan6", "BlanesMoanRKN4", "BlanesMoanRKN6")
+    assert A.default_solvers(_scene(DAMPED_SCENE).problem) == free + ("Strang", "BlanesMoan4", "BlanesMoan6")
+    assert A.default_solvers(_scene(GRAVITY_SCENE).problem) == A.METHODS
+    # The embedded pairs' tableaux at fixed steps, by name in any case.
+    m = A.method("rkmk(dop853)")
+    assert (m.name, m.adaptive, m.solver.tableau) == ("RKMK(DOP853)", False, lierk.tableaux.DOP853)
+    assert A.method("DOP853").adaptive and not A.method("BlanesMoanRKN4").adaptive
+    with pytest.raises(ValueError, match=r"unknown solver 'RKMK\(RK45\)'.*RKMK\(DOP853\)"):
+        A.method("RKMK(RK45)")
+    with pytest.raises(ValueError, match="BlanesMoanRKN4 is a Runge-Kutta-Nystrom splitting.*Damping"):
+        A.work_precision(_scene(DAMPED_SCENE), solvers=["BlanesMoanRKN4"])
+
+
+def test_one_compilation_per_solver_and_the_runs_are_lierk_solve_s():
+    import jax
+
+    with jax.enable_x64(True):
+        scene = _scene(GRAVITY_SCENE)
+        solvers = ["RKMK(DOP853)", "BlanesMoanRKN4", "DP54"]
+        jax.clear_caches()
+        rep = A.work_precision(scene, solvers=solvers, max_settings=2, repeats=1)
+        # One program per solver and one for DOP853, the reference (DP54,
+        # its cross-check, shares the rows' program): every setting, its
+        # finer twin for the error estimate and the reference reuse them.
+        assert rep.compilations == len(solvers) + 1, rep.compilations
+        assert len(rep.rows) == 6 and 0 < rep.compile_time
+        assert re.search(rf"s wall \([\d.]+ s of it compiling {len(solvers) + 1} programs\)", rep.summary(wall=9.0))
+        ts = np.asarray(rep.ts)
+        p = scene.problem
+        R_ref = np.asarray(lierk.solve(p, lierk.DOP853(), scene.t1, rtol=1e-13, saveat=lierk.SaveAt(ts=ts),
+                                       max_steps=2**17).R)
+        for row in rep.rows:
+            m = A.method(row.solver)
+            if row.setting == "dt":
+                every = round((ts[1] - ts[0]) / row.value)
+                sol = lierk.solve(p, m.solver, scene.t1, dt=row.value, saveat=lierk.SaveAt(t0=True, steps=every),
+                                  max_steps=every * (len(ts) - 1), estimate_error=True, throw=False)
+            else:
+                sol = lierk.solve(p, m.solver, scene.t1, rtol=row.value, saveat=lierk.SaveAt(ts=ts),
+                                  max_steps=2**17, estimate_error=True, throw=False)
+            assert (row.result, row.num_steps, row.num_fevals) == (
+                int(sol.result), int(sol.stats["num_steps"]), int(sol.stats["num_fevals"])), row
+            if not row.ok:
+                continue
+            # The same steps as lierk.solve's: the same states, to the bit for
+            # fixed steps, and the same estimate (computed on the host here).
+            err = float(np.max(np.linalg.norm(np.asarray(sol.R) - R_ref, axis=(-2, -1))))
+            assert row.error == (err if row.setting == "dt" else pytest.approx(err, rel=1e-9, abs=1e-15)), row
+            assert row.error_estimate == pytest.approx(float(np.max(sol.error_estimate)), rel=1e-6, abs=1e-15), row

@@ -357,7 +357,9 @@ def test_with_t1_is_checked_like_run_t1():
     [
         ({"body": {"kind": "box", "mass": 1e-300, "lx": 1e-5, "ly": 1e-5, "lz": 1e-5}},
          "body: the inertia .* is singular or too small to invert"),
-        ({"body": {"kind": "box", "mass": 1e-310, "lx": 1.0, "ly": 1.0, "lz": 1.0}}, "body: the inertia is not finite"),
+        # (A subnormal inertia: NumPy keeps it, where XLA flushed it to zero and reported a NaN.)
+        ({"body": {"kind": "box", "mass": 1e-310, "lx": 1.0, "ly": 1.0, "lz": 1.0}},
+         "body: the inertia .* is singular or too small to invert"),
         ({"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}, "initial": {"omega": [1e300, 0.0, 0.0]}},
          "body: the initial momentum I omega overflows"),
         ({"body": {"kind": "box", "mass": 1e300, "lx": 1e200, "ly": 1.0, "lz": 1.0}}, "the inertia is not finite|NaN or inf"),

@@ -111,7 +111,7 @@ class AbstractProblem(eqx.Module):
     def restart(self, R0: ArrayLike, y0: Any) -> "AbstractProblem":
         """The same problem started from attitude ``R0`` ``(3, 3)`` and state ``y0``
         (for solving in pieces)."""
-        problem = eqx.tree_at(lambda p: p.R0, self, jnp.asarray(R0, self.R0.dtype))
+        problem = eqx.tree_at(lambda p: p.R0, self, validation.as_jax(R0, self.R0.dtype))
         if self.y0 is not None:
             problem = eqx.tree_at(lambda p: p.y0, problem, y0)
         return problem
@@ -156,7 +156,9 @@ class AbstractRigidBody(AbstractProblem):
     @property
     def omega0(self) -> Array:
         """Initial body angular velocity ``(3,)`` (rad/s)."""
-        return self.inertia_inv @ self._body_momenta(self.R0, self.y0)
+        m0 = self._body_momenta(self.R0, self.y0)
+        # Concrete values: one compiled program (the same product), not eager ops.
+        return (jnp.matmul if validation.is_traced(self.inertia_inv, m0) else _matmul_program)(self.inertia_inv, m0)
 
     def with_omega0(self, omega0: ArrayLike) -> "AbstractRigidBody":
         """The same body and effects started with body angular velocity
@@ -252,3 +254,6 @@ class AbstractRigidBody(AbstractProblem):
         if len(self.effects) == 1:
             keys.extend(self.effects[0].conserved(self.inertia))
         return tuple(keys)
+
+
+_matmul_program = jax.jit(jnp.matmul)

@@ -79,7 +79,9 @@ class AbstractEffect(eqx.Module):
         return self.torque_from(t, so3.compose(jnp.asarray(S, R.dtype), R), m, omega)
 
     def space_vectors(self) -> Array | None:
-        """The space-frame vectors ``s_j`` ``(k, 3)`` whose body-frame images
+        """The space-frame vectors ``s_j`` ``(k, 3)`` (a NumPy array when they
+        are constants, so that tracing a stage adds no operation to build
+        them) whose body-frame images
         ``R^T s_j`` are all the torque needs of the attitude (``(0, 3)`` for a
         torque that ignores it), or None if it reads ``R`` another way.
 
@@ -137,11 +139,13 @@ class AbstractEffect(eqx.Module):
     def conserved(self, inertia: Array) -> tuple[str, ...]:
         """Keys of `invariants` that the body with this effect alone conserves,
         for a body of ``inertia`` ``(3, 3)`` (kg m^2)."""
-        return tuple(self.invariants(jnp.eye(3), jnp.zeros(3)))
+        # Only the keys: traced abstractly, nothing computed or compiled.
+        keys = jax.eval_shape(self.invariants, jax.ShapeDtypeStruct((3, 3), float), jax.ShapeDtypeStruct((3,), float))
+        return tuple(keys)
 
     def _cast(self, dtype) -> "AbstractEffect":
         """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
-        return jax.tree_util.tree_map(lambda x: jnp.asarray(x, dtype) if eqx.is_array(x) else x, self)
+        return jax.tree_util.tree_map(lambda x: validation.as_jax(x, dtype) if eqx.is_array(x) else x, self)
 
 
 def affine_flow(A: Array, c: Array, m: Array, h: Array) -> Array:
@@ -155,12 +159,12 @@ def affine_flow(A: Array, c: Array, m: Array, h: Array) -> Array:
 
 def _scalar(x, name: str, positive: bool = False) -> Array:
     x = validation.check_scalar(x, name, bound="positive" if positive else "non-negative")
-    return jnp.asarray(x)
+    return validation.as_jax(x)
 
 
 def _vector(x, name: str) -> Array:
-    x = jnp.asarray(x)
-    return validation.check_vector(x, name, x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else jnp.result_type(float))
+    x = validation.asarray(x, name=name)
+    return validation.check_vector(x, name, x.dtype)
 
 
 class Gravity(AbstractEffect):
@@ -203,7 +207,7 @@ class Gravity(AbstractEffect):
         self.g = _scalar(g, "g")
 
     def space_vectors(self):
-        return jnp.eye(3, dtype=self.pivot_to_com.dtype)[2:]  # the vertical e3
+        return np.eye(3, dtype=self.pivot_to_com.dtype)[2:]  # the vertical e3
 
     def torque_from(self, t, v, m, omega):
         # v[0] = Gamma = R^T e3, the vertical in the body frame.
@@ -243,7 +247,7 @@ class BodyTorque(AbstractEffect):
         self.tau = _vector(tau, "tau")
 
     def space_vectors(self):
-        return jnp.zeros((0, 3), self.tau.dtype)
+        return np.zeros((0, 3), self.tau.dtype)
 
     def torque_from(self, t, v, m, omega):
         return self.tau
@@ -340,7 +344,7 @@ class TimedTorque(AbstractEffect):
             times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
         )
         self.fn = None
-        self.times, self.values = jnp.asarray(times, dtype), jnp.asarray(values, dtype)
+        self.times, self.values = validation.as_jax(times, dtype), validation.as_jax(values, dtype)
 
     def at_time(self, t: Array) -> Array:
         """The torque ``(3,)`` (N m) at time ``t`` (s), in the effect's frame."""
@@ -349,9 +353,9 @@ class TimedTorque(AbstractEffect):
         return jnp.stack([jnp.interp(t, self.times, self.values[:, j]) for j in range(3)])
 
     def space_vectors(self):
-        dtype = (self.values if self.values is not None else jnp.zeros(())).dtype
+        dtype = self.values.dtype if self.values is not None else jnp.result_type(float)
         # In space frame the whole R^T is needed: the images of e1, e2, e3.
-        return jnp.eye(3, dtype=dtype) if self.frame == "space" else jnp.zeros((0, 3), dtype)
+        return np.eye(3, dtype=dtype) if self.frame == "space" else np.zeros((0, 3), dtype)
 
     def torque_from(self, t, v, m, omega):
         tau = self.at_time(t).astype(m.dtype)
@@ -373,7 +377,7 @@ class Damping(AbstractEffect):
         self.c = _scalar(c, "c")
 
     def space_vectors(self):
-        return jnp.zeros((0, 3), self.c.dtype)
+        return np.zeros((0, 3), self.c.dtype)
 
     def torque_from(self, t, v, m, omega):
         return -self.c * omega

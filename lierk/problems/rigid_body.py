@@ -99,8 +99,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
                     f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, TimedTorque, Damping, "
                     f"GravityGradient, MagneticTorque, Rotor), got {e!r}"
                 )
-        self.inertia, self.inertia_inv, omega0, self.R0 = validation.rigid_body_state(inertia, omega0, R0)
-        self.y0 = self.inertia @ omega0
+        self.inertia, omega0, self.R0 = validation.rigid_body_inputs(inertia, omega0, R0)
+        self.inertia_inv, self.y0 = _inverse_and_momentum(self.inertia, omega0)
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
@@ -129,7 +129,10 @@ class RigidBodyWithEffects(AbstractRigidBody):
         vs = [e.space_vectors() for e in self.effects]
         if any(v is None for v in vs):
             return None
-        return jnp.concatenate([jnp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [jnp.zeros((0, 3), self.y0.dtype)])
+        # Constants stay NumPy: every stage asks for them, and jax.numpy would
+        # trace the same constant operations again each time.
+        xp = np if all(isinstance(v, np.ndarray) for v in vs) else jnp
+        return xp.concatenate([xp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.y0.dtype)])
 
     # Stages never need the whole attitude when every effect reads it only
     # through the body images R^T s of a few space-fixed vectors s (gravity's
@@ -245,6 +248,22 @@ class FreeRigidBody(RigidBodyWithEffects):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         super().__init__(inertia, omega0, R0, effects=())
+
+
+def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:
+    """``(I^-1, I omega0)``: one compiled program for concrete values (eager
+    ``jax.numpy`` would compile one per operation), the same operations
+    inline when traced; the same numbers either way."""
+    if validation.is_traced(inertia, omega0):
+        return _inverse_and_momentum_ops(inertia, omega0)
+    return _inverse_and_momentum_jit(inertia, omega0)
+
+
+def _inverse_and_momentum_ops(inertia, omega0):
+    return jnp.linalg.inv(inertia), inertia @ omega0
+
+
+_inverse_and_momentum_jit = jax.jit(_inverse_and_momentum_ops)
 
 
 def _concrete_diagonal(inertia: Array) -> np.ndarray | None:

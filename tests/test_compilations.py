@@ -1,0 +1,79 @@
+"""How many programs XLA builds for a command (`lierk.compilations`).
+
+Every eager ``jax.numpy`` operation on the host path (validation, scene
+parsing, diagnostics, figures) is a compilation of its own, tens of
+milliseconds each: ``lierk simulate`` once built 97 of them.  These tests pin
+the count of a whole command run in-process, so that such operations cannot
+creep back.  Each test first clears JAX's in-memory caches, so its count does
+not depend on what ran before it."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import pytest
+
+import lierk
+from lierk import cli
+from lierk.compilations import Compilations, counting
+from lierk.simulation import simulate
+
+EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
+
+
+def _simulate(argv, tmp_path) -> Compilations:
+    jax.clear_caches()
+    with counting() as seen:
+        code = cli.main(["simulate", *argv, "--out", str(tmp_path / "out"), "--no-gif", "--quiet", "--no-cache"])
+    assert code == 0
+    return seen
+
+
+@pytest.mark.parametrize(
+    "scene, most",
+    [
+        # The pieces' solve, the problem's inverse inertia and momentum, its
+        # omega0, the diagnostics and the exact flip interval.
+        ("tee_handle_a.toml", 5),
+        # With gravity, and no flip interval (not torque-free).
+        ("heavy_top.toml", 4),
+    ],
+)
+def test_simulate_compiles_a_handful_of_programs(scene, most, tmp_path):
+    seen = _simulate([str(EXAMPLES / scene), "--t1", "0.5"], tmp_path)
+    assert "jit(piece)" in seen.names
+    assert seen.count <= most, f"{seen.count} programs compiled: {seen.names}"
+    assert 0 < seen.seconds
+
+
+@pytest.mark.parametrize(
+    "run",
+    [
+        {"solver": "RKMK4", "dt": 0.01, "save_every": 5},
+        {"solver": "DOP853", "rtol": 1e-8, "n_save": 11},
+        {"solver": "RKMK4", "target_error": 1e-6, "n_save": 11},
+    ],
+    ids=["fixed", "adaptive", "target_error"],
+)
+def test_every_program_of_a_simulation_can_be_kept_in_the_cache(run, tmp_path):
+    # A run-time check on a traced value is a host callback, and JAX keeps
+    # no program with one: the solve compiled again in every process.
+    scene = lierk.scene.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
+                                   "run": {**run, "t1": 0.5}})
+    before = jax.config.jax_persistent_cache_min_compile_time_secs
+    jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
+    jax.clear_caches()
+    try:
+        with lierk.cache.using_cache() as use:
+            simulate(scene, n_pieces=2)
+    finally:
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", before)
+    assert use.path is not None and use.counts["hits"] + use.counts["misses"] >= 2  # the pieces, the diagnostics
+    assert use.counts["unsaved"] == 0, use.counts
+
+
+def test_seconds_count_nested_phases_once():
+    c = Compilations(names=["jit(f)"], spans=[(0.0, 1.0), (0.5, 0.75), (2.0, 2.5), (0.9, 1.2)])
+    assert c.count == 1
+    assert c.seconds == pytest.approx(1.7)
