@@ -56,8 +56,9 @@ def _principal(inertia: Array) -> tuple[Array, Array]:
     if validation.is_traced(inertia):
         moments, axes = jnp.linalg.eigh(inertia)
         return moments, axes
+    # Concrete: NumPy, so that building an event compiles nothing.
     moments, axes = np.linalg.eigh(np.asarray(inertia))
-    return jnp.asarray(moments, inertia.dtype), jnp.asarray(axes, inertia.dtype)
+    return moments.astype(inertia.dtype), axes.astype(inertia.dtype)
 
 
 class IntermediateMomentum(eqx.Module):
@@ -116,8 +117,8 @@ def flip(problem, *, terminate: bool | int = False, max_count: int | None = None
     problem = _rigid_body(problem, "flip")
     moments, axes = _principal(problem.inertia)
     return Event(
-        IntermediateMomentum(problem, axes[:, 1]),
-        where=OrbitFlips(problem, moments, axes),
+        IntermediateMomentum(problem, validation.as_jax(axes[:, 1])),
+        where=OrbitFlips(problem, validation.as_jax(moments), validation.as_jax(axes)),
         terminate=terminate,
         max_count=max_count,
     )
