@@ -30,6 +30,9 @@ mode then recomputes blocks of about sqrt(steps) steps: bounded memory).
 
 from __future__ import annotations
 
+import dataclasses
+import functools
+import types
 import warnings
 from typing import Any, Callable, ClassVar
 
@@ -139,26 +142,57 @@ class ForwardSensitivity(AbstractAdjoint):
 
     def run(self, loop: Callable, fixed: bool, *args) -> Any:
         limit = self.max_inputs if self.max_inputs is not None else (6 if fixed else 32)
-        return _sensitive(args, loop=loop, limit=limit, fallback=self.fallback, fixed=fixed)
+        loops = (functools.partial(loop, ForwardMode()), functools.partial(loop, self.fallback))
+        kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed)
+        if _holds_function(args):
+            # A function in the problem (a torque profile, an orbit, an event
+            # condition) may close over a value that is being differentiated,
+            # which the custom rule could not see.  Closure-converted, such
+            # values are array leaves of the loop like any input.  (Only
+            # then: the conversion traces the loop once more.)
+            loops = tuple(eqx.filter_closure_convert(f, *args) for f in loops)
+        return _sensitive((loops, args), **kw)
+
+
+# User functions that may close over traced values (lambdas, nested
+# functions, partials); classes and modules of lierk are not among them.
+_FUNCTIONS = (types.FunctionType, types.MethodType, functools.partial)
+
+
+def _holds_function(tree) -> bool:
+    """Whether a user function sits anywhere in ``tree``, static fields of
+    modules included (where equinox keeps them, out of the pytree's leaves)."""
+    if isinstance(tree, _FUNCTIONS):
+        return True
+    if isinstance(tree, eqx.Module):
+        return any(_holds_function(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
+    if isinstance(tree, (tuple, list)):
+        return any(_holds_function(x) for x in tree)
+    if isinstance(tree, dict):
+        return any(_holds_function(x) for x in tree.values())
+    return False
 
 
 def _is_none(x) -> bool:
     return x is None
 
 
+# The primal and the fallback loop ride in the arguments: plain functions
+# are static, closure-converted ones carry their captured values as leaves.
 @eqx.filter_custom_jvp
-def _sensitive(args, *, loop, limit, fallback, fixed):
-    return loop(ForwardMode(), *args)
+def _sensitive(loops_args, *, limit, fallback, fixed):
+    (primal, _), args = loops_args
+    return primal(*args)
 
 
 @_sensitive.def_jvp
-def _sensitive_jvp(primals, tangents, *, loop, limit, fallback, fixed):
-    (args,), (t_args,) = primals, tangents
-    live = jtu.tree_map(lambda t, _: t is not None, t_args, args, is_leaf=_is_none)
-    inputs, rest = eqx.partition(args, live)
+def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed):
+    (loops_args,), (t_loops_args,) = primals, tangents
+    live = jtu.tree_map(lambda t, _: t is not None, t_loops_args, loops_args, is_leaf=_is_none)
+    inputs, rest = eqx.partition(loops_args, live)
     p0, unravel = ravel_pytree(inputs)
     if p0.size > limit:
-        if not fixed and isinstance(fallback, DirectAdjoint):
+        if not fixed and fallback == "DirectAdjoint":
             warnings.warn(
                 f"differentiating an adaptive solve with respect to {p0.size} input scalars, more than "
                 f"ForwardSensitivity's max_inputs={limit}: through DirectAdjoint, whose cost grows with max_steps. "
@@ -166,11 +200,12 @@ def _sensitive_jvp(primals, tangents, *, loop, limit, fallback, fixed):
                 "adjoint=lierk.ForwardMode(); or raise max_inputs",
                 stacklevel=2,
             )
-        return eqx.filter_jvp(lambda a: loop(fallback, *a), (args,), (t_args,))
-    dp, _ = ravel_pytree(t_args)  # the live tangents, in the order of p0 (None leaves are empty)
+        return eqx.filter_jvp(lambda la: la[0][1](*la[1]), (loops_args,), (t_loops_args,))
+    dp, _ = ravel_pytree(t_loops_args)  # the live tangents, in the order of p0 (None leaves are empty)
 
     def solve(p):
-        return loop(ForwardMode(), *eqx.combine(unravel(p), rest))
+        (primal, _), args = eqx.combine(unravel(p), rest)
+        return primal(*args)
 
     def column(e):
         return eqx.filter_jvp(solve, (p0,), (e,))
@@ -180,4 +215,15 @@ def _sensitive_jvp(primals, tangents, *, loop, limit, fallback, fixed):
     # the only part that reads the input tangents, so reverse mode transposes
     # just that: J^T times the cotangent.
     out, J = jax.vmap(column, out_axes=(None, -1))(jnp.eye(p0.size, dtype=p0.dtype))
-    return out, jtu.tree_map(lambda Jl: jnp.tensordot(Jl, dp.astype(Jl.dtype), axes=1), J)
+    return out, jtu.tree_map(_contract(dp), J)
+
+
+def _contract(dp):
+    def contract(Jl):
+        # Outputs that no input moves (padding rows, NaN by convention) are
+        # cut out of the transpose: reverse mode would otherwise send their
+        # cotangents through 0 * NaN into every gradient.
+        moved = jnp.any(Jl != 0, axis=-1)
+        return jnp.where(moved, jnp.tensordot(Jl, dp.astype(Jl.dtype), axes=1), 0)
+
+    return contract

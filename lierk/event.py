@@ -30,6 +30,9 @@ infinite where the condition only touches zero.
 
 from __future__ import annotations
 
+import functools
+import types
+
 from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
@@ -160,6 +163,22 @@ class EventRecord(eqx.Module):
     y: Any
     count: Array
     stopped: Array
+
+
+def with_closures_converted(events: tuple[Event, ...], t0, R0, y0) -> tuple[Event, ...]:
+    """``events`` with each condition (and ``where``) written as a plain
+    function closure-converted (`equinox.filter_closure_convert`) at the
+    solve's argument types: values it closes over (a threshold being
+    differentiated, say) become array leaves of the event, so the event
+    time's derivative and `lierk.ForwardSensitivity` see them."""
+
+    def convert(f):
+        if isinstance(f, (types.FunctionType, functools.partial)):
+            return eqx.filter_closure_convert(f, t0, R0, y0)
+        return f
+
+    return tuple(eqx.tree_at(lambda e: (e.cond, e.where), e, (convert(e.cond), convert(e.where)), is_leaf=lambda x: x is None)
+                 for e in events)
 
 
 def events_tuple(event) -> tuple[Event, ...]:

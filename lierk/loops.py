@@ -133,7 +133,8 @@ def _schedule(t0, t1, dt, n: int) -> _Schedule:
     last = jnp.where(needed <= n, (t1 - t0) - (count - 1).astype(dt.dtype) * dt, dt)
 
     def time(k):
-        return jnp.where(k >= count, t1, t0 + k.astype(dt.dtype) * dt)
+        # (`needed`, not `count`: a run cut short by max_steps ends at t0 + n dt.)
+        return jnp.where(k >= needed, t1, t0 + k.astype(dt.dtype) * dt)
 
     def size(k):
         return jnp.where(k + 1 < count, dt, jnp.where(k + 1 == count, last, jnp.zeros_like(dt)))
@@ -485,10 +486,13 @@ def _adaptive_loop(
         remaining = stop - c.t
         clipped = c.h >= remaining
         last = clipped & (stop >= t1)
-        t_new = jnp.where(clipped, stop, c.t + c.h)
+        t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(c.h))
         # Step by exactly the time the clock advances: far from t = 0, c.t + h
         # rounds, and a state advanced by h would drift from its time stamp.
-        h = jax.lax.stop_gradient(t_new - c.t)
+        # (c.h is a decision, out of the gradient; a step clipped to t1 or a
+        # save time moves with it, so derivatives in t0, t1 and the save
+        # times are those of the solve.)
+        h = t_new - c.t
         if tracked:
             st, (Fu, Fy), node1 = solver.dense_step(problem, c.t, h, c.R, c.y, c.f, c.node)
         else:

@@ -15,7 +15,7 @@ from . import validation
 from . import global_error
 from .adjoint import AbstractAdjoint, ForwardSensitivity
 from .controller import Controller
-from .event import Event, events_tuple
+from .event import Event, events_tuple, with_closures_converted
 from .problems import AbstractProblem
 from .loops import num_steps, solve_adaptive, solve_fixed
 from .solution import RESULTS, SaveAt, Solution, raise_if_failed
@@ -137,6 +137,8 @@ def solve(
     events = _check_events(event, saveat, estimate_error, target_error)
     dtype = problem.R0.dtype
     t0, t1 = _check_times(t0, t1, dtype)
+    if events:
+        events = with_closures_converted(events, t0, problem.R0, problem.y0)
     saveat = _check_save_times(saveat, t0, t1, dtype)
     if target_error is not None:
         given = [n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None]

@@ -151,3 +151,65 @@ def test_float32_gradient():
 def test_bad_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
         lierk.ForwardSensitivity(**kw)
+
+
+def test_values_a_user_function_closes_over_are_differentiated():
+    """A torque profile or an event condition written as a closure over the
+    value being differentiated (the review's case: UnexpectedTracerError)."""
+    I = np.diag([2.0, 3.0, 4.0])
+
+    def torque_loss(a, solver, **kw):
+        eff = lierk.TimedTorque(lambda t: a * jnp.array([0.0, 0.0, 1.0]) * jnp.cos(t))
+        return lierk.solve(lierk.RigidBodyWithEffects(I, W0, effects=(eff,)), solver, 2.0, **kw).R[-1, 0, 1]
+
+    for solver, kw in (CASES["RKMK4"], CASES["DP54"]):
+        g = jax.grad(lambda a: torque_loss(a, solver, **kw))(0.3)
+        g_jit = jax.jit(jax.grad(lambda a: torque_loss(a, solver, **kw)))(0.3)
+        fd = fd_jacobian(lambda a: torque_loss(a[0], solver, adjoint=lierk.ForwardMode(), **kw), jnp.array([0.3]), h=1e-4)
+        np.testing.assert_allclose([g, g_jit], [fd[0], fd[0]], rtol=1e-7)
+
+    def event_time(c):
+        ev = lierk.Event(lambda t, R, y: R[2, 2] - c, terminate=True)
+        body = lierk.FreeRigidBody(I, W0, lierk.so3.exp(jnp.array([0.2, 0.1, 0.0])))
+        return lierk.solve(body, lierk.DOP853(), 20.0, rtol=1e-12, atol=1e-12, event=ev).ts[-1]
+
+    fd = fd_jacobian(lambda c: event_time(c[0]), jnp.array([0.9]), h=1e-4)
+    np.testing.assert_allclose(jax.grad(event_time)(0.9), fd[0], rtol=1e-7)
+
+
+def test_adaptive_derivatives_in_the_times_are_those_of_the_solve():
+    """The last step is clipped to t1 (or a save time), so R(t1) moves with
+    t1; the derivative was 0 while the step size was out of the gradient."""
+    def final(t0, t1, adjoint=None):
+        return lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.DP54(), t1, t0=t0, rtol=1e-10, atol=1e-10, adjoint=adjoint).R[-1]
+
+    for argnum in (0, 1):
+        J = jax.jacfwd(final, argnums=argnum)(0.1, 2.0)
+        J_rev = jax.jacrev(lambda *a: final(*a, lierk.RecursiveCheckpointAdjoint()), argnums=argnum)(0.1, 2.0)
+        fd = fd_jacobian(lambda x: final(*(jnp.array([x[0], 2.0]) if argnum == 0 else jnp.array([0.1, x[0]])),
+                                         lierk.ForwardMode()), jnp.array([0.1 if argnum == 0 else 2.0]), h=1e-3)[..., 0]
+        np.testing.assert_allclose(J, fd, atol=1e-7)
+        np.testing.assert_allclose(J_rev, fd, atol=1e-7)
+    # The steps are decisions: the first step's size has no derivative.
+    g = jax.grad(lambda d: lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.DP54(), 2.0, rtol=1e-8, dt0=d).R[-1, 0, 1])(0.01)
+    assert float(g) == 0.0
+
+
+def test_padding_rows_do_not_poison_a_gradient():
+    """Adaptive SaveAt(steps=True) pads with NaN; a loss that skips them
+    (nansum) gets the gradient of the rows it reads."""
+    def loss(w, adjoint=None):
+        sol = lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.DP54(), 2.0, rtol=1e-8, saveat=lierk.SaveAt(steps=True),
+                          max_steps=64, adjoint=adjoint)
+        return jnp.nansum(sol.R[:, 0, 1] ** 2)
+
+    g = jax.grad(loss)(W0)
+    g_ref = jax.grad(lambda w: loss(w, lierk.RecursiveCheckpointAdjoint()))(W0)
+    assert np.all(np.isfinite(g))
+    np.testing.assert_allclose(g, g_ref, rtol=1e-10)
+
+
+def test_a_fixed_step_solve_cut_short_ends_where_it_stopped():
+    sol = lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.RKMK4(), 2.0, dt=0.1, max_steps=5, throw=False)
+    assert int(sol.result) == int(lierk.RESULTS.max_steps_reached)
+    np.testing.assert_allclose(float(sol.ts[-1]), 0.5, rtol=1e-14)
