@@ -134,7 +134,7 @@ def _schedule(t0, t1, dt, n: int) -> _Schedule:
 
     def time(k):
         # (`needed`, not `count`: a run cut short by max_steps ends at t0 + n dt.)
-        return jnp.where(k >= needed, t1, t0 + k.astype(dt.dtype) * dt)
+        return jnp.where(k.astype(dt.dtype) >= needed, t1, t0 + k.astype(dt.dtype) * dt)
 
     def size(k):
         return jnp.where(k + 1 < count, dt, jnp.where(k + 1 == count, last, jnp.zeros_like(dt)))
