@@ -57,7 +57,7 @@ def diagnostics(problem, sol, *, euler_convention: str | None = None) -> Diagnos
     (``"zyx"`` or ``"zxz"``, see `lierk.so3.to_euler`) the Euler angles too."""
     import jax
 
-    from .plot import trajectory
+    from .solution import trajectory
 
     _, R, y = trajectory(sol)
     omega, L, inv, orth, q, euler = jax.device_get(_compute(problem, R, y, euler_convention))

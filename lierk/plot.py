@@ -23,23 +23,13 @@ from matplotlib.figure import Figure
 
 from . import so3
 from .inertia import Part, composite
+from .solution import trajectory
 
 __all__ = ["trajectory", "components", "euler_angles", "invariants", "omega_sweep", "animate", "GIF_DPI", "GIF_SIZE"]
 
 # Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
 GIF_SIZE = (5.0, 5.0)
 GIF_DPI = 80
-
-
-def trajectory(sol) -> tuple[np.ndarray, np.ndarray, Any]:
-    """The valid saved entries of an unbatched `Solution` as NumPy arrays:
-    ``ts (n,)`` (s), ``R (n, 3, 3)`` body -> space, and ``y`` (leaves ``(n, ...)``)."""
-    ts = np.asarray(sol.ts)
-    if ts.ndim != 1:
-        raise ValueError(f"plotting needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
-    n = int(np.asarray(sol.n_saved))
-    y = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], sol.y)
-    return ts[:n], np.asarray(sol.R)[:n], y
 
 
 def _to_euler(R, convention: str) -> np.ndarray:

@@ -72,7 +72,7 @@ class Simulation:
         problem has one); ``error_estimate`` ``(n,)`` (when the solve
         estimated its error); and ``event_<name>``, the times of each event
         (`event_times`)."""
-        from .plot import trajectory
+        from .solution import trajectory
         from .scene import identifier
 
         scene, sol, diag = self.scene, self.solution, self.diagnostics

@@ -5,11 +5,12 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-__all__ = ["RESULTS", "SaveAt", "Solution"]
+__all__ = ["trajectory", "RESULTS", "SaveAt", "Solution"]
 
 
 class RESULTS:
@@ -221,3 +222,15 @@ def raise_if_failed(sol: Solution, throw: bool) -> Solution:
             continue
         sol = eqx.error_if(sol, jnp.any(sol.result == code), f"lierk.solve failed: {message}")
     return sol
+
+
+def trajectory(sol) -> tuple[np.ndarray, np.ndarray, Any]:
+    """The valid saved entries of an unbatched `Solution` as NumPy arrays (for
+    figures, files and diagnostics):
+    ``ts (n,)`` (s), ``R (n, 3, 3)`` body -> space, and ``y`` (leaves ``(n, ...)``)."""
+    ts = np.asarray(sol.ts)
+    if ts.ndim != 1:
+        raise ValueError(f"this needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
+    n = int(np.asarray(sol.n_saved))
+    y = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], sol.y)
+    return ts[:n], np.asarray(sol.R)[:n], y
