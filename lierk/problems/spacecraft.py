@@ -115,7 +115,7 @@ class GravityGradient(AbstractEffect):
             self.position, self.mean_motion = None, _mean_motion(radius, mean_motion, mu)
 
     def space_vectors(self):
-        eye = jnp.eye(3, dtype=self.inertia.dtype)
+        eye = np.eye(3, dtype=self.inertia.dtype)
         # A circular orbit needs only the images of space x and y.
         return eye if self.position is not None else eye[:2]
 
@@ -228,7 +228,7 @@ class MagneticTorque(AbstractEffect):
 
     def space_vectors(self):
         dtype = next((x.dtype for x in (self.dipole, self.bdot_gain) if x is not None), jnp.result_type(float))
-        return jnp.eye(3, dtype=dtype)
+        return np.eye(3, dtype=dtype)
 
     def _field_body(self, t, v, dtype):
         return jnp.asarray(self.field(t), dtype) @ v  # R^T B
@@ -386,7 +386,7 @@ class Rotor(AbstractEffect):
         return self.h0 + _torque_integral(self.times, self.torques, t) - _torque_integral(self.times, self.torques, 0.0), u
 
     def space_vectors(self):
-        return jnp.zeros((0, 3), self.h0.dtype)
+        return np.zeros((0, 3), self.h0.dtype)
 
     def torque_from(self, t, v, m, omega):
         h, dh = self.wheel_momenta(t)
