@@ -66,6 +66,15 @@ def cross(a: Array, b: Array) -> Array:
     return jnp.stack([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0], axis=-1)
 
 
+def matvec(M: Array, v: Array) -> Array:
+    """``M @ v`` for ``(..., 3, 3)`` and ``(..., 3)`` stacks (either may be a
+    single matrix or vector), written as three elementwise products: under
+    ``vmap`` XLA on CPU runs a batched 3x3 product as a dot kernel of its own
+    that no stage arithmetic fuses into, and a torque evaluated at every stage
+    paid one such kernel per product."""
+    return M[..., :, 0] * v[..., None, 0] + M[..., :, 1] * v[..., None, 1] + M[..., :, 2] * v[..., None, 2]
+
+
 def _cross_cross(u: Array, v: Array) -> Array:
     """``u x (u x v) = u (u.v) - |u|^2 v``, ``(..., 3)``: written without the
     inner cross product, whose stacked result XLA would store for its two

@@ -124,10 +124,10 @@ class GravityGradient(AbstractEffect):
         if self.position is None:
             c = circular_orbit(t, self.mean_motion, self.phase).astype(m.dtype)
             u = c[0] * v[0] + c[1] * v[1]  # R^T u
-            return (3.0 * self.mean_motion**2) * so3.cross(u, I @ u)
-        r = jnp.asarray(self.position(t), m.dtype) @ v  # R^T r
+            return (3.0 * self.mean_motion**2) * so3.cross(u, so3.matvec(I, u))
+        r = so3.matvec(v.T, jnp.asarray(self.position(t), m.dtype))  # R^T r
         d2 = so3._sq(r)
-        return (3.0 * self.mu / (d2 * d2 * jnp.sqrt(d2))) * so3.cross(r, I @ r)
+        return (3.0 * self.mu / (d2 * d2 * jnp.sqrt(d2))) * so3.cross(r, so3.matvec(I, r))
 
     def energy_scale(self):
         n2 = self.mean_motion**2 if self.position is None else jnp.zeros(())
@@ -231,7 +231,7 @@ class MagneticTorque(AbstractEffect):
         return np.eye(3, dtype=dtype)
 
     def _field_body(self, t, v, dtype):
-        return jnp.asarray(self.field(t), dtype) @ v  # R^T B
+        return so3.matvec(v.T, jnp.asarray(self.field(t), dtype))  # R^T B
 
     def torque_from(self, t, v, m, omega):
         B = self._field_body(t, v, m.dtype)
