@@ -12,9 +12,17 @@ one loop (interleaved, so that a change of machine load hits all alike):
 - what `lierk.sweep` did before it cached: a new ``jit(vmap(f))`` per call.
 
 Part 2, throughput.  Batch 10000, 1000 steps (10 s at dt = 0.01 s), float64
-and float32: body-steps per second through `lierk.sweep`, next to the held
-jit and to the same RKMK4 written in numba with one thread per core
-(`native.py`), with the largest difference of the final attitudes.
+and float32, on the T-handle (diagonal inertia): body-steps per second
+through `lierk.sweep`, next to the held jit and to the native anchors of
+`native.py`: the structure-of-arrays kernel of issue 24 in C (built here with
+its own line when a compiler is present, float64, 2 threads and 1) and in
+numba (float64 and float32), and the numba kernel that integrates one body at
+a time.  lierk's ratio is to the fastest structure-of-arrays anchor of the
+dtype; the largest differences of the final attitudes are recorded.
+
+Part 3, every solver.  Batch 10000, 200 steps, float64, through
+`lierk.sweep`: RKMK4, RKMK(DOP853) and CF4 on the free T-handle, RKMK4 and
+RKMK(DOP853) on a heavy top (`Gravity`, the stage rotation of the vertical).
 
 Every time is the minimum of the repeats after compile and warm-up (medians
 are in the JSON).  The CPU is split into one XLA host device per core
@@ -155,17 +163,28 @@ def throughput(batch: int, n_steps: int, repeats: int, dtype, reference=None) ->
     calls = {
         "lierk.sweep": lambda: lierk.sweep(f, w),
         "held jit(vmap)": lambda: held(w_dev),
-        f"numba, {threads} threads": lambda: native.rkmk4_final_R(INERTIA, w, DT, n_steps, threads),
     }
+    soa = []
+    if dtype == np.float64 and native.build_c_soa() is None:
+        for k in sorted({threads, 1}, reverse=True):
+            name = f"C structure of arrays, {k} thread{'s' if k > 1 else ''}"
+            calls[name] = functools.partial(native.c_soa_final_R, INERTIA, w, DT, n_steps, k)
+            soa.append(name)
+    name = f"numba structure of arrays, {threads} threads"
+    calls[name] = functools.partial(native.rkmk4_soa_final_R, INERTIA, w, DT, n_steps, threads)
+    soa.append(name)
+    one_body = f"numba one body at a time, {threads} threads"
+    calls[one_body] = functools.partial(native.rkmk4_final_R, INERTIA, w, DT, n_steps, threads)
     t = time.perf_counter()
     outs = {name: np.asarray(jax.block_until_ready(call())) for name, call in calls.items()}
     warm_s = time.perf_counter() - t
     times = interleaved(calls, repeats)
     steps = batch * n_steps
     rows = {name: {**summary(ts), "body_steps_per_s": steps / min(ts)} for name, ts in times.items()}
-    anchor = rows[f"numba, {threads} threads"]["body_steps_per_s"]
+    # The fastest structure-of-arrays anchor of this dtype is the one to beat.
+    anchor = max(soa, key=lambda name: rows[name]["body_steps_per_s"])
     for r in rows.values():
-        r["ratio_to_native"] = r["body_steps_per_s"] / anchor
+        r["ratio_to_anchor"] = r["body_steps_per_s"] / rows[anchor]["body_steps_per_s"]
     errors = {}
     if reference is not None:
         errors = {name: float(np.max(np.abs(out - reference))) for name, out in outs.items()}
@@ -175,13 +194,46 @@ def throughput(batch: int, n_steps: int, repeats: int, dtype, reference=None) ->
         "dtype": np.dtype(dtype).name,
         "devices": len(devices),
         "numba_threads": threads,
+        "anchor": anchor,
+        "c_build": native.c_soa_build_line() if dtype == np.float64 else None,
+        "c_not_built": native.build_c_soa() if dtype == np.float64 else "float64 only",
         "max_diff_to_float64": errors,
         "R_T": outs["lierk.sweep"],
         "compile_and_warm_up_s": warm_s,
         "calls": rows,
-        "max_diff_lierk_vs_numba": float(np.max(np.abs(outs["lierk.sweep"] - outs[f"numba, {threads} threads"]))),
+        "max_diff_lierk_vs_native": {
+            name: float(np.max(np.abs(outs["lierk.sweep"] - outs[name]))) for name in soa + [one_body]
+        },
         "max_diff_sweep_vs_held": float(np.max(np.abs(outs["lierk.sweep"] - outs["held jit(vmap)"]))),
     }
+
+
+def solvers(batch: int, n_steps: int, repeats: int) -> dict:
+    """Body-steps/s of `lierk.sweep` for the solvers on the free T-handle and
+    on a heavy top, float64."""
+    w = omegas(batch, np.float64)
+    R0 = np.asarray(lierk.so3.exp(np.random.default_rng(1).normal(size=(batch, 3)) * 0.3))
+    heavy = [lierk.Gravity(np.array([0.0, 0.0, 0.05]), 0.2, 9.81)]
+    cases = {
+        "RKMK4, free": (lierk.RKMK4(), DT, ()),
+        "RKMK(DOP853), free": (lierk.RKMK(lierk.tableaux.DOP853), 4 * DT, ()),
+        "CF4, free": (lierk.CF4(), DT, ()),
+        "RKMK4, heavy top": (lierk.RKMK4(), DT, heavy),
+        "RKMK(DOP853), heavy top": (lierk.RKMK(lierk.tableaux.DOP853), 4 * DT, heavy),
+    }
+
+    def final(solver, dt, effects, omega0, R0):
+        body = lierk.RigidBodyWithEffects(INERTIA, omega0, R0, effects=effects)
+        return lierk.solve(body, solver, n_steps * dt, dt=dt, max_steps=n_steps).R[-1]
+
+    fns = {name: functools.partial(final, *case) for name, case in cases.items()}
+    calls = {name: functools.partial(lierk.sweep, fn, w, R0) for name, fn in fns.items()}
+    for call in calls.values():
+        jax.block_until_ready(call())
+    times = interleaved(calls, repeats)
+    rows = {name: {**summary(ts), "body_steps_per_s": batch * n_steps / min(ts), "dt": cases[name][1]}
+            for name, ts in times.items()}
+    return {"batch": batch, "steps": n_steps, "dtype": "float64", "calls": rows}
 
 
 def _cpu_seconds() -> tuple[float, float]:
@@ -238,18 +290,37 @@ def markdown(res: dict) -> str:
             "",
             f"## Throughput: RKMK4, batch {t['batch']}, {t['steps']} steps, {t['dtype']}",
             "",
-            "| | body-steps/s | / numba |",
+            f"| | body-steps/s | / {t['anchor']} |",
             "|---|---:|---:|",
         ]
         for name, r in t["calls"].items():
-            lines.append(f"| {name} | {r['body_steps_per_s']:.2e} | {r['ratio_to_native']:.2f} |")
-        lines += ["", f"Largest difference of R(T), lierk against numba: {t['max_diff_lierk_vs_numba']:.1e}."]
+            lines.append(f"| {name} | {r['body_steps_per_s']:.2e} | {r['ratio_to_anchor']:.2f} |")
+        lines += [""]
+        if t["c_build"]:
+            lines += [f"C built with `{t['c_build']}`."]
+        elif t["dtype"] == "float64":
+            lines += [f"C anchor not run: {t['c_not_built']}."]
+        lines += [
+            "Largest difference of R(T), lierk against each anchor: "
+            + ", ".join(f"{name} {e:.1e}" for name, e in t["max_diff_lierk_vs_native"].items())
+            + "."
+        ]
         if t["max_diff_to_float64"]:
             lines += [
                 "Against the float64 run (rounding, amplified over the steps near the intermediate axis): "
                 + ", ".join(f"{name} {e:.1e}" for name, e in t["max_diff_to_float64"].items())
                 + "."
             ]
+    v = res["solvers"]
+    lines += [
+        "",
+        f"## Every solver: `lierk.sweep`, batch {v['batch']}, {v['steps']} steps, {v['dtype']}",
+        "",
+        "| solver, body | dt (s) | body-steps/s |",
+        "|---|---:|---:|",
+    ]
+    for name, r in v["calls"].items():
+        lines.append(f"| {name} | {r['dt']:g} | {r['body_steps_per_s']:.2e} |")
     return "\n".join(lines) + "\n"
 
 
@@ -269,9 +340,12 @@ def main():
         reference = t.pop("R_T")
         res["throughput"].append(t)
         for name, r in t["calls"].items():
-            print(f"{t['dtype']:8s} {name:20s} {r['body_steps_per_s']:.3e} body-steps/s  {r['ratio_to_native']:.2f}x numba",
-                  flush=True)
-        print(f"{t['dtype']:8s} max |R_lierk - R_numba| = {t['max_diff_lierk_vs_numba']:.1e}", flush=True)
+            print(f"{t['dtype']:8s} {name:42s} {r['body_steps_per_s']:.3e} body-steps/s  {r['ratio_to_anchor']:.2f}x "
+                  f"{t['anchor']}", flush=True)
+        print(f"{t['dtype']:8s} max |R_lierk - R_native| = {t['max_diff_lierk_vs_native']}", flush=True)
+    res["solvers"] = solvers(batch2, steps2 // 5, repeats)
+    for name, r in res["solvers"]["calls"].items():
+        print(f"solvers  {name:42s} {r['body_steps_per_s']:.3e} body-steps/s", flush=True)
     info["load_average_at_end"] = os.getloadavg()
     busy1, own1 = _cpu_seconds()
     # Cores' worth of CPU that other processes used during the run (0 = idle machine).

@@ -9,8 +9,12 @@ are read from.  ``jacobian_R = R hat(J)`` gives ``dR(t1)/dp`` entry by entry.
 
 The Jacobian is the derivative of the solve that was run (its steps and, for
 adaptive solvers, its step-size decisions held fixed), by forward mode
-(`jax.jacfwd`, the default: one pass carries every input direction) or
-reverse mode (`jax.jacrev`: one pass per output, six of them).  Its own error,
+(`jax.jacfwd`, the default: one pass carries every input direction; adaptive
+solves run it through `ForwardMode` unless ``adjoint=`` says otherwise) or
+reverse mode (`jax.jacrev`: with the default `ForwardSensitivity` the solve
+carries the derivatives and each output reads them; with a reverse adjoint
+such as `RecursiveCheckpointAdjoint`, one backward pass per output, six of
+them).  Its own error,
 against the exact flow's Jacobian, is estimated like `solve`'s
 ``estimate_error``: by Richardson's comparison with the Jacobian of a finer
 solve (``2 dt/3`` for fixed steps, tolerances divided by 10 for adaptive ones).
