@@ -69,14 +69,33 @@ _BY_STRUCTURE: collections.OrderedDict = collections.OrderedDict()
 
 
 def _jit_vmap(rebuild: Callable[[Any], Callable]) -> Callable:
-    """``jit`` of ``(dynamic, *args) -> vmap(rebuild(dynamic))(*args)``: the
-    batched arguments are mapped over axis 0, the function's own arrays
-    (``dynamic``) are not."""
+    """``jit`` of ``(mesh, dynamic, *args) -> vmap(rebuild(dynamic))(*args)``:
+    the batched arguments are mapped over axis 0, the function's own arrays
+    (``dynamic``) are not.
 
-    def batched(dynamic, *args):
-        return jax.vmap(rebuild(dynamic))(*args)
+    With a ``mesh`` (static) the vmap runs under ``shard_map``: each device
+    runs its own rows as a program of its own.  Left to the SPMD partitioner,
+    the batch-wide reductions of the vmapped solve (an adaptive loop's "is any
+    member still running", every run-time check's "did any member fail")
+    became all-reduces between the devices, so the devices stepped in lockstep
+    and a failed check, whose error callback runs on one device only, left the
+    others waiting in the next all-reduce until XLA aborted the process (after
+    a minute) instead of raising the error.  (``check_vma=False``: equinox's
+    error branches do not declare how their values vary over the mesh.)
+    """
 
-    return jax.jit(batched)
+    def batched(mesh, dynamic, *args):
+        def local(dyn, *rows):
+            return jax.vmap(rebuild(dyn))(*rows)
+
+        if mesh is None:
+            return local(dynamic, *args)
+        specs = (PartitionSpec(),) + (PartitionSpec("batch"),) * len(args)
+        return jax.shard_map(local, mesh=mesh, in_specs=specs, out_specs=PartitionSpec("batch"), check_vma=False)(
+            dynamic, *args
+        )
+
+    return jax.jit(batched, static_argnums=0)
 
 
 def _compiled(fn: Callable) -> tuple[Callable, list]:
@@ -215,6 +234,7 @@ def _dispatch(
     """
     chunk = min(chunk, n)
     batch_sharding, replicated, n_dev = _shardings(shard)
+    mesh = batch_sharding.mesh if n_dev > 1 else None
     padded = -(-chunk // n_dev) * n_dev
     jitted, dynamic = _compiled(fn)
     dynamic = [_place(_host_leaf(x), replicated) if n_dev > 1 else x for x in dynamic]
@@ -224,7 +244,7 @@ def _dispatch(
         isinstance(x, jax.Array) and x.sharding.is_equivalent_to(batch_sharding, x.ndim) for x in leaves
     ):
         # Already where the sweep would put it (e.g. a previous sweep's output).
-        yield 0, 0, n, jitted(dynamic, *jax.tree_util.tree_unflatten(treedef, leaves))
+        yield 0, 0, n, jitted(mesh, dynamic, *jax.tree_util.tree_unflatten(treedef, leaves))
         return
     leaves = [_host_leaf(x) for x in leaves]
     for index in range(math.ceil(n / chunk)):
@@ -238,9 +258,9 @@ def _dispatch(
         args = jax.tree_util.tree_unflatten(treedef, [_place(x[rows], batch_sharding) for x in leaves])
         if compiling is not None:
             with compiling():
-                jitted.lower(dynamic, *args).compile()
+                jitted.lower(mesh, dynamic, *args).compile()
             compiling = None
-        yield index, start, stop, jitted(dynamic, *args)
+        yield index, start, stop, jitted(mesh, dynamic, *args)
 
 
 def sweep_chunks(

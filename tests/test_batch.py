@@ -305,6 +305,46 @@ def test_sweep_sharded_over_two_host_devices_equals_unsharded():
     assert proc.stdout.strip().startswith("OK 2"), proc.stdout
 
 
+_FAILURE_ON_ONE_DEVICE = textwrap.dedent(
+    """
+    import time
+    import jax, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    assert len(jax.devices()) == 2, jax.devices()
+    import lierk
+    I = np.diag([1.0, 2.0, 3.0])
+    def fixed(w):  # 20 steps of 0.5 s: blows up at |omega| = 30 rad/s
+        return lierk.solve(lierk.FreeRigidBody(I, w), lierk.RKMK4(), 10.0, dt=0.5, max_steps=20).R[-1]
+    def adaptive(w):  # 8 steps are too few at rtol 1e-8 for the fast member
+        return lierk.solve(lierk.FreeRigidBody(I, w), lierk.DP54(), 10.0, rtol=1e-8, atol=1e-8, max_steps=8).R[-1]
+    w = np.array([[0.01, 0.01, 0.01]] * 3 + [[30.0, 1.0, 1.0]])  # the failing member is on the second device
+    for fn, what in ((fixed, "non-finite"), (adaptive, "max_steps")):
+        t = time.perf_counter()
+        try:
+            np.asarray(lierk.sweep(fn, w))  # the error surfaces when the result is read
+        except Exception as e:
+            assert what in str(e), str(e)[:500]
+            print("RAISED", fn.__name__, round(time.perf_counter() - t, 1))
+        else:
+            raise AssertionError(f"{fn.__name__}: no error")
+    """
+)
+
+
+def test_a_failed_member_on_one_device_raises_its_error():
+    """A run-time check that fails on one device raises the solve's error,
+    promptly: under the SPMD partitioner the other device waited for it in
+    an all-reduce, and XLA aborted the process after a minute."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    proc = subprocess.run(
+        [sys.executable, "-c", _FAILURE_ON_ONE_DEVICE], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    lines = [line.split() for line in proc.stdout.splitlines() if line.startswith("RAISED")]
+    assert [line[1] for line in lines] == ["fixed", "adaptive"], proc.stdout
+    assert all(float(line[2]) < 30.0 for line in lines), proc.stdout  # the abort came after 60 s
+
+
 def test_compiling_phase_runs_once_before_the_first_chunk():
     """`sweep_chunks(..., compiling=)` compiles inside the given context, once,
     before any chunk is computed; the chunks then reuse that program."""
