@@ -49,6 +49,7 @@ bench: $(BENCH_STAMP)
 	$(BIN)/python benchmarks/convergence.py
 	$(BIN)/python benchmarks/throughput.py
 	$(BIN)/python benchmarks/sweep.py
+	$(BIN)/python benchmarks/xla_soa.py
 	$(BIN)/python benchmarks/work_precision.py
 	$(BIN)/python benchmarks/torqued.py
 	$(BIN)/python benchmarks/formulation.py
