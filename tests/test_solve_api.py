@@ -131,6 +131,36 @@ def test_max_steps_too_small_is_reported():
         lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, max_steps=5)
 
 
+@pytest.mark.parametrize("n", [257, 997, 1000])
+def test_long_fixed_runs_take_exactly_their_steps_and_compile_the_step_once(n):
+    """Runs of 256+ steps are scanned in checkpointed blocks; a step count
+    with no divisor near its root runs a few no-op steps past the end
+    instead of a second scan.  The state after n steps equals n steps taken
+    one by one, the count of steps taken is n, and the compiled program has
+    as many loops as for 32 x 32 steps, i.e. one copy of
+    the step.  Cut short by max_steps, the state is that of max_steps steps."""
+    dt = 2e-3
+    body = _tee()
+    solver = lierk.RKMK4()
+    sol = lierk.solve(body, solver, n * dt, dt=dt)
+    step = jax.jit(lambda R, y, t: solver.step(body, t, dt, R, y))
+    R, y = body.R0, body.y0
+    for k in range(n):
+        st = step(R, y, k * dt)
+        R, y = st.R, st.y
+    assert int(sol.stats["num_steps"]) == n
+    assert np.max(np.abs(np.asarray(sol.R[-1]) - np.asarray(R))) < 1e-13
+    def loops(steps):
+        text = jax.jit(lambda w: lierk.solve(_tee(w), solver, steps * dt, dt=dt).R[-1]).lower(OMEGA_GENERIC).as_text()
+        return text.count("stablehlo.while")
+
+    assert loops(n) == loops(1024)
+    short = lierk.solve(body, solver, (n + 5) * dt, dt=dt, max_steps=n, throw=False)
+    assert int(short.result) == lierk.RESULTS.max_steps_reached
+    assert int(short.stats["num_steps"]) == n
+    assert np.max(np.abs(np.asarray(short.R[-1]) - np.asarray(R))) < 1e-13
+
+
 # --- derivatives ------------------------------------------------------------------------
 
 

@@ -170,7 +170,9 @@ def dipole_field(mean_motion, radius=None, tilt=0.0, B0=B0_EARTH, planet_radius=
     def field(t):
         u = circular_orbit(t, n, phase)
         dd = jnp.asarray(d, u.dtype)
-        return strength * (3.0 * jnp.dot(dd, u) * u - dd)
+        # d . u by components: jnp.dot is a reduction, a kernel of its own at
+        # every stage, where the products fuse with what reads the field.
+        return strength * (3.0 * (dd[0] * u[0] + dd[1] * u[1] + dd[2] * u[2]) * u - dd)
 
     return field
 
