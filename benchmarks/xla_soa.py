@@ -4,7 +4,7 @@ the ceiling of issue 24 (sweeps at the structure-of-arrays limit).
 `lierk.sweep` runs ``jit(vmap(solve))``.  Under ``vmap`` every vector of the
 step is a ``(B, 3)`` array whose minor dimension is the component, so the
 cross products and the stage sums shuffle components inside each fused loop,
-and XLA on CPU splits a step into about 16 kernels (the loop-body fusions are
+and XLA on CPU splits a step into about 20 kernels (the loop-body kernels are
 counted below).  The C anchor (``anchors/rkmk4_soa.c``) keeps each component
 of each body in its own array, ``(3, B)``, so that one loop over the bodies
 does a whole step in SIMD registers.
@@ -133,10 +133,12 @@ def final_R_lierk(inertia, n_steps, omega0):
 
 
 def loop_body_fusions(compiled) -> int:
-    """Kernels (fusions) in the largest loop body of a compiled program."""
+    """Kernels (fusions and dots) in the largest while-loop body of a
+    compiled program: the step, run once per step."""
     text = compiled.as_text()
-    bodies = [c for c in re.split(r"\n(?=\S)", text) if not c.startswith("%fused") and " fusion(" in c]
-    return max(len(re.findall(r" fusion\(", c)) for c in bodies)
+    names = set(re.findall(r"while\(.*?body=%?([\w.\-]+)", text))
+    computations = {c.split(" ", 1)[0].lstrip("%"): c for c in re.split(r"\n(?=\S)", text)}
+    return max(len(re.findall(r" (?:fusion|dot)\(", computations[n])) for n in names if n in computations)
 
 
 def run(batch: int, n_steps: int, repeats: int, dtype) -> dict:
