@@ -27,6 +27,7 @@ Scripts import it as ``native`` (they run as ``python benchmarks/NAME.py``).
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import pathlib
 import shutil
@@ -41,29 +42,77 @@ except ImportError:  # the bench extra installs it
     numba = None
 
 
-def _make_kernel(F):
-    """The kernel for the float type ``F`` (np.float32 or np.float64): every
-    constant is an ``F`` so that float32 stays float32."""
-    half, sixth, twelfth, one, two, onehalf = F(0.5), F(1 / 6), F(1 / 12), F(1.0), F(2.0), F(1.5)
-    # lierk.so3's thresholds on theta^2 for the series
-    small = F(1e-1) if F is np.float32 else F(1e-2)
-    newton_schulz = F is np.float32
+def _helpers(F):
+    """What both kernels share, for the float type ``F``: ``cross``, ``slopes``,
+    ``times_exp`` (``R exp(hat(u))`` from ``x = |u|^2`` and the coefficients
+    ``A``, ``B`` of ``u``) and ``newton_schulz`` (lierk's float32 step ``R (3 I - R^T R) / 2``),
+    on scalars (9 for a matrix, row by row), inlined so that LLVM keeps them
+    in registers."""
+    half, twelfth, one, onehalf = F(0.5), F(1 / 12), F(1.0), F(1.5)
 
     @numba.njit(inline="always")
     def cross(a0, a1, a2, b0, b1, b2):
         return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
     @numba.njit(inline="always")
-    def stage(Iinv, y0, y1, y2, u0, u1, u2):
-        """``(k, m')`` of one stage at momentum ``y`` and algebra point ``u``:
-        ``k = dexpinv(-u, omega)`` to ad^2, ``m' = y x omega``."""
-        w0 = Iinv[0, 0] * y0 + Iinv[0, 1] * y1 + Iinv[0, 2] * y2
-        w1 = Iinv[1, 0] * y0 + Iinv[1, 1] * y1 + Iinv[1, 2] * y2
-        w2 = Iinv[2, 0] * y0 + Iinv[2, 1] * y1 + Iinv[2, 2] * y2
+    def slopes(y0, y1, y2, u0, u1, u2, w0, w1, w2):
+        """``(k, m')`` of one stage at momentum ``y``, algebra point ``u`` and
+        ``omega = w``: ``k = dexpinv(-u, omega)`` to ad^2, ``m' = y x omega``."""
         d0, d1, d2 = cross(y0, y1, y2, w0, w1, w2)
         a0, a1, a2 = cross(u0, u1, u2, w0, w1, w2)
         b0, b1, b2 = cross(u0, u1, u2, a0, a1, a2)
         return w0 + half * a0 + twelfth * b0, w1 + half * a1 + twelfth * b1, w2 + half * a2 + twelfth * b2, d0, d1, d2
+
+    @numba.njit(inline="always")
+    def times_exp(r00, r01, r02, r10, r11, r12, r20, r21, r22, u0, u1, u2, x, A, B):
+        # exp(hat(u)) = (1 - B theta^2) I + A hat(u) + B u u^T, x = theta^2
+        c = one - B * x
+        e00, e11, e22 = c + B * u0 * u0, c + B * u1 * u1, c + B * u2 * u2
+        b01, b02, b12 = B * u0 * u1, B * u0 * u2, B * u1 * u2
+        e01, e10 = b01 - A * u2, b01 + A * u2
+        e02, e20 = b02 + A * u1, b02 - A * u1
+        e12, e21 = b12 - A * u0, b12 + A * u0
+        return (r00 * e00 + r01 * e10 + r02 * e20, r00 * e01 + r01 * e11 + r02 * e21, r00 * e02 + r01 * e12 + r02 * e22,
+                r10 * e00 + r11 * e10 + r12 * e20, r10 * e01 + r11 * e11 + r12 * e21, r10 * e02 + r11 * e12 + r12 * e22,
+                r20 * e00 + r21 * e10 + r22 * e20, r20 * e01 + r21 * e11 + r22 * e21, r20 * e02 + r21 * e12 + r22 * e22)
+
+    @numba.njit(inline="always")
+    def newton_schulz(r00, r01, r02, r10, r11, r12, r20, r21, r22):
+        s00 = r00 * r00 + r10 * r10 + r20 * r20
+        s11 = r01 * r01 + r11 * r11 + r21 * r21
+        s22 = r02 * r02 + r12 * r12 + r22 * r22
+        s01 = r00 * r01 + r10 * r11 + r20 * r21
+        s02 = r00 * r02 + r10 * r12 + r20 * r22
+        s12 = r01 * r02 + r11 * r12 + r21 * r22
+        return (onehalf * r00 - half * (r00 * s00 + r01 * s01 + r02 * s02),
+                onehalf * r01 - half * (r00 * s01 + r01 * s11 + r02 * s12),
+                onehalf * r02 - half * (r00 * s02 + r01 * s12 + r02 * s22),
+                onehalf * r10 - half * (r10 * s00 + r11 * s01 + r12 * s02),
+                onehalf * r11 - half * (r10 * s01 + r11 * s11 + r12 * s12),
+                onehalf * r12 - half * (r10 * s02 + r11 * s12 + r12 * s22),
+                onehalf * r20 - half * (r20 * s00 + r21 * s01 + r22 * s02),
+                onehalf * r21 - half * (r20 * s01 + r21 * s11 + r22 * s12),
+                onehalf * r22 - half * (r20 * s02 + r21 * s12 + r22 * s22))
+
+    return cross, slopes, times_exp, newton_schulz
+
+
+def _make_kernel(F):
+    """The kernel for the float type ``F`` (np.float32 or np.float64): every
+    constant is an ``F`` so that float32 stays float32."""
+    half, sixth, one, two = F(0.5), F(1 / 6), F(1.0), F(2.0)
+    # lierk.so3's thresholds on theta^2 for the series
+    small = F(1e-1) if F is np.float32 else F(1e-2)
+    newton_schulz = F is np.float32
+    _, slopes, times_exp, ns_step = _helpers(F)
+
+    @numba.njit(inline="always")
+    def stage(Iinv, y0, y1, y2, u0, u1, u2):
+        """``(k, m')`` of one stage at momentum ``y`` and algebra point ``u``."""
+        w0 = Iinv[0, 0] * y0 + Iinv[0, 1] * y1 + Iinv[0, 2] * y2
+        w1 = Iinv[1, 0] * y0 + Iinv[1, 1] * y1 + Iinv[1, 2] * y2
+        w2 = Iinv[2, 0] * y0 + Iinv[2, 1] * y1 + Iinv[2, 2] * y2
+        return slopes(y0, y1, y2, u0, u1, u2, w0, w1, w2)
 
     # Scalars only, so that LLVM keeps the whole state in registers.
     @numba.njit(parallel=True, fastmath=False)
@@ -104,36 +153,11 @@ def _make_kernel(F):
                     sn, cs = np.sin(half * theta), np.cos(half * theta)
                     A = two * sn * cs / theta
                     B = two * sn * sn / x
-                # exp(hat(u)) = (1 - B theta^2) I + A hat(u) + B u u^T
-                c = one - B * x
-                e00, e11, e22 = c + B * u0 * u0, c + B * u1 * u1, c + B * u2 * u2
-                b01, b02, b12 = B * u0 * u1, B * u0 * u2, B * u1 * u2
-                e01, e10 = b01 - A * u2, b01 + A * u2
-                e02, e20 = b02 + A * u1, b02 - A * u1
-                e12, e21 = b12 - A * u0, b12 + A * u0
-                r00, r01, r02 = (r00 * e00 + r01 * e10 + r02 * e20, r00 * e01 + r01 * e11 + r02 * e21,
-                                 r00 * e02 + r01 * e12 + r02 * e22)
-                r10, r11, r12 = (r10 * e00 + r11 * e10 + r12 * e20, r10 * e01 + r11 * e11 + r12 * e21,
-                                 r10 * e02 + r11 * e12 + r12 * e22)
-                r20, r21, r22 = (r20 * e00 + r21 * e10 + r22 * e20, r20 * e01 + r21 * e11 + r22 * e21,
-                                 r20 * e02 + r21 * e12 + r22 * e22)
-                if newton_schulz:
-                    # R (3 I - R^T R) / 2, as lierk.so3.right_exp does in float32
-                    s00 = r00 * r00 + r10 * r10 + r20 * r20
-                    s11 = r01 * r01 + r11 * r11 + r21 * r21
-                    s22 = r02 * r02 + r12 * r12 + r22 * r22
-                    s01 = r00 * r01 + r10 * r11 + r20 * r21
-                    s02 = r00 * r02 + r10 * r12 + r20 * r22
-                    s12 = r01 * r02 + r11 * r12 + r21 * r22
-                    r00, r01, r02 = (onehalf * r00 - half * (r00 * s00 + r01 * s01 + r02 * s02),
-                                     onehalf * r01 - half * (r00 * s01 + r01 * s11 + r02 * s12),
-                                     onehalf * r02 - half * (r00 * s02 + r01 * s12 + r02 * s22))
-                    r10, r11, r12 = (onehalf * r10 - half * (r10 * s00 + r11 * s01 + r12 * s02),
-                                     onehalf * r11 - half * (r10 * s01 + r11 * s11 + r12 * s12),
-                                     onehalf * r12 - half * (r10 * s02 + r11 * s12 + r12 * s22))
-                    r20, r21, r22 = (onehalf * r20 - half * (r20 * s00 + r21 * s01 + r22 * s02),
-                                     onehalf * r21 - half * (r20 * s01 + r21 * s11 + r22 * s12),
-                                     onehalf * r22 - half * (r20 * s02 + r21 * s12 + r22 * s22))
+                r00, r01, r02, r10, r11, r12, r20, r21, r22 = times_exp(
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22, u0, u1, u2, x, A, B)
+                if newton_schulz:  # as lierk.so3.right_exp does in float32
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22 = ns_step(
+                        r00, r01, r02, r10, r11, r12, r20, r21, r22)
             R_out[b, 0, 0], R_out[b, 0, 1], R_out[b, 0, 2] = r00, r01, r02
             R_out[b, 1, 0], R_out[b, 1, 1], R_out[b, 1, 2] = r10, r11, r12
             R_out[b, 2, 0], R_out[b, 2, 1], R_out[b, 2, 2] = r20, r21, r22
@@ -170,12 +194,18 @@ BLK = 64
 def _make_soa_kernel(F):
     """The structure-of-arrays kernel for ``F``: the C anchor's method and
     layout, with lierk's float32 Newton-Schulz step when ``F`` is float32."""
-    half, sixth, twelfth, one, two, onehalf = F(0.5), F(1 / 6), F(1 / 12), F(1.0), F(2.0), F(1.5)
+    half, sixth, one, two = F(0.5), F(1 / 6), F(1.0), F(2.0)
     # Taylor coefficients of sin(z)/z and cos(z) as the C anchor nests them
     s6, s20, s42, s72, s110, s156 = F(6.0), F(20.0), F(42.0), F(72.0), F(110.0), F(156.0)
     c2, c12, c30, c56, c90, c132 = F(2.0), F(12.0), F(30.0), F(56.0), F(90.0), F(132.0)
     tiny = F(1e-300) if F is np.float64 else F(1e-30)
     newton_schulz = F is np.float32
+    cross, slopes, times_exp, ns_step = _helpers(F)
+
+    @numba.njit(inline="always")
+    def stage(I0, I1, I2, y0, y1, y2, u0, u1, u2):
+        """`_make_kernel`'s stage with the inverse inertia diagonal."""
+        return slopes(y0, y1, y2, u0, u1, u2, I0 * y0, I1 * y1, I2 * y2)
 
     @numba.njit(parallel=True, fastmath=False)
     def kernel(inv_diag, omega0, h, n_steps, R_out):  # (3,), (B, 3), F, int, (B, 3, 3)
@@ -199,35 +229,14 @@ def _make_soa_kernel(F):
                     y0, y1, y2 = m[0, b], m[1, b], m[2, b]
                     # stage 1 (u = 0: k = omega)
                     w0, w1, w2 = I0 * y0, I1 * y1, I2 * y2
-                    d10, d11, d12 = y1 * w2 - y2 * w1, y2 * w0 - y0 * w2, y0 * w1 - y1 * w0
+                    d10, d11, d12 = cross(y0, y1, y2, w0, w1, w2)
                     k10, k11, k12 = w0, w1, w2
-                    # stage 2
-                    z0, z1, z2 = y0 + hh * d10, y1 + hh * d11, y2 + hh * d12
-                    u0, u1, u2 = hh * k10, hh * k11, hh * k12
-                    w0, w1, w2 = I0 * z0, I1 * z1, I2 * z2
-                    d20, d21, d22 = z1 * w2 - z2 * w1, z2 * w0 - z0 * w2, z0 * w1 - z1 * w0
-                    a0, a1, a2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-                    k20 = w0 + half * a0 + twelfth * (u1 * a2 - u2 * a1)
-                    k21 = w1 + half * a1 + twelfth * (u2 * a0 - u0 * a2)
-                    k22 = w2 + half * a2 + twelfth * (u0 * a1 - u1 * a0)
-                    # stage 3
-                    z0, z1, z2 = y0 + hh * d20, y1 + hh * d21, y2 + hh * d22
-                    u0, u1, u2 = hh * k20, hh * k21, hh * k22
-                    w0, w1, w2 = I0 * z0, I1 * z1, I2 * z2
-                    d30, d31, d32 = z1 * w2 - z2 * w1, z2 * w0 - z0 * w2, z0 * w1 - z1 * w0
-                    a0, a1, a2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-                    k30 = w0 + half * a0 + twelfth * (u1 * a2 - u2 * a1)
-                    k31 = w1 + half * a1 + twelfth * (u2 * a0 - u0 * a2)
-                    k32 = w2 + half * a2 + twelfth * (u0 * a1 - u1 * a0)
-                    # stage 4
-                    z0, z1, z2 = y0 + h * d30, y1 + h * d31, y2 + h * d32
-                    u0, u1, u2 = h * k30, h * k31, h * k32
-                    w0, w1, w2 = I0 * z0, I1 * z1, I2 * z2
-                    d40, d41, d42 = z1 * w2 - z2 * w1, z2 * w0 - z0 * w2, z0 * w1 - z1 * w0
-                    a0, a1, a2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
-                    k40 = w0 + half * a0 + twelfth * (u1 * a2 - u2 * a1)
-                    k41 = w1 + half * a1 + twelfth * (u2 * a0 - u0 * a2)
-                    k42 = w2 + half * a2 + twelfth * (u0 * a1 - u1 * a0)
+                    k20, k21, k22, d20, d21, d22 = stage(
+                        I0, I1, I2, y0 + hh * d10, y1 + hh * d11, y2 + hh * d12, hh * k10, hh * k11, hh * k12)
+                    k30, k31, k32, d30, d31, d32 = stage(
+                        I0, I1, I2, y0 + hh * d20, y1 + hh * d21, y2 + hh * d22, hh * k20, hh * k21, hh * k22)
+                    k40, k41, k42, d40, d41, d42 = stage(
+                        I0, I1, I2, y0 + h * d30, y1 + h * d31, y2 + h * d32, h * k30, h * k31, h * k32)
                     U0 = h6 * (k10 + two * k20 + two * k30 + k40)
                     U1 = h6 * (k11 + two * k21 + two * k31 + k41)
                     U2 = h6 * (k12 + two * k22 + two * k32 + k42)
@@ -242,37 +251,12 @@ def _make_soa_kernel(F):
                     cs = one - z2 / c2 * (one - z2 / c12 * (one - z2 / c30 * (one - z2 / c56 * (one - z2 / c90 * (one - z2 / c132)))))
                     A = two * sn * cs / th
                     Bc = two * sn * sn / (th * th)
-                    c = one - Bc * x
-                    e00, e11, e22 = c + Bc * U0 * U0, c + Bc * U1 * U1, c + Bc * U2 * U2
-                    b01, b02, b12 = Bc * U0 * U1, Bc * U0 * U2, Bc * U1 * U2
-                    e01, e10 = b01 - A * U2, b01 + A * U2
-                    e02, e20 = b02 + A * U1, b02 - A * U1
-                    e12, e21 = b12 - A * U0, b12 + A * U0
-                    r00, r01, r02 = r[0, b], r[1, b], r[2, b]
-                    r10, r11, r12 = r[3, b], r[4, b], r[5, b]
-                    r20, r21, r22 = r[6, b], r[7, b], r[8, b]
-                    r00, r01, r02 = (r00 * e00 + r01 * e10 + r02 * e20, r00 * e01 + r01 * e11 + r02 * e21,
-                                     r00 * e02 + r01 * e12 + r02 * e22)
-                    r10, r11, r12 = (r10 * e00 + r11 * e10 + r12 * e20, r10 * e01 + r11 * e11 + r12 * e21,
-                                     r10 * e02 + r11 * e12 + r12 * e22)
-                    r20, r21, r22 = (r20 * e00 + r21 * e10 + r22 * e20, r20 * e01 + r21 * e11 + r22 * e21,
-                                     r20 * e02 + r21 * e12 + r22 * e22)
-                    if newton_schulz:  # R (3 I - R^T R) / 2, as lierk.so3.right_exp does in float32
-                        s00 = r00 * r00 + r10 * r10 + r20 * r20
-                        s11 = r01 * r01 + r11 * r11 + r21 * r21
-                        s22 = r02 * r02 + r12 * r12 + r22 * r22
-                        s01 = r00 * r01 + r10 * r11 + r20 * r21
-                        s02 = r00 * r02 + r10 * r12 + r20 * r22
-                        s12 = r01 * r02 + r11 * r12 + r21 * r22
-                        r00, r01, r02 = (onehalf * r00 - half * (r00 * s00 + r01 * s01 + r02 * s02),
-                                         onehalf * r01 - half * (r00 * s01 + r01 * s11 + r02 * s12),
-                                         onehalf * r02 - half * (r00 * s02 + r01 * s12 + r02 * s22))
-                        r10, r11, r12 = (onehalf * r10 - half * (r10 * s00 + r11 * s01 + r12 * s02),
-                                         onehalf * r11 - half * (r10 * s01 + r11 * s11 + r12 * s12),
-                                         onehalf * r12 - half * (r10 * s02 + r11 * s12 + r12 * s22))
-                        r20, r21, r22 = (onehalf * r20 - half * (r20 * s00 + r21 * s01 + r22 * s02),
-                                         onehalf * r21 - half * (r20 * s01 + r21 * s11 + r22 * s12),
-                                         onehalf * r22 - half * (r20 * s02 + r21 * s12 + r22 * s22))
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22 = times_exp(
+                        r[0, b], r[1, b], r[2, b], r[3, b], r[4, b], r[5, b], r[6, b], r[7, b], r[8, b],
+                        U0, U1, U2, x, A, Bc)
+                    if newton_schulz:  # as lierk.so3.right_exp does in float32
+                        r00, r01, r02, r10, r11, r12, r20, r21, r22 = ns_step(
+                            r00, r01, r02, r10, r11, r12, r20, r21, r22)
                     r[0, b], r[1, b], r[2, b] = r00, r01, r02
                     r[3, b], r[4, b], r[5, b] = r10, r11, r12
                     r[6, b], r[7, b], r[8, b] = r20, r21, r22
@@ -310,41 +294,45 @@ def rkmk4_soa_final_R(inertia, omegas, h: float, n_steps: int, threads: int) -> 
 # The C anchor's build line (its header) plus what a shared library needs.
 C_FLAGS = ("-O3", "-march=native", "-fno-math-errno", "-fopenmp", "-shared", "-fPIC")
 _C_SOURCE = pathlib.Path(__file__).parent / "anchors" / "rkmk4_soa.c"
-_C_LIB: list = []
 
 
-def build_c_soa() -> str | None:
-    """Build the C anchor once per process; returns None when built, or why
-    it could not be (no compiler, no OpenMP, a failed build)."""
-    if _C_LIB:
-        return None
+@functools.lru_cache(maxsize=1)
+def _c_soa() -> tuple:
+    """``(function, build line, None)`` once built, or ``(None, None, why
+    not)``; the build (or its failure) happens once per process."""
     cc = os.environ.get("CC") or shutil.which("gcc") or shutil.which("cc")
     if cc is None:
-        return "no C compiler (gcc or cc) on PATH"
+        return None, None, "no C compiler (gcc or cc) on PATH"
     lib = pathlib.Path(tempfile.mkdtemp(prefix="lierk-anchor-")) / "librkmk4_soa.so"
     run = subprocess.run([cc, *C_FLAGS, str(_C_SOURCE), "-lm", "-o", str(lib)], capture_output=True, text=True)
     if run.returncode != 0:
-        return f"{cc} failed: {run.stderr.strip()[:300]}"
-    handle = ctypes.CDLL(str(lib))
-    f = handle.rkmk4_soa_run
+        return None, None, f"{cc} failed: {run.stderr.strip()[:300]}"
+    f = ctypes.CDLL(str(lib)).rkmk4_soa_run
     f.restype = None
     f.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double, ctypes.c_int, ctypes.c_int,
                   ctypes.c_void_p]
-    _C_LIB.append((f, f"{os.path.basename(cc)} {' '.join(C_FLAGS)}"))
-    return None
+    return f, f"{os.path.basename(cc)} {' '.join(C_FLAGS)}", None
+
+
+def build_c_soa() -> str | None:
+    """Build the C anchor; None when built, or why it could not be (no
+    compiler, no OpenMP, a failed build)."""
+    return _c_soa()[2]
 
 
 def c_soa_build_line() -> str | None:
-    return _C_LIB[0][1] if _C_LIB else None
+    """The command line the C anchor was built with (None if not built)."""
+    return _c_soa()[1]
 
 
 def c_soa_final_R(inertia, omegas, h: float, n_steps: int, threads: int) -> np.ndarray:
     """As `rkmk4_final_R`, by the C anchor (float64 only; ``inertia``
     diagonal); `build_c_soa` must have succeeded."""
-    if not _C_LIB:
-        raise RuntimeError(f"the C anchor is not built: {build_c_soa()}")
+    f, _, why = _c_soa()
+    if f is None:
+        raise RuntimeError(f"the C anchor is not built: {why}")
     Ii = np.diag(_inverse_diagonal(inertia)).astype(np.float64)
     w = np.ascontiguousarray(omegas, np.float64)
     out = np.empty((w.shape[0], 3, 3), np.float64)
-    _C_LIB[0][0](w.shape[0], Ii.ctypes.data, w.ctypes.data, float(h), int(n_steps), int(threads), out.ctypes.data)
+    f(w.shape[0], Ii.ctypes.data, w.ctypes.data, float(h), int(n_steps), int(threads), out.ctypes.data)
     return out

@@ -165,7 +165,8 @@ def throughput(batch: int, n_steps: int, repeats: int, dtype, reference=None) ->
         "held jit(vmap)": lambda: held(w_dev),
     }
     soa = []
-    if dtype == np.float64 and native.build_c_soa() is None:
+    c_not_built = native.build_c_soa() if dtype == np.float64 else "float64 only"
+    if c_not_built is None:
         for k in sorted({threads, 1}, reverse=True):
             name = f"C structure of arrays, {k} thread{'s' if k > 1 else ''}"
             calls[name] = functools.partial(native.c_soa_final_R, INERTIA, w, DT, n_steps, k)
@@ -195,8 +196,8 @@ def throughput(batch: int, n_steps: int, repeats: int, dtype, reference=None) ->
         "devices": len(devices),
         "numba_threads": threads,
         "anchor": anchor,
-        "c_build": native.c_soa_build_line() if dtype == np.float64 else None,
-        "c_not_built": native.build_c_soa() if dtype == np.float64 else "float64 only",
+        "c_build": native.c_soa_build_line() if c_not_built is None else None,
+        "c_not_built": c_not_built,
         "max_diff_to_float64": errors,
         "R_T": outs["lierk.sweep"],
         "compile_and_warm_up_s": warm_s,

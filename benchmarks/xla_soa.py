@@ -34,35 +34,27 @@ xla_soa.json and xla_soa.md to benchmarks/results.
 
 from __future__ import annotations
 
+import functools
+import json
 import os
+import re
 
-# Must happen before jax is imported: the device count is fixed at start-up.
-_DEVICES = os.cpu_count() or 1
-if _DEVICES > 1:
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={_DEVICES}"
-    ).strip()
+# First: sweep.py splits the CPU into one XLA host device per core before jax
+# is imported, and holds the RKMK4 program and batch this script compares.
+import sweep  # isort: skip
 
-import functools  # noqa: E402
-import json  # noqa: E402
-import re  # noqa: E402
-import time  # noqa: E402
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-import jax  # noqa: E402
-
-jax.config.update("jax_enable_x64", True)
-
-import jax.numpy as jnp  # noqa: E402
-import numpy as np  # noqa: E402
-from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-
-import common  # noqa: E402
-import lierk  # noqa: E402
-import native  # noqa: E402
+import common
+import lierk
+import native
 
 QUICK, OUT = common.cli(__doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__")
-DT = 0.01
-INERTIA = np.asarray(lierk.inertia.tee_handle(), np.float64)
+DT = sweep.DT
+INERTIA = np.asarray(sweep.INERTIA, np.float64)
 
 
 def _cross(a, b):
@@ -127,11 +119,6 @@ def final_R_components(omega0, n_steps: int, barriers: bool):
     return jnp.stack([jnp.stack(row, -1) for row in r], -2)
 
 
-def final_R_lierk(inertia, n_steps, omega0):
-    body = lierk.FreeRigidBody(inertia, omega0)
-    return lierk.solve(body, lierk.RKMK4(), n_steps * DT, dt=DT, max_steps=n_steps).R[-1]
-
-
 def loop_body_fusions(compiled) -> int:
     """Kernels (fusions and dots) in the largest while-loop body of a
     compiled program: the step, run once per step."""
@@ -143,10 +130,10 @@ def loop_body_fusions(compiled) -> int:
 
 def run(batch: int, n_steps: int, repeats: int, dtype) -> dict:
     sharding = NamedSharding(Mesh(np.array(jax.devices()), ("batch",)), PartitionSpec("batch"))
-    w = (np.random.default_rng(0).normal(size=(batch, 3)) * [1.0, 0.05, 0.3]).astype(dtype)
+    w = sweep.omegas(batch, dtype)
     w_dev = jax.device_put(w, sharding)
     inertia = jnp.asarray(INERTIA, dtype)
-    lierk_fn = jax.jit(jax.vmap(functools.partial(final_R_lierk, inertia, n_steps)))
+    lierk_fn = jax.jit(jax.vmap(functools.partial(sweep.final_R, inertia, n_steps)))
     programs = {
         "lierk.sweep (jit(vmap(solve)))": lierk_fn,
         "components, plain": jax.jit(functools.partial(final_R_components, n_steps=n_steps, barriers=False)),
@@ -161,12 +148,7 @@ def run(batch: int, n_steps: int, repeats: int, dtype) -> dict:
     calls[f"numba structure of arrays, {threads} threads"] = functools.partial(
         native.rkmk4_soa_final_R, INERTIA, w, DT, n_steps, threads)
     outs = {name: np.asarray(jax.block_until_ready(call())) for name, call in calls.items()}
-    times = {name: [] for name in calls}
-    for _ in range(repeats):  # interleaved, so that a change of load hits all alike
-        for name, call in calls.items():
-            t = time.perf_counter()
-            jax.block_until_ready(call())
-            times[name].append(time.perf_counter() - t)
+    times = sweep.interleaved(calls, repeats)
     ref = outs["lierk.sweep (jit(vmap(solve)))"]
     anchor = max((n for n in calls if "structure of arrays" in n), key=lambda n: -min(times[n]))
     rows = {}

@@ -150,6 +150,7 @@ def test_long_fixed_runs_take_exactly_their_steps_and_compile_the_step_once(n):
         R, y = st.R, st.y
     assert int(sol.stats["num_steps"]) == n
     assert np.max(np.abs(np.asarray(sol.R[-1]) - np.asarray(R))) < 1e-13
+
     def loops(steps):
         text = jax.jit(lambda w: lierk.solve(_tee(w), solver, steps * dt, dt=dt).R[-1]).lower(OMEGA_GENERIC).as_text()
         return text.count("stablehlo.while")

@@ -231,7 +231,7 @@ class AbstractRigidBody(AbstractProblem):
         (kg m^2/s) and each effect's own `AbstractEffect.invariants`.  Which of
         them the exact flow conserves is `conserved`."""
         m = self._body_momenta(R, y)
-        omega = jnp.einsum("ij,...j->...i", self.inertia_inv, m)
+        omega = so3.matvec(self.inertia_inv, m)
         energy = kinetic_energy(self.inertia, omega)
         out = {}
         for e in self.effects:

@@ -12,24 +12,22 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
+from .. import so3
+
 __all__ = ["angular_momentum", "kinetic_energy", "body_angular_velocity"]
-
-
-def _matvec(M: Array, v: Array) -> Array:
-    return jnp.einsum("...ij,...j->...i", M, v)
 
 
 def angular_momentum(inertia: ArrayLike, omega: ArrayLike, R: ArrayLike | None = None) -> Array:
     """Body momentum ``I omega``, or the spatial ``R I omega`` when ``R`` is given.
     ``(..., 3, 3), (..., 3)[, (..., 3, 3)] -> (..., 3)``."""
-    m = _matvec(jnp.asarray(inertia), jnp.asarray(omega))
-    return m if R is None else _matvec(jnp.asarray(R), m)
+    m = so3.matvec(jnp.asarray(inertia), jnp.asarray(omega))
+    return m if R is None else so3.matvec(jnp.asarray(R), m)
 
 
 def kinetic_energy(inertia: ArrayLike, omega: ArrayLike) -> Array:
     """Rotational kinetic energy ``omega . I omega / 2`` (J): ``-> (...)``."""
     omega = jnp.asarray(omega)
-    return 0.5 * jnp.sum(omega * _matvec(jnp.asarray(inertia), omega), axis=-1)
+    return 0.5 * jnp.sum(omega * so3.matvec(jnp.asarray(inertia), omega), axis=-1)
 
 
 def body_angular_velocity(inertia: ArrayLike, R: ArrayLike, L: ArrayLike) -> Array:
