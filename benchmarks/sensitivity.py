@@ -43,12 +43,9 @@ written after each part);
 
 from __future__ import annotations
 
-import os
+import host_devices
 
-# Two XLA host devices, one per core; must be set before jax is imported.
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
-).strip()
+host_devices.split()  # one XLA host device per core
 
 import json  # noqa: E402
 import time  # noqa: E402

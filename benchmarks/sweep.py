@@ -36,12 +36,9 @@ from __future__ import annotations
 
 import os
 
-# Must happen before jax is imported: the device count is fixed at start-up.
-_DEVICES = os.cpu_count() or 1
-if _DEVICES > 1:
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={_DEVICES}"
-    ).strip()
+import host_devices
+
+_DEVICES = host_devices.split()  # one XLA host device per core
 
 import functools  # noqa: E402
 import json  # noqa: E402

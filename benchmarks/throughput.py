@@ -31,11 +31,9 @@ _parser.add_argument("--repeats", type=int, default=5)
 _parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
 ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
 
-# Must happen before jax is imported: the device count is fixed at start-up.
-if ARGS.devices > 1:
-    os.environ["XLA_FLAGS"] = (
-        os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={ARGS.devices}"
-    ).strip()
+import host_devices  # noqa: E402
+
+host_devices.split(ARGS.devices)
 
 import jax  # noqa: E402
 

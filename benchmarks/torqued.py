@@ -68,10 +68,9 @@ from __future__ import annotations
 
 import os
 
-# Two XLA host devices, one per core; must be set before jax is imported.
-os.environ["XLA_FLAGS"] = (
-    os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={os.cpu_count() or 1}"
-).strip()
+import host_devices
+
+host_devices.split()  # one XLA host device per core
 
 import json  # noqa: E402
 import time  # noqa: E402

@@ -56,11 +56,10 @@ def initialize(
     does nothing and returns ``False``: the same script runs alone unchanged.
 
     What it changes, since it is the caller's explicit request to set up the
-    runtime: it calls `jax.distributed.initialize`, and it sets
-    ``jax_cpu_collectives_implementation`` to ``"gloo"`` if no implementation
-    is configured, so that CPU devices of different processes can exchange
-    data (the gather of a sweep's results); this affects the CPU backend only,
-    not GPUs.  Importing `lierk` changes no JAX configuration.
+    runtime: it calls `jax.distributed.initialize`.  CPU devices of different
+    processes exchange data (the gather of a sweep's results) through JAX's
+    CPU collectives, ``jax_cpu_collectives_implementation``, whose default is
+    ``"gloo"``; lierk sets no JAX configuration, here or on import.
 
     Args:
         coordinator_address: ``"HOST:PORT"`` of process 0 (``"[IPv6]:PORT"``
@@ -125,8 +124,7 @@ def initialize(
     elif num_processes == 1:
         return False
 
-    if jax.config.jax_cpu_collectives_implementation is None:
-        jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    # (CPU collectives across processes: gloo, the default of every jax lierk supports.)
     if host is not None and process_id is not None:
         if process_id == 0:
             _check_port_free(port)

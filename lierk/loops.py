@@ -18,6 +18,7 @@ diffeqsolve.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Any, NamedTuple
 
@@ -499,6 +500,7 @@ def _adaptive_loop(
     # Dense output and events build every step's interpolant.
     tracked = saveat.dense or bool(events)
     init = _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat, max_steps, decisions, events, tracked)
+    init = _batched_together(init, (problem, t0, t1, h0, f0, controller))
 
     def cond(c: _Carry):
         return ~c.done
@@ -611,6 +613,23 @@ def _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat: SaveAt, max_ste
         node=node0,
         ev=ev0,
         dense=dense0,
+    )
+
+
+def _batched_together(carry, inputs):
+    """``carry``, each array leaf tied to the floating arrays of ``inputs`` by
+    an identity that XLA removes (``select(p, x, x)``).  Under ``vmap`` the
+    while loop's batching rule traces the body once more for every round in
+    which a carry entry turns batched (the step count after the state, the
+    result code after the step count); a carry batched from the start saves
+    those rounds (0.3 s each for DOP853 on a heavy top)."""
+    probes = [jnp.isnan(jnp.ravel(x)[0]) for x in jax.tree_util.tree_leaves(inputs)
+              if eqx.is_array(x) and x.size and jnp.issubdtype(x.dtype, jnp.inexact)]
+    if not probes:
+        return carry
+    p = functools.reduce(jnp.logical_or, probes)
+    return jax.tree_util.tree_map(
+        lambda x: jax.lax.select(jnp.broadcast_to(p, x.shape), x, x) if eqx.is_array(x) else x, carry
     )
 
 

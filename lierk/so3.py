@@ -171,32 +171,33 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     """
     x2 = 0.25 * theta2
     near = x2 <= (0.25 * math.pi) ** 2
-    # Near: the series in x^2 directly.  (Each branch sees only its own inputs,
-    # so neither divides by zero and both have finite cotangents.)
-    xn2 = jnp.where(near, x2, jnp.zeros_like(x2))
-    S_near, C_near, E_near = _horner(_SIN_X, xn2), _horner(_COS, xn2), _horner(_E, xn2)
-    # Far: x = n pi/2 + r.
+    # Each branch sees only its own inputs, so neither divides by zero and
+    # both have finite cotangents.  Far: x = n pi/2 + r.
     xf2 = jnp.where(near, jnp.ones_like(x2), x2)
     x = jnp.sqrt(xf2)
     p1, p2, p3 = _PI_2_PARTS[64 if jnp.finfo(x.dtype).bits >= 64 else 32]
     n = jnp.round(x * (2.0 / math.pi))
     # The clip only matters where x is so large that ulp(x) > pi (no angle left).
     r = jnp.clip(((x - n * p1) - n * p2) - n * p3, -0.786, 0.786)
-    sin_r = r * _horner(_SIN_X, r * r)
-    cos_r = _horner(_COS, r * r)
+    # One pair of series serves both branches: near, r is x itself (n = 0),
+    # and r^2 is taken as x^2 (no square root, exact derivatives at 0).
+    r2 = jnp.where(near, x2, r * r)
+    S, C = _horner(_SIN_X, r2), _horner(_COS, r2)  # sin r / r, cos r
+    E_near = _horner(_E, jnp.where(near, x2, jnp.zeros_like(x2)))
+    sin_r = r * S
     q = n - 4.0 * jnp.floor(0.25 * n)  # quadrant, 0..3
     odd = (q == 1.0) | (q == 3.0)
-    sin_x = jnp.where(odd, cos_r, sin_r)
-    cos_x = jnp.where(odd, sin_r, cos_r)
+    sin_x = jnp.where(odd, C, sin_r)
+    cos_x = jnp.where(odd, sin_r, C)
     sin_x = jnp.where(q >= 2.0, -sin_x, sin_x)
     cos_x = jnp.where((q == 1.0) | (q == 2.0), -cos_x, cos_x)
     # Each coefficient ends in one division (an expensive op for XLA), so it is
     # computed once per angle and stored, instead of being re-derived inside
     # every consumer's fused loop (once per vector component).
     one = jnp.ones_like(x2)
-    A = jnp.where(near, S_near * C_near, sin_x * cos_x) / jnp.where(near, one, x)
-    B = jnp.where(near, 0.5 * S_near * S_near, 0.5 * sin_x * sin_x) / jnp.where(near, one, xf2)
-    D = jnp.where(near, E_near, sin_x - x * cos_x) / jnp.where(near, 4.0 * S_near, 4.0 * xf2 * sin_x)
+    A = jnp.where(near, S * C, sin_x * cos_x) / jnp.where(near, one, x)
+    B = jnp.where(near, 0.5 * S * S, 0.5 * sin_x * sin_x) / jnp.where(near, one, xf2)
+    D = jnp.where(near, E_near, sin_x - x * cos_x) / jnp.where(near, 4.0 * S, 4.0 * xf2 * sin_x)
     return A, B, D
 
 

@@ -115,3 +115,12 @@ def test_adaptive_error_follows_tolerance_and_sphere_is_exact(solver, tee_refere
     omega0 = np.array([0.7, -1.3, 2.1])
     Rs = np.asarray(run(np.diag([0.3, 0.3, 0.3]), omega0, rtols))
     np.testing.assert_allclose(Rs, np.broadcast_to(so3.exp(T1 * omega0), Rs.shape), atol=2e-14)
+
+
+def test_rkmk_is_named_after_its_tableau():
+    """Tables, plots and `lierk accuracy` tell the tableaux apart by name."""
+    assert lierk.RKMK(lierk.tableaux.DOP853).name == "RKMK(DOP853)"
+    assert lierk.RKMK(lierk.tableaux.DOPRI54).name == "RKMK(DOPRI54)"
+    own = lierk.tableaux.ButcherTableau("Heun", c=(0.0, 1.0), a=((), (1.0,)), b=(0.5, 0.5), order=2)
+    assert lierk.RKMK(own).name == "RKMK(Heun)"
+    assert lierk.DOP853().name == "DOP853"

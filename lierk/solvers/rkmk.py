@@ -158,6 +158,15 @@ class RKMK(AbstractRKMK):
 
     tableau: ButcherTableau = eqx.field(static=True)
 
+    @property
+    def name(self) -> str:
+        """``"RKMK(DOP853)"``: lierk's tableaux by their constant in
+        `lierk.tableaux`, others by their own name."""
+        from .. import tableaux
+
+        label = next((k for k, v in vars(tableaux).items() if v is self.tableau), self.tableau.name)
+        return f"RKMK({label})"
+
 
 class RKMK4(AbstractRKMK):
     """Munthe-Kaas RK4: the classical tableau with dexpinv up to ``ad_u^2``,
