@@ -106,7 +106,11 @@ class ForwardSensitivity(AbstractAdjoint):
     the steps taken (decisions under `stop_gradient`) for any ``max_steps``.
     The inputs are counted as the solve sees them: ``jax.grad`` with respect
     to ``omega0`` of a `FreeRigidBody` perturbs its momentum ``m0``, 3
-    scalars; with respect to the inertia also its inverse, 21.
+    scalars; with respect to the inertia also its inverse, 21.  An adaptive
+    solve under differentiation takes its steps with
+    ``Controller.resolve_modes`` on, so that the tangents are resolved where
+    the state does not move (a steady spin); its value comes from those
+    steps, and an undifferentiated solve keeps its own.
 
     Costs (256 near-axis T-handles, 2-core CPU; `benchmarks/sensitivity.py`):
     the Jacobian in ``omega0`` costs 5 to 8 forward solves, and so does the
@@ -142,7 +146,18 @@ class ForwardSensitivity(AbstractAdjoint):
 
     def run(self, loop: Callable, fixed: bool, *args) -> Any:
         limit = self.max_inputs if self.max_inputs is not None else (6 if fixed else 32)
-        loops = (functools.partial(loop, ForwardMode()), functools.partial(loop, self.fallback))
+        # The derivative's loop resolves the body's perturbation modes
+        # (`Controller.resolve_modes`): about a steady spin the state's error
+        # estimate is 0 and the steps grow until the tangents are unresolved
+        # (DP54 on a symmetric body spinning about its axis: 1e10 off).  So a
+        # differentiated adaptive solve takes those steps, value included;
+        # the undifferentiated one keeps its own.
+        tangent = loop if fixed else _resolving(loop)
+        loops = (
+            functools.partial(loop, ForwardMode()),
+            functools.partial(loop, self.fallback),
+            functools.partial(tangent, ForwardMode()),
+        )
         kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed)
         if _holds_function(args):
             # A function in the problem (a torque profile, an orbit, an event
@@ -181,8 +196,18 @@ def _is_none(x) -> bool:
 # are static, closure-converted ones carry their captured values as leaves.
 @eqx.filter_custom_jvp
 def _sensitive(loops_args, *, limit, fallback, fixed):
-    (primal, _), args = loops_args
+    (primal, _, _), args = loops_args
     return primal(*args)
+
+
+def _resolving(loop: Callable) -> Callable:
+    """``loop`` with its `Controller` resolving the perturbation modes."""
+    from .controller import Controller
+
+    def resolving(*args):
+        return loop(*(a.resolving_modes() if isinstance(a, Controller) else a for a in args))
+
+    return resolving
 
 
 @_sensitive.def_jvp
@@ -204,8 +229,8 @@ def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed):
     dp, _ = ravel_pytree(t_loops_args)  # the live tangents, in the order of p0 (None leaves are empty)
 
     def solve(p):
-        (primal, _), args = eqx.combine(unravel(p), rest)
-        return primal(*args)
+        (_, _, tangent), args = eqx.combine(unravel(p), rest)
+        return tangent(*args)
 
     def column(e):
         return eqx.filter_jvp(solve, (p0,), (e,))

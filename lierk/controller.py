@@ -37,7 +37,7 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import validation
+from . import tableaux, validation
 from .solvers.base import field_at
 
 __all__ = ["AbstractStepController", "Controller", "ConstantStep", "Decision"]
@@ -84,8 +84,8 @@ class AbstractStepController(eqx.Module):
         `adapt` needs besides ``self``."""
         raise NotImplementedError
 
-    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last) -> Decision:
-        """Judge step ``st`` from ``(t, y)`` to ``t_new = t + h`` (``f`` the
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last) -> Decision:
+        """Judge step ``st`` from ``(t, R, y)`` to ``t_new = t + h`` (``f`` the
         field at ``t``); ``h_proposed`` was the attempt's step before it was
         clipped to a save time or t1 (``clipped``)."""
         raise NotImplementedError
@@ -101,7 +101,7 @@ class ConstantStep(AbstractStepController):
     def init(self, problem, solver, t0, t1, dt0, floor_eps):
         return None, dt0, None
 
-    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last):
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last):
         finite = validation.all_finite((st.R, st.y))
         return Decision(jnp.asarray(True), h_proposed, h <= 0, ~finite, None)
 
@@ -132,6 +132,21 @@ class Controller(AbstractStepController):
             spun at 30 to 120 rad/s, DOP853 at rtol 1e-4 rejected 28% of its
             attempts and took more steps than at 1e-5; with the bound it
             rejects none, takes 38% fewer, and is 3x more accurate).
+        resolve_modes: also keep the phase ``rho h`` of the body's fastest
+            small perturbation (`lierk.AbstractProblem.mode_frequency`, the
+            torque-free nutation of a rigid body) within what the error test
+            would accept for a unit oscillation at this tolerance,
+            ``(tol / c)^(1/(q+1))`` with ``c`` from
+            `lierk.tableaux.oscillation_error_constant`.  The error estimate
+            measures the state, and about a steady spin the state does not
+            move: steps grow to the turn bound, where perturbations, and so
+            derivatives, are not resolved (an adaptive DP54 Jacobian of a
+            symmetric body spinning about its axis was 1e10 off, reported
+            successful).  Off (False) for plain solves, which it can only
+            slow; a differentiated solve turns it on (the default adjoint,
+            `lierk.ForwardSensitivity`, and `lierk.sensitivity`); with
+            another adjoint, set it where the body may spin steadily.
+            Static.
     """
 
     decides: ClassVar[bool] = True
@@ -144,6 +159,7 @@ class Controller(AbstractStepController):
     dtmin: Array
     dtmax: Array
     max_angle: Array
+    resolve_modes: bool = eqx.field(static=True)
 
     def __init__(
         self,
@@ -156,6 +172,7 @@ class Controller(AbstractStepController):
         dtmin: ArrayLike = 0.0,
         dtmax: ArrayLike = float("inf"),
         max_angle: ArrayLike = math.pi,
+        resolve_modes: bool = False,
     ):
         # Checks run on NumPy values while they are known (see `lierk.validation`);
         # everything becomes a JAX array only at the end.
@@ -181,15 +198,34 @@ class Controller(AbstractStepController):
         self.rtol, self.atol, self.safety, self.facmin, self.facmax, self.dtmin, self.dtmax, self.max_angle = (
             validation.as_jax(x) for x in (rtol, atol, safety, facmin, facmax, dtmin, dtmax, max_angle)
         )
+        if not isinstance(resolve_modes, bool):
+            raise ValueError(f"resolve_modes must be True or False, got {resolve_modes!r}")
+        self.resolve_modes = resolve_modes
 
-    def largest_step(self, omega: Array) -> Array:
+    def resolving_modes(self) -> "Controller":
+        """This controller with ``resolve_modes=True``, its (possibly traced)
+        values unchanged and not validated again."""
+        if self.resolve_modes:
+            return self
+        structure = jax.tree_util.tree_structure(Controller(resolve_modes=True))
+        return jax.tree_util.tree_unflatten(structure, jax.tree_util.tree_leaves(self))
+
+    def largest_step(self, omega: Array, modes: tuple[Array, Array] | None = None) -> Array:
         """The largest step (s) the controller proposes when a step starts at
         body angular velocity ``omega`` ``(..., 3)`` (rad/s): ``dtmax``, and
         at most ``max_angle / |omega|``, but never below ``dtmin`` (a bound the
-        user set explicitly wins)."""
+        user set explicitly wins).  ``modes``: ``(rho, angle)``, a mode
+        frequency (rad/s) and the largest phase (rad) it may turn per step."""
         speed = jnp.sqrt(jnp.sum(omega * omega, axis=-1))
         turn = jnp.where(speed > 0, self.max_angle / jnp.where(speed > 0, speed, 1.0), jnp.inf)
+        if modes is not None:
+            rho, angle = modes
+            turn = jnp.minimum(turn, jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf))
         return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, turn)))
+
+    def _modes(self, problem, R, y, mode_angle):
+        """``largest_step``'s ``modes`` at ``(R, y)``, or None when off."""
+        return None if mode_angle is None else (problem.mode_frequency(R, y), mode_angle)
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:
@@ -225,16 +261,22 @@ class Controller(AbstractStepController):
         # nothing.)
         floor = floor_eps * jnp.finfo(problem.R0.dtype).eps / (ctrl.rtol + ctrl.atol)
         calibration = jax.lax.stop_gradient(jnp.maximum(solver.tableau.tolerance_calibration, floor))
+        mode_angle = None
+        if self.resolve_modes:
+            c = tableaux.oscillation_error_constant(solver.tableau)
+            allowed = (ctrl.rtol + ctrl.atol) * calibration / c
+            mode_angle = jax.lax.stop_gradient(jnp.minimum(ctrl.max_angle, allowed ** (1.0 / (solver.error_order + 1))))
+        modes = ctrl._modes(problem, problem.R0, problem.y0, mode_angle)
         f0 = field_at(problem, t0, problem.R0, problem.y0)
         if dt0 is None:
-            h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0)
+            h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0, modes)
         else:
             # A given first step obeys the controller's bounds like every other.
-            h0 = jnp.minimum(dt0, ctrl.largest_step(f0[0]))
-        return (ctrl, calibration), h0, f0
+            h0 = jnp.minimum(dt0, ctrl.largest_step(f0[0], modes))
+        return (ctrl, calibration, mode_angle), h0, f0
 
-    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, y, f, rejected_last):
-        ctrl, calibration = state
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last):
+        ctrl, calibration, mode_angle = state
         tol_y = problem.error_tolerance(y, st.y, ctrl.rtol, ctrl.atol)
         err = solver.error_norm(st.error, lambda e_u, e_y: ctrl.norm(e_u, e_y, tol_y))
         err = jax.lax.stop_gradient(err / calibration)
@@ -242,7 +284,12 @@ class Controller(AbstractStepController):
         finite = validation.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
         accept = finite & (err <= 1.0)
         # The turn bound reads omega where the next step starts.
-        largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]))
+        if mode_angle is None:
+            modes = None
+        else:
+            modes = ctrl._modes(problem, jnp.where(accept, st.R, R), jax.tree_util.tree_map(
+                lambda a, b: jnp.where(accept, a, b), st.y, y), mode_angle)
+        largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]), modes)
         h_next = jnp.minimum(h * ctrl.factor(err, solver.error_order, rejected_last), largest)
         # Keep the proposed step when only a save time or t1 shortened it.
         h_next = jnp.where(accept & clipped, jnp.maximum(h_next, jnp.minimum(h_proposed, largest)), h_next)
@@ -252,7 +299,7 @@ class Controller(AbstractStepController):
         stuck = (~accept & (h_next < h_floor)) | (h <= 0)
         return Decision(accept, h_next, stuck, jnp.asarray(False), f_new)
 
-    def _initial_step(self, problem, q: int, t0, t1, f0):
+    def _initial_step(self, problem, q: int, t0, t1, f0, modes=None):
         """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""
         R0, y0 = problem.R0, problem.y0
         omega0, ydot0 = f0
@@ -273,4 +320,4 @@ class Controller(AbstractStepController):
         # step: take the whole interval.
         span = t1 - t0
         h = jnp.where(dmax == 0, span, jnp.minimum(100 * h0, h1))
-        return sg(jnp.clip(h, 0, self.largest_step(omega0)))
+        return sg(jnp.clip(h, 0, self.largest_step(omega0, modes)))

@@ -524,7 +524,7 @@ def _adaptive_loop(
         else:
             st = solver.step(problem, c.t, h, c.R, c.y, c.f)
         d = controller.adapt(
-            ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=c.h, clipped=clipped, t1=t1, y=c.y,
+            ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=c.h, clipped=clipped, t1=t1, R=c.R, y=c.y,
             f=c.f, rejected_last=c.rejected_last,
         )
         accept, h_out, decisions = _decide(c, d, h, record, replay)

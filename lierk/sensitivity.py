@@ -33,6 +33,7 @@ from jax.typing import ArrayLike
 
 from . import so3
 from .adjoint import ForwardMode
+from .controller import Controller
 from .problems import AbstractProblem, AbstractRigidBody
 from .solution import RESULTS, SaveAt, raise_if_failed
 from .global_error import TOLERANCE_RATIO, finer
@@ -217,6 +218,8 @@ def sensitivity(
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
     fixed = solve_options.get("dt") is not None
+    if not fixed:
+        solve_options = _resolving_modes(solve_options)
     if not fixed and mode == "forward" and solve_options.get("adjoint") is None:
         solve_options = {**solve_options, "adjoint": ForwardMode()}
     _input(problem, wrt)  # bad input raises here, before tracing
@@ -257,6 +260,22 @@ def _sensitivity(problem, solver, t1, wrt, mode, estimate_error, throw, solve_op
     if throw:
         out = eqx.tree_at(lambda s: s.result, out, raise_if_failed(sol, True).result)
     return out
+
+
+def _resolving_modes(options: dict) -> dict:
+    """Adaptive ``options`` with a `Controller` that resolves the body's
+    perturbation modes (``resolve_modes=True``): about a steady spin the
+    state's error estimate is 0 and the steps grow until the Jacobian is
+    wrong (1e10 off for DP54 on a symmetric body spinning about its axis)."""
+    controller = options.get("controller")
+    if controller is None:
+        if options.get("rtol") is None:
+            return options  # `solve` says what is missing
+        atol = options.get("atol")
+        controller = Controller(options["rtol"], options["rtol"] if atol is None else atol)
+    if isinstance(controller, Controller):
+        controller = controller.resolving_modes()
+    return {**{k: v for k, v in options.items() if k not in ("rtol", "atol")}, "controller": controller}
 
 
 def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:

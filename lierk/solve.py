@@ -301,9 +301,14 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
             "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
         )
     eps = float(np.finfo(dtype).eps)
-    if not validation.is_traced(controller.rtol, controller.atol) and float(controller.rtol + controller.atol) < eps:
+    # In NumPy: inside a trace even a sum of concrete arrays is a tracer (a
+    # Controller built outside `jit` and closed over inside it).
+    total = None if validation.is_traced(controller.rtol, controller.atol) else (
+        float(np.asarray(controller.rtol)) + float(np.asarray(controller.atol))
+    )
+    if total is not None and total < eps:
         raise ValueError(
-            f"rtol + atol = {float(controller.rtol + controller.atol):g} is below the rounding of "
+            f"rtol + atol = {total:g} is below the rounding of "
             f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
         )
     adjoint = _check_adjoint(adjoint)

@@ -10,12 +10,14 @@ here drives an RKMK method of the tableau's own order (Munthe-Kaas 1999).
 from __future__ import annotations
 
 import dataclasses
+import functools
 from fractions import Fraction as F
 
 import numpy as np
 
 __all__ = [
     "ButcherTableau",
+    "oscillation_error_constant",
     "EULER",
     "RK4",
     "FEHLBERG45",
@@ -155,6 +157,30 @@ class ButcherTableau:
         for i, row in enumerate(self.a):
             A[i, :i] = row
         return A
+
+
+@functools.lru_cache(maxsize=None)
+def oscillation_error_constant(tableau: ButcherTableau) -> float:
+    """``c`` such that a step of phase ``theta = rho h`` (rad) on the
+    oscillation ``y' = i rho y``, ``|y| = 1``, gets the embedded error
+    estimate ``c theta^(q+1)`` (``q = error_order``; DOP853's two estimates
+    blended as its error norm blends them), read at ``theta = 0.05``.  It
+    tells a controller the largest phase per step whose error it would
+    accept at a tolerance: ``(tol / c)^(1/(q+1))``."""
+    if tableau.b_error is None:
+        raise ValueError(f"{tableau.name} has no error estimate")
+    theta = 0.05
+    z = 1j * theta
+    k = np.linalg.solve(np.eye(tableau.stages) - z * tableau.a_matrix, np.ones(tableau.stages))
+
+    def estimate(weights):
+        return abs(z * np.dot(weights, k))
+
+    e = estimate(tableau.b_error)
+    if tableau.b_error3 is not None:
+        e3 = estimate(tableau.b_error3)
+        e = e * e / np.sqrt(e * e + 0.01 * e3 * e3)
+    return float(e / theta ** (tableau.error_order + 1))
 
 
 def _f(*xs) -> tuple:

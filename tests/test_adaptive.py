@@ -353,3 +353,13 @@ def test_steps_turn_the_body_by_at_most_max_angle():
     assert first <= np.pi * (1 + 1e-9) and int(sol.stats["num_rejected_steps"]) == 0
     with pytest.raises(ValueError, match="max_angle"):
         lierk.Controller(1e-6, max_angle=0.0)
+
+
+def test_a_controller_built_outside_jit_is_used_inside_it():
+    """Its concrete tolerances were added with jax.numpy inside the trace
+    (a tracer) and read with float(): ConcretizationTypeError."""
+    controller = lierk.Controller(1e-9, 1e-9)
+    body = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    inside = jax.jit(lambda w: lierk.solve(body.with_omega0(w), lierk.DP54(), 1.0, controller=controller).R[-1])
+    outside = lierk.solve(body, lierk.DP54(), 1.0, controller=controller).R[-1]
+    np.testing.assert_allclose(inside(jnp.asarray(OMEGA_GENERIC)), outside, rtol=0, atol=1e-14)

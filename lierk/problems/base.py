@@ -102,6 +102,13 @@ class AbstractProblem(eqx.Module):
         default is per component, ``atol + rtol * max(|y0|, |y1|)``."""
         return jax.tree_util.tree_map(lambda a, b: atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)), y0, y1)
 
+    def mode_frequency(self, R: Array, y: Any) -> Array:
+        """A bound (rad/s) on the fastest oscillation or growth of small
+        perturbations about the state ``(R, y)`` that the step control's error
+        estimate cannot see where the solution itself does not move (a steady
+        spin): a controller with ``resolve_modes=True`` resolves it.  0 here."""
+        return jnp.zeros((), R.dtype)
+
     @property
     def torque_free(self) -> bool:
         """Whether this is a torque-free rigid body, whose exact solution is
@@ -152,6 +159,26 @@ class AbstractRigidBody(AbstractProblem):
         at attitudes ``R`` ``(..., 3, 3)`` and states ``y``, wherever this
         body keeps it (``y`` itself, or ``R^T L``)."""
         return self._body_momenta(R, y)
+
+    def mode_frequency(self, R: Array, y: Any) -> Array:
+        """The spectral radius (rad/s) of Euler's equations linearised at the
+        momentum ``m`` of ``(R, y)``: ``J = hat(m) I^-1 - hat(omega)`` has the
+        eigenvalues ``0, +-sqrt(-c2)``, ``c2`` the sum of its principal 2x2
+        minors (``m.m`` and ``m.omega`` are conserved), so this is
+        ``sqrt(|c2|)``: the nutation frequency ``omega_k sqrt((I_k - I_i)(I_k -
+        I_j)/(I_i I_j))`` of a steady spin about a principal axis, the growth
+        rate about the intermediate one.  The torque-free (gyroscopic) modes
+        only: effects' own frequencies (a pendulum's, a wheel's) are not
+        counted."""
+        m = self._body_momenta(R, y)
+        w = so3.matvec(self.inertia_inv, m)
+        J = so3.hat(m) @ self.inertia_inv - so3.hat(w)
+        c2 = (
+            J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
+            + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+            + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
+        )
+        return jnp.sqrt(jnp.abs(c2))
 
     @property
     def omega0(self) -> Array:
