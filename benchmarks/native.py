@@ -168,21 +168,28 @@ def _make_kernel(F):
 _KERNELS: dict = {}
 
 
+def _numba_call(cache: dict, make, omegas, threads: int):
+    """``(kernel, F, out)`` for a numba kernel call on ``omegas`` ``(B, 3)``:
+    the kernel for their dtype ``F`` (``make(F)`` compiles it on first use,
+    kept in ``cache``), ``threads`` threads set, and the ``(B, 3, 3)`` output."""
+    if numba is None:
+        raise ImportError("the native anchor needs numba: pip install 'lierk[bench]'")
+    F = np.dtype(omegas.dtype).type
+    if F not in cache:
+        cache[F] = make(F)
+    numba.set_num_threads(threads)
+    return cache[F], F, np.empty((omegas.shape[0], 3, 3), F)
+
+
 def rkmk4_final_R(inertia, omegas, h: float, n_steps: int, threads: int) -> np.ndarray:
     """``R(n_steps h)`` ``(B, 3, 3)`` of RKMK4 from ``R0 = I`` for each body
     angular velocity in ``omegas`` ``(B, 3)`` (rad/s), inertia ``(3, 3)``
     (kg m^2), step ``h`` (s), on ``threads`` threads; in the dtype of
     ``omegas``.  The first call for a dtype compiles."""
-    if numba is None:
-        raise ImportError("the native anchor needs numba: pip install 'lierk[bench]'")
-    F = np.dtype(omegas.dtype).type
-    if F not in _KERNELS:
-        _KERNELS[F] = _make_kernel(F)
-    numba.set_num_threads(threads)
+    kernel, F, out = _numba_call(_KERNELS, _make_kernel, omegas, threads)
     inertia = np.asarray(inertia, np.float64)
     Iinv = np.linalg.inv(inertia).astype(F)
-    out = np.empty((omegas.shape[0], 3, 3), F)
-    _KERNELS[F](inertia.astype(F), Iinv, np.ascontiguousarray(omegas), F(h), int(n_steps), out)
+    kernel(inertia.astype(F), Iinv, np.ascontiguousarray(omegas), F(h), int(n_steps), out)
     return out
 
 
@@ -280,14 +287,8 @@ def _inverse_diagonal(inertia) -> np.ndarray:
 def rkmk4_soa_final_R(inertia, omegas, h: float, n_steps: int, threads: int) -> np.ndarray:
     """As `rkmk4_final_R`, by the structure-of-arrays numba kernel; ``inertia``
     must be diagonal.  The first call for a dtype compiles."""
-    if numba is None:
-        raise ImportError("the native anchor needs numba: pip install 'lierk[bench]'")
-    F = np.dtype(omegas.dtype).type
-    if F not in _SOA_KERNELS:
-        _SOA_KERNELS[F] = _make_soa_kernel(F)
-    numba.set_num_threads(threads)
-    out = np.empty((omegas.shape[0], 3, 3), F)
-    _SOA_KERNELS[F](_inverse_diagonal(inertia).astype(F), np.ascontiguousarray(omegas), F(h), int(n_steps), out)
+    kernel, F, out = _numba_call(_SOA_KERNELS, _make_soa_kernel, omegas, threads)
+    kernel(_inverse_diagonal(inertia).astype(F), np.ascontiguousarray(omegas), F(h), int(n_steps), out)
     return out
 
 

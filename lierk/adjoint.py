@@ -42,6 +42,8 @@ import jax.numpy as jnp
 import jax.tree_util as jtu
 from jax.flatten_util import ravel_pytree
 
+from .controller import Controller
+
 __all__ = ["AbstractAdjoint", "ForwardSensitivity", "RecursiveCheckpointAdjoint", "ForwardMode", "DirectAdjoint"]
 
 
@@ -202,7 +204,6 @@ def _sensitive(loops_args, *, limit, fallback, fixed):
 
 def _resolving(loop: Callable) -> Callable:
     """``loop`` with its `Controller` resolving the perturbation modes."""
-    from .controller import Controller
 
     def resolving(*args):
         return loop(*(a.resolving_modes() if isinstance(a, Controller) else a for a in args))

@@ -202,6 +202,12 @@ class Controller(AbstractStepController):
             raise ValueError(f"resolve_modes must be True or False, got {resolve_modes!r}")
         self.resolve_modes = resolve_modes
 
+    @classmethod
+    def from_tolerances(cls, rtol: ArrayLike, atol: ArrayLike | None = None) -> "Controller":
+        """The controller that ``solve(..., rtol=, atol=)`` builds: ``atol``
+        defaults to ``rtol``."""
+        return cls(rtol, rtol if atol is None else atol)
+
     def resolving_modes(self) -> "Controller":
         """This controller with ``resolve_modes=True``, its (possibly traced)
         values unchanged and not validated again."""
@@ -222,10 +228,6 @@ class Controller(AbstractStepController):
             rho, angle = modes
             turn = jnp.minimum(turn, jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf))
         return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, turn)))
-
-    def _modes(self, problem, R, y, mode_angle):
-        """``largest_step``'s ``modes`` at ``(R, y)``, or None when off."""
-        return None if mode_angle is None else (problem.mode_frequency(R, y), mode_angle)
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:
@@ -266,7 +268,7 @@ class Controller(AbstractStepController):
             c = tableaux.oscillation_error_constant(solver.tableau)
             allowed = (ctrl.rtol + ctrl.atol) * calibration / c
             mode_angle = jax.lax.stop_gradient(jnp.minimum(ctrl.max_angle, allowed ** (1.0 / (solver.error_order + 1))))
-        modes = ctrl._modes(problem, problem.R0, problem.y0, mode_angle)
+        modes = None if mode_angle is None else (problem.mode_frequency(problem.R0, problem.y0), mode_angle)
         f0 = field_at(problem, t0, problem.R0, problem.y0)
         if dt0 is None:
             h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0, modes)
@@ -284,11 +286,11 @@ class Controller(AbstractStepController):
         finite = validation.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
         accept = finite & (err <= 1.0)
         # The turn bound reads omega where the next step starts.
-        if mode_angle is None:
-            modes = None
-        else:
-            modes = ctrl._modes(problem, jnp.where(accept, st.R, R), jax.tree_util.tree_map(
-                lambda a, b: jnp.where(accept, a, b), st.y, y), mode_angle)
+        modes = None
+        if mode_angle is not None:
+            # Like the turn bound, where the next step starts.
+            y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), st.y, y)
+            modes = (problem.mode_frequency(jnp.where(accept, st.R, R), y_next), mode_angle)
         largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]), modes)
         h_next = jnp.minimum(h * ctrl.factor(err, solver.error_order, rejected_last), largest)
         # Keep the proposed step when only a save time or t1 shortened it.

@@ -271,8 +271,7 @@ def _resolving_modes(options: dict) -> dict:
     if controller is None:
         if options.get("rtol") is None:
             return options  # `solve` says what is missing
-        atol = options.get("atol")
-        controller = Controller(options["rtol"], options["rtol"] if atol is None else atol)
+        controller = Controller.from_tolerances(options["rtol"], options.get("atol"))
     if isinstance(controller, Controller):
         controller = controller.resolving_modes()
     return {**{k: v for k, v in options.items() if k not in ("rtol", "atol")}, "controller": controller}

@@ -286,7 +286,7 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
             raise ValueError(
                 f"adaptive {solver.name} needs rtol= (and atol=), or controller=, or target_error=; or pass dt= for fixed steps"
             )
-        controller = Controller(rtol, rtol if atol is None else atol)
+        controller = Controller.from_tolerances(rtol, atol)
     elif rtol is not None or atol is not None:
         raise ValueError("pass tolerances either as rtol=/atol= or inside controller=, not both")
     elif not isinstance(controller, Controller):
