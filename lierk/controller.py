@@ -134,7 +134,8 @@ class Controller(AbstractStepController):
             rejects none, takes 38% fewer, and is 3x more accurate).
         resolve_modes: also keep the phase ``rho h`` of the body's fastest
             small perturbation (`lierk.AbstractProblem.mode_frequency`, the
-            torque-free nutation of a rigid body) within what the error test
+            torque-free nutation of a rigid body and its effects' modes)
+            within what the error test
             would accept for a unit oscillation at this tolerance,
             ``(tol / c)^(1/(q+1))`` with ``c`` from
             `lierk.tableaux.oscillation_error_constant`.  The error estimate
@@ -268,7 +269,7 @@ class Controller(AbstractStepController):
             c = tableaux.oscillation_error_constant(solver.tableau)
             allowed = (ctrl.rtol + ctrl.atol) * calibration / c
             mode_angle = jax.lax.stop_gradient(jnp.minimum(ctrl.max_angle, allowed ** (1.0 / (solver.error_order + 1))))
-        modes = None if mode_angle is None else (problem.mode_frequency(problem.R0, problem.y0), mode_angle)
+        modes = None if mode_angle is None else (problem.mode_frequency(t0, problem.R0, problem.y0), mode_angle)
         f0 = field_at(problem, t0, problem.R0, problem.y0)
         if dt0 is None:
             h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0, modes)
@@ -290,7 +291,7 @@ class Controller(AbstractStepController):
         if mode_angle is not None:
             # Like the turn bound, where the next step starts.
             y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), st.y, y)
-            modes = (problem.mode_frequency(jnp.where(accept, st.R, R), y_next), mode_angle)
+            modes = (problem.mode_frequency(jnp.where(accept, t_new, t), jnp.where(accept, st.R, R), y_next), mode_angle)
         largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]), modes)
         h_next = jnp.minimum(h * ctrl.factor(err, solver.error_order, rejected_last), largest)
         # Keep the proposed step when only a save time or t1 shortened it.

@@ -102,11 +102,12 @@ class AbstractProblem(eqx.Module):
         default is per component, ``atol + rtol * max(|y0|, |y1|)``."""
         return jax.tree_util.tree_map(lambda a, b: atol + rtol * jnp.maximum(jnp.abs(a), jnp.abs(b)), y0, y1)
 
-    def mode_frequency(self, R: Array, y: Any) -> Array:
+    def mode_frequency(self, t: Array, R: Array, y: Any) -> Array:
         """A bound (rad/s) on the fastest oscillation or growth of small
-        perturbations about the state ``(R, y)`` that the step control's error
-        estimate cannot see where the solution itself does not move (a steady
-        spin): a controller with ``resolve_modes=True`` resolves it.  0 here."""
+        perturbations about the state ``(R, y)`` at time ``t`` (s) that the
+        step control's error estimate cannot see where the solution itself
+        does not move (a steady spin, a body at rest under a torque): a
+        controller with ``resolve_modes=True`` resolves it.  0 here."""
         return jnp.zeros((), R.dtype)
 
     @property
@@ -160,16 +161,15 @@ class AbstractRigidBody(AbstractProblem):
         body keeps it (``y`` itself, or ``R^T L``)."""
         return self._body_momenta(R, y)
 
-    def mode_frequency(self, R: Array, y: Any) -> Array:
-        """The spectral radius (rad/s) of Euler's equations linearised at the
-        momentum ``m`` of ``(R, y)``: ``J = hat(m) I^-1 - hat(omega)`` has the
-        eigenvalues ``0, +-sqrt(-c2)``, ``c2`` the sum of its principal 2x2
-        minors (``m.m`` and ``m.omega`` are conserved), so this is
-        ``sqrt(|c2|)``: the nutation frequency ``omega_k sqrt((I_k - I_i)(I_k -
-        I_j)/(I_i I_j))`` of a steady spin about a principal axis, the growth
-        rate about the intermediate one.  The torque-free (gyroscopic) modes
-        only: effects' own frequencies (a pendulum's, a wheel's) are not
-        counted."""
+    def mode_frequency(self, t: Array, R: Array, y: Any) -> Array:
+        """The torque-free part: the spectral radius (rad/s) of Euler's
+        equations linearised at the momentum ``m`` of ``(R, y)``:
+        ``J = hat(m) I^-1 - hat(omega)`` has the eigenvalues ``0, +-sqrt(-c2)``,
+        ``c2`` the sum of its principal 2x2 minors (``m.m`` and ``m.omega``
+        are conserved), so this is ``sqrt(|c2|)``: the nutation frequency
+        ``omega_k sqrt((I_k - I_i)(I_k - I_j)/(I_i I_j))`` of a steady spin
+        about a principal axis, the growth rate about the intermediate one.
+        `RigidBodyWithEffects` adds its effects' modes."""
         m = self._body_momenta(R, y)
         w = so3.matvec(self.inertia_inv, m)
         J = so3.hat(m) @ self.inertia_inv - so3.hat(w)

@@ -176,6 +176,37 @@ class RigidBodyWithEffects(AbstractRigidBody):
             return self.at(base, t, y)
         return super().local(base, t, u, y, coefficients)
 
+    def mode_frequency(self, t, R, y):
+        """A bound (rad/s) on the modes of small perturbations about ``(R, y)``
+        at time ``t`` (s): the torque-free nutation (`AbstractRigidBody`) and
+        the effects' own, read from the effects' torque linearised in the
+        attitude (``K_u``, a body-frame rotation ``R exp(hat(u))``, N m/rad)
+        and in the momentum (``K_m``, 1/s).  An attitude stiffness turns a
+        perturbation at ``sqrt(||I^-1 K_u||)`` (a pendulum's frequency
+        ``sqrt(M g l / I)``, a gravity-gradient libration's, the same growth
+        rate upright) and a momentum coupling at ``||K_m||`` (a damper's or a
+        B-dot law's decay ``c / I``, a wheel's nutation ``|h| / I``).  With
+        the gyroscopic frequency ``rho`` and the stiffness ``s = ||I^-1 K_u||``
+        the fastest mode is ``(rho + sqrt(rho^2 + 4 s)) / 2``, the fast
+        nutation of a spinning top under gravity (between ``sqrt(rho^2 + s)``
+        and 1.15x it); the coupling's rate adds.  Frobenius norms, so the
+        stiffness and the rate are bounded from above (at most sqrt(3)x).
+        Works for any effect, a user's too: the torque is differentiated,
+        not looked up."""
+        rho = super().mode_frequency(t, R, y)
+        if not self.effects:
+            return rho
+        base = self.base(t, R, y)
+
+        def torque(u, m):
+            omega, dm = self.local(base, t, u, m)
+            return dm - so3.cross(m, omega)
+
+        K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y)
+        K_u, K_m = jax.lax.stop_gradient((K_u, K_m))
+        stiffness = jnp.sqrt(jnp.sum((self.inertia_inv @ K_u) ** 2))
+        return 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + jnp.sqrt(jnp.sum(K_m**2))
+
     def free_flow(self, m: Array, h: Array) -> tuple[Array, Array]:
         """The exact torque-free flow over ``h`` (s) from body momentum ``m``
         ``(3,)``: ``(Q, m_h)``, the body turning by ``Q`` ``(3, 3)`` (``R -> R Q``).
