@@ -81,14 +81,18 @@ def solve(
     batch member, with traced settings so nothing recompiles, until the
     estimated attitude error is at most ``eps`` at every saved time.  Each
     round solves a pair (a setting and its finer twin) and returns the finer
-    solution; an estimate within 1e4 eps of rounding is checked by one more
-    solve (a 2x looser twin: where rounding dominates, their gap is about
-    the error), so in float32 success means the error is within 2x of
-    ``eps``.  ``stats["num_solves"]`` counts the pair solves and
+    solution; an estimate within 1e4 eps of rounding, or an adaptive
+    setting whose tolerance is, is checked by one more solve (a 2x looser
+    twin: where rounding dominates, their gap is about the error), so in
+    float32 success means the error is within 2x of ``eps``, and a target
+    below what rounding amplified by the flow allows (near the intermediate
+    axis over long horizons) is not reached.  ``stats["num_solves"]`` counts the pair solves and
     ``stats["dt"]``/``stats["rtol"]`` give the setting chosen.  A target that
     cannot be met within the rounds (below rounding, or needing more than
     ``max_steps``, default 100000 per solve) ends with
-    `RESULTS.target_error_not_reached`.  Not differentiable: to
+    `RESULTS.target_error_not_reached` and the last round that finished
+    (adaptive rounds stop when a pair runs out of ``max_steps``; if the first
+    does, `RESULTS.max_steps_reached`).  Not differentiable: to
     differentiate, solve again at the chosen setting.
 
     Dense output (``saveat=SaveAt(dense=True)``): every step's interpolant

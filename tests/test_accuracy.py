@@ -281,6 +281,27 @@ def test_target_error_unreachable_is_reported():
     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
 
 
+def test_target_error_out_of_max_steps_stops_and_keeps_the_last_finished_round():
+    """Adaptive rounds that run out of max_steps stop: tighter tolerances only
+    take more steps.  Before: the rounds tightened 100x each time, five in
+    vain, and returned the unfinished solve with ``stats["rtol"]`` 9e-17."""
+    # The first round already runs out: max_steps_reached, at its own setting.
+    b = lierk.FreeRigidBody(TEE, [1.0, 0.05, 0.3])
+    sol = lierk.solve(b, lierk.DP54(), 10.0, target_error=1e-10, max_steps=150, throw=False)
+    assert int(sol.result) == lierk.RESULTS.max_steps_reached
+    assert int(sol.stats["num_solves"]) == 2 and float(sol.stats["rtol"]) == pytest.approx(5e-12)
+    # The second round runs out (a T-handle near its intermediate axis for
+    # 200 s; the first takes ~1700 steps): the first round's solution comes
+    # back, not reached, with an estimate that is its error.
+    w = np.array([1.0, 0.00628651, -0.00660524])
+    b = lierk.FreeRigidBody(TEE, w)
+    sol = lierk.solve(b, lierk.DP54(), 200.0, target_error=1e-8, max_steps=3000, throw=False)
+    err = np.linalg.norm(np.asarray(sol.R[-1]) - np.asarray(lierk.exact.free_rigid_body(TEE, w, 200.0)[0]))
+    assert int(sol.result) == lierk.RESULTS.target_error_not_reached
+    assert int(sol.stats["num_solves"]) == 4 and float(sol.stats["rtol"]) == pytest.approx(5e-10)
+    assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (float(sol.error_estimate[-1]), err)
+
+
 @pytest.mark.parametrize("bad", [0.0, -1e-6, float("nan"), float("inf")])
 def test_bad_target_error_names_the_value(bad):
     with pytest.raises(ValueError, match="target_error"):
@@ -322,6 +343,28 @@ def test_float32_target_error_never_claims_a_miss():
                     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
     sol = lierk.solve(lierk.FreeRigidBody(I32, w32), lierk.DOP853(), T, target_error=1e-7, throw=False)
     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
+
+
+def test_target_error_sees_rounding_amplified_near_the_intermediate_axis():
+    """float64, a T-handle 0.007 rad/s off its intermediate axis for 200 s
+    (|dR(T)/d omega0| ~ 3e3): float64 references agree only to ~5e-11 there.
+    At target 1e-10 the rounds settle on a tolerance of 4e-13, where
+    rounding, amplified by the flow, rivals truncation.  The estimate must
+    not be below the error.  Before: success with an estimate of 1.8e-11 and
+    a true error of 1.2e-10 (the rounding check looked only at estimates
+    below 1e4 eps, not at the tolerance the steps were held to)."""
+    inertia = lierk.inertia.tee_handle()
+    w = np.array([1.0, 0.00628651, -0.00660524])
+    T = 200.0
+    ref = np.asarray(lierk.exact.free_rigid_body(inertia, w, T)[0])
+    sol = lierk.solve(lierk.FreeRigidBody(inertia, w), lierk.DOP853(), T, target_error=1e-10, throw=False)
+    err = np.linalg.norm(np.asarray(sol.R[-1]) - ref)
+    est = float(sol.error_estimate[-1])
+    assert est >= 0.7 * err, (est, err, int(sol.result))
+    if int(sol.result) == lierk.RESULTS.successful:
+        assert err <= 1.5e-10, (est, err)
+    else:
+        assert int(sol.result) == lierk.RESULTS.target_error_not_reached
 
 
 def test_float32_error_estimate_below_the_local_error_floor():
