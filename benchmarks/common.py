@@ -6,6 +6,7 @@ record and the near-intermediate-axis batches.  Scripts import it as
 from __future__ import annotations
 
 import argparse
+import json
 import platform
 import tempfile
 import time
@@ -30,6 +31,16 @@ def cli(doc: str, quick_help: str, run: bool) -> tuple[bool, Path]:
     if args.out:
         return args.quick, Path(args.out)
     return args.quick, (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
+
+
+def write_results(out: Path, name: str, payload, markdown: str | list[str]) -> None:
+    """Write ``out/name.json`` (``payload``, NumPy scalars as floats) and
+    ``out/name.md`` (``markdown``: the text, or its lines), creating ``out``,
+    and say where."""
+    out.mkdir(parents=True, exist_ok=True)
+    (out / f"{name}.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
+    (out / f"{name}.md").write_text(markdown if isinstance(markdown, str) else "\n".join(markdown) + "\n")
+    print(f"wrote {name}.json and {name}.md in {out}")
 
 
 def timed(f, *args, repeats: int, min_time: float = 0.0, max_repeats: int = 51):

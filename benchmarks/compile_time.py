@@ -184,10 +184,9 @@ def main(argv=None):
     meta = {"machine": {"cpu_count": os.cpu_count(), "load_average_at_end": os.getloadavg(), "jax": jax.__version__,
                         "diffrax": diffrax.__version__, "lierk": lierk.__version__}, "repeats": repeats,
             "T": T, "fixed_steps": STEPS, "adaptive_max_steps": MAX_STEPS}
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "compile_time.json").write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
-    (out / "compile_time.md").write_text("\n".join(markdown(meta, rows)) + "\n")
-    print(f"wrote {out / 'compile_time.md'}")
+    import common  # here, not at the top: it imports jax, which the timed children must import themselves
+
+    common.write_results(out, "compile_time", {"meta": meta, "rows": rows}, markdown(meta, rows))
 
 
 def markdown(meta, rows) -> list[str]:

@@ -20,7 +20,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import json  # noqa: E402
 import platform  # noqa: E402
 import time  # noqa: E402
 from pathlib import Path  # noqa: E402
@@ -33,6 +32,7 @@ import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
+import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import lierk  # noqa: E402
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -120,7 +120,6 @@ def main():
         )
         print(f"{label:20s} expected {expected}  fitted {order:5.2f}  ({n_fit} points)")
 
-    RESULTS.mkdir(parents=True, exist_ok=True)
     meta = {
         "problem": "T-handle, omega0 = (1, 0.05, 0.3) rad/s, R0 = I",
         "T": T,
@@ -130,8 +129,6 @@ def main():
         "jax": jax.__version__,
         "platform": platform.platform(),
     }
-    (RESULTS / "convergence.json").write_text(json.dumps({"meta": meta, "results": rows}, indent=2) + "\n")
-
     lines = [
         "# Convergence on the T-handle",
         "",
@@ -147,7 +144,7 @@ def main():
             f"| {r['solver']} | {r['expected_order']} | {r['fitted_order']:.2f} | {r['points_in_fit']} "
             f"| {r['h'][-1]:.3g} | {r['error'][-1]:.2e} |"
         )
-    (RESULTS / "convergence.md").write_text("\n".join(lines) + "\n")
+    common.write_results(RESULTS, "convergence", {"meta": meta, "results": rows}, lines)
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for r in rows:

@@ -20,7 +20,6 @@ Run: ``python benchmarks/error_estimate.py [--quick]``.
 
 from __future__ import annotations
 
-import json
 import os
 
 import jax
@@ -32,7 +31,7 @@ import numpy as np  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import cli, cpu_model, near_axis, timed  # noqa: E402
+from common import cli, cpu_model, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (40 bodies) to check the script works", __name__ == "__main__")
 N = 40 if QUICK else 1000
@@ -114,9 +113,6 @@ def main():
 
     info = {"cores": os.cpu_count(), "processor": cpu_model(), "jax": jax.__version__,
             "platform": "CPU", "N": N, "T": T, "quick": QUICK}
-    out = OUT
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "error_estimate.json").write_text(json.dumps({"machine": info, "estimate": rows_est, "target": rows_target}, indent=2) + "\n")
     md = [f"# Global error estimate and accuracy on request\n\nMachine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "
           f"batch {N}, T = {T} s, float64, medians of {REPEATS}.\n",
           "## `estimate_error=True` (Richardson against a finer solve)\n",
@@ -132,7 +128,7 @@ def main():
         cost = f"{r['cost_ratio']:.2f}x" if r["cost_ratio"] else "n/a"
         setting = f"{r['cheapest_setting']:.3g}" if r["cheapest_setting"] else "none in scan"
         md.append(f"| {r['body']} | {r['solver']} | {r['eps']:.0e} | {100 * r['met']:.1f}% | {r['time']:.3f} | {setting} | {r['cheapest_time']:.3f} | {cost} |")
-    (out / "error_estimate.md").write_text("\n".join(md) + "\n")
+    write_results(OUT, "error_estimate", {"machine": info, "estimate": rows_est, "target": rows_target}, md)
     print("\n".join(md))
 
 

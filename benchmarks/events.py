@@ -38,7 +38,6 @@ temporary directory unless ``--out`` is given.
 
 from __future__ import annotations
 
-import json
 import math
 import sys
 from pathlib import Path
@@ -54,7 +53,7 @@ import optimistix as optx  # noqa: E402
 from scipy.integrate import quad  # noqa: E402
 
 import lierk  # noqa: E402
-from common import cli, git_commit, interp_time, machine_info, series_table, timed  # noqa: E402
+from common import cli, git_commit, interp_time, machine_info, series_table, timed, write_results  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import lagrange  # noqa: E402
@@ -181,10 +180,8 @@ def main():
             ratios.append(dict(level=level, lierk_s=best["lierk"][0], diffrax_s=best["diffrax"][0],
                                ratio=best["lierk"][0] / best["diffrax"][0],
                                clamped=best["lierk"][1] or best["diffrax"][1]))
-    OUT.mkdir(parents=True, exist_ok=True)
     result = dict(machine=machine_info(diffrax=diffrax.__version__, optimistix=optx.__version__), commit=git_commit(),
                   n=N, quick=QUICK, records=records, ratios=ratios, t_c_range=[float(t_c.min()), float(t_c.max())])
-    (OUT / "events.json").write_text(json.dumps(result, indent=1))
     lines = [
         "# Event times against cost (`benchmarks/events.py`)",
         "",
@@ -203,8 +200,7 @@ def main():
         "",
         "(* a program's cheapest setting is already below the level: the ratio is an upper bound on its time.)",
     ]
-    (OUT / "events.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote {OUT / 'events.md'} and {OUT / 'events.json'}")
+    write_results(OUT, "events", result, lines)
 
 
 if __name__ == "__main__":

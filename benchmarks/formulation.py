@@ -36,7 +36,6 @@ directory unless ``--out`` is given.
 
 from __future__ import annotations
 
-import json
 import os
 import platform
 import time
@@ -51,7 +50,7 @@ import numpy as np  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import cli, cpu_model, max_err, near_axis, timed  # noqa: E402
+from common import cli, cpu_model, max_err, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
@@ -223,12 +222,11 @@ def main():
         "bodies": bodies,
         "long_horizon": long,
     }
-    (OUT / "formulation.json").write_text(json.dumps(payload, indent=1))
-    write_markdown(payload)
-    print(f"wrote formulation.{{json,md}} in {OUT.name}/; total {total:.0f} s")
+    write_results(OUT, "formulation", payload, markdown(payload))
+    print(f"total {total:.0f} s")
 
 
-def write_markdown(p):
+def markdown(p) -> list[str]:
     m = p["machine"]
     n, T_ = p["problem"]["batch"], p["problem"]["T"]
     keys = [k for k, _, _ in FIXED] + [ADAPTIVE_KEY]
@@ -280,7 +278,7 @@ def write_markdown(p):
     for fname, r in lg["formulations"].items():
         lines.append(f"| {fname} | {r['error']:.2e} | {r['time_s']:.3f} |")
     lines.append(f"| ratio Spatial / Free | {lg['error_ratio_spatial_over_free']:.3g} | |")
-    (OUT / "formulation.md").write_text("\n".join(lines) + "\n")
+    return lines
 
 
 if __name__ == "__main__":

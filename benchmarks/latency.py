@@ -156,10 +156,9 @@ def main(argv=None):
     meta = dict(machine=dict(cpu_count=os.cpu_count(), jax=jax.__version__, lierk=lierk.__version__,
                              load_average_at_start=start_load, load_average_at_end=os.getloadavg()),
                 repeats=repeats, quick=args.quick)
-    results.mkdir(parents=True, exist_ok=True)
-    (results / "latency.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
-    (results / "latency.md").write_text("\n".join(markdown(meta, rows)) + "\n")
-    print(f"wrote {results / 'latency.md'}")
+    import common  # here, not at the top: it imports jax, which the timed children must import themselves
+
+    common.write_results(results, "latency", dict(meta=meta, rows=rows), markdown(meta, rows))
 
 
 def markdown(meta, rows) -> list[str]:

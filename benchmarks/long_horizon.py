@@ -184,7 +184,6 @@ def run_free(out: Path):
         machine=platform.platform(),
         jax=jax.__version__,
     )
-    (out / "long_horizon.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=2))
     lines = [
         "# Long horizon on the T-handle",
         "",
@@ -200,7 +199,7 @@ def run_free(out: Path):
             f"{r['max_energy_drift']:.2e} | {r['energy_drift_exponent']:.2f} | {r['max_L_drift']:.2e} | "
             f"{r['max_orthogonality_error']:.1e} |"
         )
-    (out / "long_horizon.md").write_text("\n".join(lines) + "\n")
+    common.write_results(out, "long_horizon", dict(meta=meta, rows=rows), lines)
     print("\n".join(lines))
 
 
@@ -416,9 +415,8 @@ def run_heavy_top(out: Path):
         timing="compiled ahead of time (compile_s), then one timed run (run_s)",
         machine=machine,
     )
-    (out / "long_horizon_top.json").write_text(json.dumps(dict(meta=meta, problems=results), indent=2))
     lines = top_markdown(meta, results)
-    (out / "long_horizon_top.md").write_text("\n".join(lines) + "\n")
+    common.write_results(out, "long_horizon_top", dict(meta=meta, problems=results), lines)
     print("\n".join(lines))
 
 
@@ -671,8 +669,7 @@ def _write_brouwer(out: Path, rows, machine, T):
         "the RMS over draws grows like t^p with p <= 0.75 over [T/10, T]",
         machine=machine,
     )
-    (out / "long_horizon_brouwer.json").write_text(json.dumps(dict(meta=meta, rows=rows), indent=1))
-    (out / "long_horizon_brouwer.md").write_text("\n".join(brouwer_markdown(meta, rows)) + "\n")
+    common.write_results(out, "long_horizon_brouwer", dict(meta=meta, rows=rows), brouwer_markdown(meta, rows))
 
 
 def brouwer_markdown(meta, rows) -> list[str]:

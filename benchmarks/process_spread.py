@@ -81,8 +81,6 @@ def main() -> None:
             print(label, i, {k: f"{v * 1e3:.2f} ms" for k, v in runs[label][-1].items()}, flush=True)
     record = {"machine": common.machine_info(), "commit": common.git_commit(), "n": N, "dt": DT, "steps": STEPS,
               "flags": SETTINGS, "processes": processes, "median_s": runs}
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "process_spread.json").write_text(json.dumps(record, indent=1))
     lines = ["# One program, several processes (`benchmarks/process_spread.py`)", "",
              f"2 cores, {common.cpu_model()}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
              f"{STEPS} fixed steps of {DT} s, jit(vmap) on one device, float64.  Each cell: the median of 30 calls "
@@ -94,8 +92,7 @@ def main() -> None:
             ms = sorted(r[name] * 1e3 for r in rows)
             cells.append(", ".join(f"{x:.1f}" for x in ms) + f" (max/min {ms[-1] / ms[0]:.2f})")
         lines.append(f"| {label} | " + " | ".join(cells) + " |")
-    (out_dir / "process_spread.md").write_text("\n".join(lines) + "\n")
-    print(f"wrote process_spread.{{json,md}} in {out_dir}")
+    common.write_results(out_dir, "process_spread", record, lines)
 
 
 if __name__ == "__main__":

@@ -47,7 +47,6 @@ import host_devices
 
 host_devices.split()  # one XLA host device per core
 
-import json  # noqa: E402
 import time  # noqa: E402
 
 import jax  # noqa: E402
@@ -60,7 +59,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
-from common import cli, interp_time, machine_info, near_axis, timed  # noqa: E402
+from common import cli, interp_time, machine_info, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (8 bodies, two settings each) to check the script works", __name__ == "__main__")
 
@@ -408,7 +407,7 @@ def reversibility() -> list[dict]:
     return out
 
 
-def write_markdown(p):
+def markdown(p) -> list[str]:
     m = p["machine"]
     lines = [
         "# Sensitivity work-precision: dR(T)/d omega0",
@@ -446,7 +445,7 @@ def write_markdown(p):
                   "|---|---|---:|---:|---:|---:|"]
         for r in p["reversibility"]:
             lines.append(f"| {r['solver']} | {r['body']} | {r['T']:g} | {r['steps']} | {r['R_error']:.1e} | {r['m_error']:.1e} |")
-    (OUT / "sensitivity.md").write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def plot(p):
@@ -482,10 +481,9 @@ def main():
     def save():
         # After every part: a run stopped part-way (the full one takes over
         # an hour, mostly compiling) still leaves what it measured.
-        (OUT / "sensitivity.json").write_text(json.dumps(p, indent=1))
-        write_markdown(p)
+        write_results(OUT, "sensitivity", p, markdown(p))
         plot(p)
-        print(f"wrote {OUT}/sensitivity.{{json,md,png}}", flush=True)
+        print("and sensitivity.png", flush=True)
 
     p["reversibility"] = reversibility()
     fams = [Tee(), Top()]

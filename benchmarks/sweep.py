@@ -348,10 +348,7 @@ def main():
     busy1, own1 = _cpu_seconds()
     # Cores' worth of CPU that other processes used during the run (0 = idle machine).
     info["others_cores_busy"] = ((busy1 - busy0) - (own1 - own0)) / (time.perf_counter() - wall0)
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "sweep.json").write_text(json.dumps(res, indent=2) + "\n")
-    (OUT / "sweep.md").write_text(markdown(res))
-    print(f"wrote sweep.json and sweep.md in {OUT}")
+    common.write_results(OUT, "sweep", res, markdown(res))
 
 
 if __name__ == "__main__":

@@ -48,7 +48,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
-from common import machine_info, timed  # noqa: E402
+from common import machine_info, timed, write_results  # noqa: E402
 
 DT = 0.01
 # Runs of a few ms are repeated until they add up to this (common.timed): the
@@ -142,12 +142,8 @@ def main():
     info["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
 
     out = Path(ARGS.out) if ARGS.out else Path(__file__).resolve().parent / "results"
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "throughput.json").write_text(
-        json.dumps({"machine": info, "dt": DT, "quick": quick, "results": rows}, indent=2) + "\n"
-    )
-    (out / "throughput.md").write_text(markdown(rows, info, batches))
-    print(f"wrote throughput.json and throughput.md in {out.name}/ ({info['total_s']:.0f} s)")
+    write_results(out, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows}, markdown(rows, info, batches))
+    print(f"({info['total_s']:.0f} s)")
 
 
 def markdown(rows, info, batches) -> str:

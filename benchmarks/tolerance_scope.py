@@ -25,7 +25,6 @@ checks that it works.
 
 from __future__ import annotations
 
-import json
 
 import jax
 
@@ -35,7 +34,7 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import lierk  # noqa: E402
-from common import cli, machine_info, near_axis  # noqa: E402
+from common import cli, machine_info, near_axis, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "two bodies per family, one tolerance", __name__ == "__main__")
 TOLS = [1e-6] if QUICK else [1e-6, 1e-9, 1e-12]
@@ -95,8 +94,6 @@ def main():
                                  ratio=max(errs) / target, results=sorted(set(codes))))
                 print(f"{name:9s} {solver.name:7s} target {target:.0e}: error {max(errs):.2e} "
                       f"({max(errs) / target:.2f} x target), results {sorted(set(codes))}", flush=True)
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "tolerance_scope.json").write_text(json.dumps(dict(machine=machine_info(), rows=rows), indent=1))
     lines = [
         "# Error / tolerance by body family (float64)",
         "",
@@ -110,8 +107,7 @@ def main():
     for r in rows:
         extra = f"{r['estimate_over_error']:.2f}" if r["mode"] == "rtol" else str(r["results"])
         lines.append(f"| {r['family']} | {r['solver']} | {r['mode']} {r['setting']:.0e} | {r['error']:.2e} | {r['ratio']:.1f} | {extra} |")
-    (OUT / "tolerance_scope.md").write_text("\n".join(lines) + "\n")
-    print("wrote", OUT / "tolerance_scope.md")
+    write_results(OUT, "tolerance_scope", dict(machine=machine_info(), rows=rows), lines)
 
 
 if __name__ == "__main__":

@@ -72,7 +72,6 @@ import host_devices
 
 host_devices.split()  # one XLA host device per core
 
-import json  # noqa: E402
 import time  # noqa: E402
 from dataclasses import dataclass  # noqa: E402
 
@@ -100,6 +99,7 @@ from common import (  # noqa: E402
     mujoco_quats,
     series_table,
     timed,
+    write_results,
 )
 
 QUICK, OUT = cli(__doc__, "tiny run (8 bodies, few settings, no repeats) to check the script works", __name__ == "__main__")
@@ -668,7 +668,7 @@ def ratio_table(families: dict) -> list[str]:
     return lines
 
 
-def write_markdown(p):
+def markdown(p) -> list[str]:
     m = p["machine"]
     lines = [
         f"# Work-precision with torques: {len(p['families'])} families, batch {N}, float64",
@@ -717,7 +717,7 @@ def write_markdown(p):
             lines.append(f"| {row['level']:.0e} | " + " | ".join(_cell(row[k]) for k, _ in PROGRAMS) + f" | {ratio} |")
         lines += ["", "Max error (median time, s) at each tolerance:", "", *series_table(f["records"], "tol", "tol", "{:.0e}"),
                   "", "... and at each step size:", "", *series_table(f["records"], "dt", "dt (s)", "{:.4g}")]
-    (OUT / "torqued.md").write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def plot(families: dict):
@@ -768,11 +768,10 @@ def main():
         "total_runtime_s": time.perf_counter() - t_start,
         "families": families,
     }
-    (OUT / "torqued.json").write_text(json.dumps(payload, indent=1, default=float))
-    write_markdown(payload)
+    write_results(OUT, "torqued", payload, markdown(payload))
     plot(families)
     print("\n" + "\n".join(ratio_table(families)))
-    print(f"wrote torqued.{{json,md,png}} in {OUT}; total {payload['total_runtime_s']:.0f} s")
+    print(f"and torqued.png; total {payload['total_runtime_s']:.0f} s")
 
 
 if __name__ == "__main__":

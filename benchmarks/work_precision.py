@@ -38,7 +38,6 @@ directory unless ``--out`` is given.
 
 from __future__ import annotations
 
-import json
 import os
 import time
 from pathlib import Path
@@ -66,6 +65,7 @@ from common import (  # noqa: E402
     mujoco_initial_states,
     series_table,
     timed,
+    write_results,
 )
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
@@ -478,17 +478,16 @@ def main():
         "records": records,
         "table": table,
     }
-    (OUT / "work_precision.json").write_text(json.dumps(payload, indent=1))
-    write_markdown(payload)
+    write_results(OUT, "work_precision", payload, markdown(payload))
     plot(records)
-    print(f"wrote work_precision.{{json,md,png}} in {OUT.name}/; total {total:.0f} s")
+    print(f"and work_precision.png; total {total:.0f} s")
 
 
 def _param(x) -> str:
     return "-" if x is None else f"{x:.0e}"
 
 
-def write_markdown(p):
+def markdown(p) -> list[str]:
     m = p["machine"]
     ceiling = p["exact_ceiling"]
     frame = p["mujoco"]["qvel_frame_check"]
@@ -557,7 +556,7 @@ def write_markdown(p):
             f"| {r['method']} | {_param(r['param'])} | {r['error']:.2e} | {r['time_s']:.4f} | {first} | "
             f"{r.get('max_steps', '')} | {r['orthogonality']:.1e} | {r['note']} |"
         )
-    (OUT / "work_precision.md").write_text("\n".join(lines) + "\n")
+    return lines
 
 
 def plot(records):

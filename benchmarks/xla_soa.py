@@ -35,7 +35,6 @@ xla_soa.json and xla_soa.md to benchmarks/results.
 from __future__ import annotations
 
 import functools
-import json
 import os
 import re
 
@@ -199,10 +198,7 @@ def main():
                   f"diff {r['max_diff_to_lierk']:.1e}", flush=True)
     machine["load_end"] = os.getloadavg()
     res = {"machine": machine, "quick": QUICK, "repeats": repeats, "runs": runs}
-    OUT.mkdir(parents=True, exist_ok=True)
-    (OUT / "xla_soa.json").write_text(json.dumps(res, indent=2) + "\n")
-    (OUT / "xla_soa.md").write_text(markdown(res))
-    print(f"wrote xla_soa.json and xla_soa.md in {OUT}")
+    common.write_results(OUT, "xla_soa", res, markdown(res))
 
 
 if __name__ == "__main__":
