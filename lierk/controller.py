@@ -221,13 +221,15 @@ class Controller(AbstractStepController):
         """The largest step (s) the controller proposes when a step starts at
         body angular velocity ``omega`` ``(..., 3)`` (rad/s): ``dtmax``, and
         at most ``max_angle / |omega|``, but never below ``dtmin`` (a bound the
-        user set explicitly wins).  ``modes``: ``(rho, angle)``, a mode
-        frequency (rad/s) and the largest phase (rad) it may turn per step."""
+        user set explicitly wins).  ``modes``: ``(rho, angle, decay)``, a mode
+        frequency (rad/s), the largest phase (rad) it may turn per step, and
+        a decay rate (1/s) the step keeps within stability (``h decay <= 2``)."""
         speed = jnp.sqrt(jnp.sum(omega * omega, axis=-1))
         turn = jnp.where(speed > 0, self.max_angle / jnp.where(speed > 0, speed, 1.0), jnp.inf)
         if modes is not None:
-            rho, angle = modes
+            rho, angle, decay = modes
             turn = jnp.minimum(turn, jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf))
+            turn = jnp.minimum(turn, jnp.where(decay > 0, 2.0 / jnp.where(decay > 0, decay, 1.0), jnp.inf))
         return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, turn)))
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
@@ -269,7 +271,7 @@ class Controller(AbstractStepController):
             c = tableaux.oscillation_error_constant(solver.tableau)
             allowed = (ctrl.rtol + ctrl.atol) * calibration / c
             mode_angle = jax.lax.stop_gradient(jnp.minimum(ctrl.max_angle, allowed ** (1.0 / (solver.error_order + 1))))
-        modes = None if mode_angle is None else (problem.mode_frequency(t0, problem.R0, problem.y0), mode_angle)
+        modes = None if mode_angle is None else self._modes(problem, t0, problem.R0, problem.y0, mode_angle)
         f0 = field_at(problem, t0, problem.R0, problem.y0)
         if dt0 is None:
             h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0, modes)
@@ -291,7 +293,7 @@ class Controller(AbstractStepController):
         if mode_angle is not None:
             # Like the turn bound, where the next step starts.
             y_next = jax.tree_util.tree_map(lambda a, b: jnp.where(accept, a, b), st.y, y)
-            modes = (problem.mode_frequency(jnp.where(accept, t_new, t), jnp.where(accept, st.R, R), y_next), mode_angle)
+            modes = self._modes(problem, jnp.where(accept, t_new, t), jnp.where(accept, st.R, R), y_next, mode_angle)
         largest = ctrl.largest_step(jnp.where(accept, f_new[0], f[0]), modes)
         h_next = jnp.minimum(h * ctrl.factor(err, solver.error_order, rejected_last), largest)
         # Keep the proposed step when only a save time or t1 shortened it.
@@ -301,6 +303,11 @@ class Controller(AbstractStepController):
         # A step that does not move the clock (below its resolution) is stuck too.
         stuck = (~accept & (h_next < h_floor)) | (h <= 0)
         return Decision(accept, h_next, stuck, jnp.asarray(False), f_new)
+
+    @staticmethod
+    def _modes(problem, t, R, y, angle):
+        """`largest_step`'s ``modes`` at the state ``(R, y)``, time ``t``."""
+        return problem.mode_frequency(t, R, y), angle, problem.decay_rate(t, R, y)
 
     def _initial_step(self, problem, q: int, t0, t1, f0, modes=None):
         """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""

@@ -261,16 +261,23 @@ def test_derivatives_at_rest_under_a_torque_resolve_its_modes():
 
 
 def test_mode_frequency_counts_the_effects_modes():
-    """A pendulum's frequency ``sqrt(M g l / I)``, a damper's rate ``c / I``:
-    the bound is at least the fastest true mode and at most 1.35x it."""
+    """A pendulum's frequency ``sqrt(M g l / I)``, a wheel's ``|h| / I``, a
+    damper's decay rate ``c / I``: each bound is at least the true value and
+    at most 1.35x (the swing) or sqrt(3)x (Frobenius norms) it."""
     I = np.array([2.0, 3.0, 1.5])
     hanging = lierk.RigidBodyWithEffects(I, [0.0, 0.0, 0.0], effects=(lierk.Gravity([0.0, 0.0, -0.5], 1.0, 9.81),))
     fastest = np.sqrt(9.81 * 0.5 / I[0])  # the swing about x, the smallest moment across the arm
     rho = float(hanging.mode_frequency(0.0, hanging.R0, hanging.y0))
     assert fastest <= rho <= 1.35 * fastest, (rho, fastest)
+    # A damper's decay is a rate the steps keep stable, not a phase: c = 100
+    # made a differentiated DP54 solve take 57x the steps of the plain one.
     damped = lierk.RigidBodyWithEffects(I, [0.0, 0.0, 0.0], effects=(lierk.Damping(0.6),))
-    rho = float(damped.mode_frequency(0.0, damped.R0, damped.y0))
-    assert 0.6 / I[2] <= rho <= 1.35 * 0.6 / I[2], rho
+    assert float(damped.mode_frequency(0.0, damped.R0, damped.y0)) == 0.0
+    rate = float(damped.decay_rate(0.0, damped.R0, damped.y0))
+    assert 0.6 / I[2] <= rate <= np.sqrt(3.0) * 0.6 / I[2], rate
+    # A wheel's coupling turns perturbations: |h| / I about its axis.
+    wheel = lierk.RigidBodyWithEffects([2.0, 2.0, 1.0], [0.0, 0.0, 0.0], effects=(lierk.Rotor([0.0, 0.0, 3.0]),))
+    assert 3.0 / 2.0 <= float(wheel.mode_frequency(0.0, wheel.R0, wheel.y0)) <= np.sqrt(3.0) * 3.0 / 2.0
     # Effects that do not act add nothing: a free body's nutation is unchanged.
     spin = lierk.RigidBodyWithEffects(I, [0.0, 0.0, 2.0], effects=(lierk.Damping(0.0),))
     free = lierk.FreeRigidBody(I, [0.0, 0.0, 2.0])

@@ -110,6 +110,14 @@ class AbstractProblem(eqx.Module):
         controller with ``resolve_modes=True`` resolves it.  0 here."""
         return jnp.zeros((), R.dtype)
 
+    def decay_rate(self, t: Array, R: Array, y: Any) -> Array:
+        """The fastest decay (1/s) of small perturbations about ``(R, y)`` at
+        time ``t`` (s), unseen where the solution does not move (a damped body
+        at rest): a controller with ``resolve_modes=True`` keeps its steps
+        within an explicit method's stability (``h`` times it at most 2).  A
+        decaying perturbation needs no phase resolved: it is gone.  0 here."""
+        return jnp.zeros((), R.dtype)
+
     @property
     def torque_free(self) -> bool:
         """Whether this is a torque-free rigid body, whose exact solution is

@@ -176,36 +176,51 @@ class RigidBodyWithEffects(AbstractRigidBody):
             return self.at(base, t, y)
         return super().local(base, t, u, y, coefficients)
 
-    def mode_frequency(self, t, R, y):
-        """A bound (rad/s) on the modes of small perturbations about ``(R, y)``
-        at time ``t`` (s): the torque-free nutation (`AbstractRigidBody`) and
-        the effects' own, read from the effects' torque linearised in the
-        attitude (``K_u``, a body-frame rotation ``R exp(hat(u))``, N m/rad)
-        and in the momentum (``K_m``, 1/s).  An attitude stiffness turns a
-        perturbation at ``sqrt(||I^-1 K_u||)`` (a pendulum's frequency
-        ``sqrt(M g l / I)``, a gravity-gradient libration's, the same growth
-        rate upright) and a momentum coupling at ``||K_m||`` (a damper's or a
-        B-dot law's decay ``c / I``, a wheel's nutation ``|h| / I``).  With
-        the gyroscopic frequency ``rho`` and the stiffness ``s = ||I^-1 K_u||``
-        the fastest mode is ``(rho + sqrt(rho^2 + 4 s)) / 2``, the fast
-        nutation of a spinning top under gravity (between ``sqrt(rho^2 + s)``
-        and 1.15x it); the coupling's rate adds.  Frobenius norms, so the
-        stiffness and the rate are bounded from above (at most sqrt(3)x).
-        Works for any effect, a user's too: the torque is differentiated,
-        not looked up."""
-        rho = super().mode_frequency(t, R, y)
-        if not self.effects:
-            return rho
+    def _effects_linearisation(self, t, R, y):
+        """The effects' torque at ``(R, y)``, time ``t``, linearised in the
+        attitude, ``K_u`` (N m/rad, a body-frame rotation ``R exp(hat(u))``),
+        and in the momentum, ``K_m`` (1/s): both ``(3, 3)``, not differentiated."""
         base = self.base(t, R, y)
 
         def torque(u, m):
             omega, dm = self.local(base, t, u, m)
             return dm - so3.cross(m, omega)
 
-        K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y)
-        K_u, K_m = jax.lax.stop_gradient((K_u, K_m))
+        return jax.lax.stop_gradient(jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y))
+
+    def mode_frequency(self, t, R, y):
+        """A bound (rad/s) on the oscillation or growth of small perturbations
+        about ``(R, y)`` at time ``t`` (s): the torque-free nutation
+        (`AbstractRigidBody`) and the effects' own, from their torque
+        linearised (``K_u``, ``K_m``).  An attitude stiffness turns a
+        perturbation at ``sqrt(||I^-1 K_u||)`` (a pendulum's frequency
+        ``sqrt(M g l / I)``, a gravity-gradient libration's, the same growth
+        rate upright); with the gyroscopic frequency ``rho`` and the stiffness
+        ``s = ||I^-1 K_u||`` the fastest mode is ``(rho + sqrt(rho^2 + 4 s))
+        / 2``, the fast nutation of a spinning top under gravity.  The
+        momentum coupling's antisymmetric part turns it too (a wheel's
+        nutation ``|h| / I``), and its symmetric part may make it grow; its
+        decay (a damper's, a B-dot law's) is `decay_rate`'s.  Frobenius norms
+        and Gershgorin's bound, so each is bounded from above.  Works for any
+        effect, a user's too: the torque is differentiated, not looked up."""
+        rho = super().mode_frequency(t, R, y)
+        if not self.effects:
+            return rho
+        K_u, K_m = self._effects_linearisation(t, R, y)
         stiffness = jnp.sqrt(jnp.sum((self.inertia_inv @ K_u) ** 2))
-        return 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + jnp.sqrt(jnp.sum(K_m**2))
+        turning = jnp.sqrt(jnp.sum((0.5 * (K_m - K_m.T)) ** 2))
+        sym = 0.5 * (K_m + K_m.T)
+        growth = jnp.maximum(0.0, jnp.max(jnp.diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(jnp.diagonal(sym))))
+        return 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth
+
+    def decay_rate(self, t, R, y):
+        """The fastest decay (1/s) of small perturbations of the momentum under
+        the effects (``||sym(K_m)||_F``: a damper's ``c / I``, a B-dot law's
+        ``k |B|^2 / I``), 0 without effects."""
+        if not self.effects:
+            return super().decay_rate(t, R, y)
+        K_m = self._effects_linearisation(t, R, y)[1]
+        return jnp.sqrt(jnp.sum((0.5 * (K_m + K_m.T)) ** 2))
 
     def free_flow(self, m: Array, h: Array) -> tuple[Array, Array]:
         """The exact torque-free flow over ``h`` (s) from body momentum ``m``
