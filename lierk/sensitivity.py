@@ -288,7 +288,7 @@ def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:
             fine["max_steps"] = -(-3 * int(options["max_steps"]) // 2)
         return fine, 1.5**solver.order
     if options.get("controller") is not None:
-        fine["controller"] = finer(options["controller"])
+        fine["controller"] = finer(options["controller"], solver.order)
     else:
         rtol = options.get("rtol")
         if rtol is None:

@@ -281,6 +281,25 @@ def test_target_error_unreachable_is_reported():
     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
 
 
+def test_estimates_see_errors_of_steps_set_by_the_turn_bound():
+    """A fast spin about a nearly symmetric body's axis: the error test
+    accepts steps of any length, so the turn bound (a half-turn per step)
+    sets them, in both solves of a Richardson pair alike, and their gap was 0.
+    Before: DOP853 at target_error=1e-6 returned success with an estimate of
+    0 and an error of 4.8e-6; estimate_error=True at rtol 1e-5 estimated
+    1.5e-15 for 3.1e-4.  The finer solve's turn bound is now finer too."""
+    I, w, T = np.array([1.0, 1.001, 1.5]), np.array([0.01, 0.0, 100.0]), 300.0
+    body = lierk.FreeRigidBody(I, w)
+    ref = np.asarray(lierk.exact.free_rigid_body(I, w, T)[0])
+    sol = lierk.solve(body, lierk.DOP853(), T, target_error=1e-6, throw=False)
+    err = np.linalg.norm(np.asarray(sol.R[-1]) - ref)
+    assert float(sol.error_estimate[-1]) >= 0.5 * err, (float(sol.error_estimate[-1]), err)
+    assert int(sol.result) != lierk.RESULTS.successful or err <= 2e-6, err
+    sol = lierk.solve(body, lierk.DOP853(), T, rtol=1e-5, atol=1e-5, estimate_error=True, max_steps=100_000)
+    err = np.linalg.norm(np.asarray(sol.R[-1]) - ref)
+    assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (float(sol.error_estimate[-1]), err)
+
+
 def test_target_error_out_of_max_steps_stops_and_keeps_the_last_finished_round():
     """Adaptive rounds that run out of max_steps stop: tighter tolerances only
     take more steps.  Before: the rounds tightened 100x each time, five in
