@@ -307,7 +307,8 @@ class Controller(AbstractStepController):
     @staticmethod
     def _modes(problem, t, R, y, angle):
         """`largest_step`'s ``modes`` at the state ``(R, y)``, time ``t``."""
-        return problem.mode_frequency(t, R, y), angle, problem.decay_rate(t, R, y)
+        frequency, decay = problem.modes(t, R, y)
+        return frequency, angle, decay
 
     def _initial_step(self, problem, q: int, t0, t1, f0, modes=None):
         """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""

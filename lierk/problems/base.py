@@ -118,6 +118,11 @@ class AbstractProblem(eqx.Module):
         decaying perturbation needs no phase resolved: it is gone.  0 here."""
         return jnp.zeros((), R.dtype)
 
+    def modes(self, t: Array, R: Array, y: Any) -> tuple[Array, Array]:
+        """``(mode_frequency, decay_rate)`` at once (a problem that derives
+        both from one linearisation computes it once)."""
+        return self.mode_frequency(t, R, y), self.decay_rate(t, R, y)
+
     @property
     def torque_free(self) -> bool:
         """Whether this is a torque-free rigid body, whose exact solution is

@@ -61,6 +61,11 @@ class AbstractEffect(eqx.Module):
     # not read the momentum that flow is a straight line.  True by default so
     # that an effect written elsewhere is not kicked wrongly.
     reads_momentum: ClassVar[bool] = True
+    # Whether the torque depends on time at fixed (R, m): a differentiated
+    # adaptive solve then also resolves how fast time turns the torque's
+    # linearisation (`RigidBodyWithEffects.mode_frequency`).  True by default,
+    # the safe side for an effect written elsewhere.
+    depends_on_time: ClassVar[bool] = True
 
     def torque(self, t: Array, R: Array, m: Array, omega: Array) -> Array:
         """Body-frame torque ``(3,)`` (N m) at time ``t`` (s), attitude ``R``
@@ -200,6 +205,7 @@ class Gravity(AbstractEffect):
     conservative: ClassVar[bool] = True
 
     reads_momentum: ClassVar[bool] = False
+    depends_on_time: ClassVar[bool] = False
 
     def __init__(self, pivot_to_com: ArrayLike, mass: ArrayLike, g: ArrayLike = 9.81):
         self.pivot_to_com = _vector(pivot_to_com, "pivot_to_com")
@@ -242,6 +248,7 @@ class BodyTorque(AbstractEffect):
     tau: Array
 
     reads_momentum: ClassVar[bool] = False
+    depends_on_time: ClassVar[bool] = False
 
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
@@ -264,6 +271,7 @@ class SpaceTorque(AbstractEffect):
     tau: Array
 
     reads_momentum: ClassVar[bool] = False
+    depends_on_time: ClassVar[bool] = False
 
     def __init__(self, tau: ArrayLike):
         self.tau = _vector(tau, "tau")
@@ -372,6 +380,7 @@ class Damping(AbstractEffect):
     """
 
     c: Array
+    depends_on_time: ClassVar[bool] = False
 
     def __init__(self, c: ArrayLike):
         self.c = _scalar(c, "c")

@@ -179,18 +179,37 @@ class RigidBodyWithEffects(AbstractRigidBody):
     def _effects_linearisation(self, t, R, y):
         """The effects' torque at ``(R, y)``, time ``t``, linearised in the
         attitude, ``K_u`` (N m/rad, a body-frame rotation ``R exp(hat(u))``),
-        and in the momentum, ``K_m`` (1/s): both ``(3, 3)``, not differentiated."""
-        base = self.base(t, R, y)
+        and in the momentum, ``K_m`` (1/s), both ``(3, 3)``, and the rate
+        (rad/s) at which time turns them, ``max(||dK/dt|| / ||K||)`` (an
+        orbit's or a rotating field's; 0 for effects that do not depend on
+        time).  Not differentiated."""
+        t = jnp.asarray(t, y.dtype)
 
-        def torque(u, m):
-            omega, dm = self.local(base, t, u, m)
-            return dm - so3.cross(m, omega)
+        def linearised(t):
+            base = self.base(t, R, y)
 
-        return jax.lax.stop_gradient(jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y))
+            def torque(u, m):
+                omega, dm = self.local(base, t, u, m)
+                return dm - so3.cross(m, omega)
 
-    def mode_frequency(self, t, R, y):
-        """A bound (rad/s) on the oscillation or growth of small perturbations
-        about ``(R, y)`` at time ``t`` (s): the torque-free nutation
+            K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y)
+            return self.inertia_inv @ K_u, K_m
+
+        if not any(e.depends_on_time for e in self.effects):
+            K_u, K_m = linearised(t)
+            return jax.lax.stop_gradient((K_u, K_m, jnp.zeros((), y.dtype)))
+        (K_u, K_m), (dK_u, dK_m) = jax.jvp(linearised, (t,), (jnp.ones_like(t),))
+
+        def rate(K, dK):
+            size = jnp.sqrt(jnp.sum(K * K))
+            return jnp.where(size > 0, jnp.sqrt(jnp.sum(dK * dK)) / jnp.where(size > 0, size, 1.0), 0.0)
+
+        return jax.lax.stop_gradient((K_u, K_m, jnp.maximum(rate(K_u, dK_u), rate(K_m, dK_m))))
+
+    def modes(self, t, R, y):
+        """``(frequency, decay)``: bounds on the oscillation or growth (rad/s)
+        and on the decay (1/s, ``||sym(K_m)||_F``) of small perturbations
+        about ``(R, y)`` at time ``t`` (s).  The frequency: the torque-free nutation
         (`AbstractRigidBody`) and the effects' own, from their torque
         linearised (``K_u``, ``K_m``).  An attitude stiffness turns a
         perturbation at ``sqrt(||I^-1 K_u||)`` (a pendulum's frequency
@@ -200,27 +219,31 @@ class RigidBodyWithEffects(AbstractRigidBody):
         / 2``, the fast nutation of a spinning top under gravity.  The
         momentum coupling's antisymmetric part turns it too (a wheel's
         nutation ``|h| / I``), and its symmetric part may make it grow; its
-        decay (a damper's, a B-dot law's) is `decay_rate`'s.  Frobenius norms
+        decay (a damper's, a B-dot law's) is `decay_rate`'s.  Where time
+        turns the linearisation (an orbit, a rotating field: a body at rest
+        does not move, its perturbations do), that rate adds.  Frobenius norms
         and Gershgorin's bound, so each is bounded from above.  Works for any
         effect, a user's too: the torque is differentiated, not looked up."""
-        rho = super().mode_frequency(t, R, y)
+        rho = AbstractRigidBody.mode_frequency(self, t, R, y)
         if not self.effects:
-            return rho
-        K_u, K_m = self._effects_linearisation(t, R, y)
-        stiffness = jnp.sqrt(jnp.sum((self.inertia_inv @ K_u) ** 2))
+            return rho, jnp.zeros((), rho.dtype)
+        IK_u, K_m, turned = self._effects_linearisation(t, R, y)
+        stiffness = jnp.sqrt(jnp.sum(IK_u**2))
         turning = jnp.sqrt(jnp.sum((0.5 * (K_m - K_m.T)) ** 2))
         sym = 0.5 * (K_m + K_m.T)
         growth = jnp.maximum(0.0, jnp.max(jnp.diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(jnp.diagonal(sym))))
-        return 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth
+        frequency = 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth + turned
+        return frequency, jnp.sqrt(jnp.sum(sym**2))
+
+    def mode_frequency(self, t, R, y):
+        """`modes`' frequency (rad/s)."""
+        return self.modes(t, R, y)[0]
 
     def decay_rate(self, t, R, y):
         """The fastest decay (1/s) of small perturbations of the momentum under
         the effects (``||sym(K_m)||_F``: a damper's ``c / I``, a B-dot law's
-        ``k |B|^2 / I``), 0 without effects."""
-        if not self.effects:
-            return super().decay_rate(t, R, y)
-        K_m = self._effects_linearisation(t, R, y)[1]
-        return jnp.sqrt(jnp.sum((0.5 * (K_m + K_m.T)) ** 2))
+        ``k |B|^2 / I``), 0 without effects; see `modes`."""
+        return self.modes(t, R, y)[1]
 
     def free_flow(self, m: Array, h: Array) -> tuple[Array, Array]:
         """The exact torque-free flow over ``h`` (s) from body momentum ``m``

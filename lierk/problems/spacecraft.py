@@ -369,6 +369,10 @@ class Rotor(AbstractEffect):
     def conservative(self) -> bool:  # type: ignore[override]
         return not self.driven
 
+    @property
+    def depends_on_time(self) -> bool:  # type: ignore[override]
+        return self.driven
+
     def wheel_momenta(self, t: Array) -> tuple[Array, Array]:
         """``(h, dh/dt)`` at time ``t`` (s), both ``(3,)`` in the body frame."""
         if self.axes is None:
