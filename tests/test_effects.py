@@ -216,6 +216,15 @@ def test_float32_runs_in_float32():
     assert sol.R.dtype == jnp.float32 and sol.y.dtype == jnp.float32
     E = np.asarray(p.invariants(sol.R, sol.y)["energy"], dtype=float)
     assert abs(E[1] - E[0]) / abs(E[0]) < 1e-5
+    # Adaptive steps too (their tolerances read the effects' energy scale,
+    # whose 0 for Damping was float64 under x64: the loop's carry changed
+    # dtype and the solve failed to trace; found by an adversarial pass).
+    damped = RigidBodyWithEffects(np.array([2.0, 3.0, 1.5], f32), np.array([0.1, 1.0, 0.2], f32), effects=(Damping(f32(0.4)),))
+    sol = lierk.solve(damped, lierk.DOP853(), 5.0, rtol=1e-5)
+    ref = lierk.solve(RigidBodyWithEffects([2.0, 3.0, 1.5], [0.1, 1.0, 0.2], effects=(Damping(0.4),)), lierk.DOP853(), 5.0,
+                      rtol=1e-10)
+    assert sol.R.dtype == jnp.float32
+    assert np.linalg.norm(np.asarray(sol.R[-1], float) - np.asarray(ref.R[-1])) < 1e-4
 
 
 @pytest.mark.parametrize(

@@ -292,7 +292,9 @@ class RigidBodyWithEffects(AbstractRigidBody):
 
     def _effects_energy(self) -> Array:
         """The energy (J) the effects can give the body: sum of `energy_scale`."""
-        return sum((e.energy_scale() for e in self.effects), jnp.zeros((), self.y0.dtype))
+        # In the body's dtype: an effect's own 0 is the default float (float64
+        # under x64), which made a float32 body's loop carry change dtype.
+        return sum((jnp.asarray(e.energy_scale(), self.y0.dtype) for e in self.effects), jnp.zeros((), self.y0.dtype))
 
 
 class FreeRigidBody(RigidBodyWithEffects):
