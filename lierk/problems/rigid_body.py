@@ -178,8 +178,9 @@ class RigidBodyWithEffects(AbstractRigidBody):
 
     def _effects_linearisation(self, t, R, y):
         """The effects' torque at ``(R, y)``, time ``t``, linearised in the
-        attitude, ``K_u`` (N m/rad, a body-frame rotation ``R exp(hat(u))``),
-        and in the momentum, ``K_m`` (1/s), both ``(3, 3)``, and the rate
+        attitude and returned as ``I^-1 K_u`` (1/s^2; ``K_u`` in N m/rad for a
+        body-frame rotation ``R exp(hat(u))``), and in the momentum, ``K_m``
+        (1/s), both ``(3, 3)``, and the rate
         (rad/s) at which time turns them, ``max(||dK/dt|| / ||K||)`` (an
         orbit's or a rotating field's; 0 for effects that do not depend on
         time).  Not differentiated."""
