@@ -18,6 +18,14 @@ them).  Its own error,
 against the exact flow's Jacobian, is estimated like `solve`'s
 ``estimate_error``: by Richardson's comparison with the Jacobian of a finer
 solve (``2 dt/3`` for fixed steps, tolerances divided by 10 for adaptive ones).
+
+``method="variational"`` instead integrates the body's variational equations
+with it (`lierk.problems.Variational`): the Jacobian of the exact flow to the
+solver's order, not the derivative of the discrete solve.  Per Jacobian
+error it is the cheaper of the two on rigid bodies
+(``benchmarks/results/sensitivity.md``); use the default where the derivative
+of the computed state is what is needed (an optimiser's line search on a
+coarse solve, a check against finite differences of the solve).
 """
 
 from __future__ import annotations
@@ -167,6 +175,7 @@ def sensitivity(
     *,
     wrt: str | Callable = "omega0",
     mode: str = "forward",
+    method: str = "derivative",
     estimate_error: bool = True,
     throw: bool = True,
     **solve_options: Any,
@@ -188,6 +197,13 @@ def sensitivity(
             ``"reverse"`` (`jax.jacrev`: with the default adjoint,
             `ForwardSensitivity`, the same forward pass for a few inputs, and
             six reverse passes for many).
+        method: ``"derivative"`` (the derivative of the solve that was run,
+            by autodiff through it) or ``"variational"`` (the variational
+            equations integrated with the body by the same solver: the
+            exact flow's Jacobian to the solver's order; a
+            `RigidBodyWithEffects` with ``wrt="omega0"`` or ``"R0"``, any
+            solver but the splittings, ``mode="forward"``; adaptive steps
+            hold the Jacobian to the same tolerances as the state).
         estimate_error: also take the Jacobian of a finer solve and fill
             `Sensitivity.error_estimate` (about 2.5x the cost).
         throw: raise if the solve fails; with False read `Sensitivity.result`.
@@ -217,24 +233,67 @@ def sensitivity(
         raise ValueError(f"mode must be 'forward' or 'reverse', got {mode!r}")
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
+    if method not in ("derivative", "variational"):
+        raise ValueError(f"method must be 'derivative' or 'variational', got {method!r}")
+    if method == "variational":
+        _check_variational(problem, solver, wrt, mode)
     fixed = solve_options.get("dt") is not None
-    if not fixed:
+    if not fixed and method == "derivative":
         solve_options = _resolving_modes(solve_options)
-    if not fixed and mode == "forward" and solve_options.get("adjoint") is None:
-        solve_options = {**solve_options, "adjoint": ForwardMode()}
+        if mode == "forward" and solve_options.get("adjoint") is None:
+            solve_options = {**solve_options, "adjoint": ForwardMode()}
     _input(problem, wrt)  # bad input raises here, before tracing
-    return _sensitivity(problem, solver, t1, wrt, mode, estimate_error, throw, solve_options)
+    return _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options)
+
+
+def _check_variational(problem, solver, wrt, mode) -> None:
+    """What ``method="variational"`` covers; a clear error otherwise."""
+    from .problems import RigidBodyWithEffects
+    from .solvers import AbstractSplitting
+
+    if not isinstance(problem, RigidBodyWithEffects):
+        raise ValueError(
+            f"method='variational' needs a RigidBodyWithEffects or FreeRigidBody, got {type(problem).__name__}; "
+            "use method='derivative'"
+        )
+    if isinstance(solver, AbstractSplitting):
+        raise ValueError(
+            f"method='variational' needs a solver that advances extra state with its tableau (RKMK, CF4), "
+            f"not the splitting {solver.name}; use method='derivative'"
+        )
+    if not (isinstance(wrt, str) and wrt in ("omega0", "R0")):
+        raise ValueError(f"method='variational' covers wrt='omega0' and wrt='R0', got {wrt!r}; use method='derivative'")
+    if mode != "forward":
+        raise ValueError("method='variational' integrates the derivatives forward with the body: leave mode='forward'")
+
+
+def _variational(problem, wrt: str):
+    """The body with its variational equations along the input's unit
+    directions: ``omega0`` moves the momentum by ``I e_j``, ``R0`` turns the
+    attitude by ``e_j`` (rad, body frame)."""
+    from .problems import Variational
+
+    eye = jnp.eye(3, dtype=problem.y0.dtype)
+    zero = jnp.zeros((3, 3), problem.y0.dtype)
+    if wrt == "omega0":
+        return Variational(problem, zero, jnp.swapaxes(problem.inertia, 0, 1))
+    return Variational(problem, eye, zero)
 
 
 # One program for the solve, its Jacobian and the estimate's: traced op by op,
 # the few array operations around the solve would each be compiled on its own.
 # A `wrt` function is static: pass the same function to reuse the compilation.
 @eqx.filter_jit
-def _sensitivity(problem, solver, t1, wrt, mode, estimate_error, throw, solve_options) -> Sensitivity:
+def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options) -> Sensitivity:
     p0, rebuild = _input(problem, wrt)
     jac = jax.jacfwd if mode == "forward" else jax.jacrev
 
     def run(options):
+        if method == "variational":
+            sol = solve(_variational(problem, wrt), solver, t1, saveat=SaveAt(t1=True), throw=False, **options)
+            m, xi, dm = (x[-1] for x in sol.y)
+            return xi.T, dm.T, sol.R[-1], m, sol
+
         def final(p):
             sol = solve(rebuild(p), solver, t1, saveat=SaveAt(t1=True), throw=False, **options)
             R, y = sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y)

@@ -159,6 +159,15 @@ class ButcherTableau:
         return A
 
 
+def blend_estimates(err, err3, sqrt=np.sqrt):
+    """DOP853's error: its 5th- and 3rd-order estimates ``err`` and ``err3``
+    (norms, NumPy or JAX; ``sqrt`` of the same kind) blended so that the
+    result behaves like O(h^8) (Hairer, Norsett, Wanner I, II.10):
+    ``err^2 / sqrt(err^2 + 0.01 err3^2)``.  Where both are 0 this divides
+    0 by 0; `lierk.solvers.rkmk.AbstractRKMK.error_norm` guards it."""
+    return err * err / sqrt(err * err + 0.01 * err3 * err3)
+
+
 @functools.lru_cache(maxsize=None)
 def oscillation_error_constant(tableau: ButcherTableau) -> float:
     """``c`` such that a step of phase ``theta = rho h`` (rad) on the
@@ -178,8 +187,7 @@ def oscillation_error_constant(tableau: ButcherTableau) -> float:
 
     e = estimate(tableau.b_error)
     if tableau.b_error3 is not None:
-        e3 = estimate(tableau.b_error3)
-        e = e * e / np.sqrt(e * e + 0.01 * e3 * e3)
+        e = blend_estimates(e, estimate(tableau.b_error3))
     return float(e / theta ** (tableau.error_order + 1))
 
 

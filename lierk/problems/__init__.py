@@ -8,7 +8,9 @@
 - `spatial`: the report's `SpatialFreeRigidBody` (spatial momentum fixed);
 - `effects`: gravity, torques and damping a body opts into;
 - `spacecraft`: gravity gradient, magnetic torque and rotors (wheels);
-- `kinematics`: momentum, energy and angular velocity of a rigid body.
+- `kinematics`: momentum, energy and angular velocity of a rigid body;
+- `variational`: a rigid body with its variational equations (the
+  sensitivity of the exact flow, `lierk.sensitivity(method="variational")`).
 """
 
 from . import effects as effects
@@ -19,3 +21,4 @@ from .base import AbstractRigidBody as AbstractRigidBody
 from .rigid_body import FreeRigidBody as FreeRigidBody
 from .rigid_body import RigidBodyWithEffects as RigidBodyWithEffects
 from .spatial import SpatialFreeRigidBody as SpatialFreeRigidBody
+from .variational import Variational as Variational

@@ -68,6 +68,14 @@ class AbstractProblem(eqx.Module):
         """`field` at the point that ``base`` describes."""
         return self.field(t, base, y)
 
+    def turn_tangent(self, point: Any, xi: Array) -> Any:
+        """The tangent of a point that `advance` returns (what `at` reads)
+        when the attitude it describes turns to ``R exp(hat(eps xi))``,
+        ``xi`` ``(3,)`` (rad, body frame): for the default point, the matrix
+        ``R``, ``R hat(xi)``.  The variational equations
+        (`lierk.problems.variational.Variational`) read it."""
+        return so3.compose(point, so3.hat(xi))
+
     def local(self, base: Any, t: Array, u: Array, y: Any, coefficients: tuple | None = None) -> tuple[Array, Any]:
         """`field` at ``R = R_n exp(hat(u))``, given ``base = self.base(t_n, R_n, y_n)``
         (and optionally ``so3.exp_coefficients`` of ``|u|^2``)."""

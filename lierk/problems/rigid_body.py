@@ -149,6 +149,14 @@ class RigidBodyWithEffects(AbstractRigidBody):
             return super().advance(base, u, coefficients)
         return so3.rotate(-u, base, coefficients)
 
+    def turn_tangent(self, point, xi):
+        """With space vectors the point is their body images ``v_j = R^T s_j``
+        (rows), which a body-frame turn ``exp(hat(eps xi))`` moves by
+        ``v_j x xi``; otherwise the attitude's ``R hat(xi)``."""
+        if self._space_vectors() is None:
+            return super().turn_tangent(point, xi)
+        return so3.cross(point, xi)
+
     def at(self, base, t, y):
         omega = jnp.diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
         dm = so3.cross(y, omega)
@@ -202,8 +210,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
         (K_u, K_m), (dK_u, dK_m) = jax.jvp(linearised, (t,), (jnp.ones_like(t),))
 
         def rate(K, dK):
-            size = jnp.sqrt(jnp.sum(K * K))
-            return jnp.where(size > 0, jnp.sqrt(jnp.sum(dK * dK)) / jnp.where(size > 0, size, 1.0), 0.0)
+            size = _frobenius(K)
+            return jnp.where(size > 0, _frobenius(dK) / jnp.where(size > 0, size, 1.0), 0.0)
 
         return jax.lax.stop_gradient((K_u, K_m, jnp.maximum(rate(K_u, dK_u), rate(K_m, dK_m))))
 
@@ -229,12 +237,12 @@ class RigidBodyWithEffects(AbstractRigidBody):
         if not self.effects:
             return rho, jnp.zeros((), rho.dtype)
         IK_u, K_m, turned = self._effects_linearisation(t, R, y)
-        stiffness = jnp.sqrt(jnp.sum(IK_u**2))
-        turning = jnp.sqrt(jnp.sum((0.5 * (K_m - K_m.T)) ** 2))
+        stiffness = _frobenius(IK_u)
+        turning = _frobenius(0.5 * (K_m - K_m.T))
         sym = 0.5 * (K_m + K_m.T)
         growth = jnp.maximum(0.0, jnp.max(jnp.diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(jnp.diagonal(sym))))
         frequency = 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth + turned
-        return frequency, jnp.sqrt(jnp.sum(sym**2))
+        return frequency, _frobenius(sym)
 
     def mode_frequency(self, t, R, y):
         """`modes`' frequency (rad/s)."""
@@ -320,6 +328,12 @@ class FreeRigidBody(RigidBodyWithEffects):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         super().__init__(inertia, omega0, R0, effects=())
+
+
+def _frobenius(A: Array) -> Array:
+    """The Frobenius norm of a matrix ``(3, 3)``: the bound `modes` takes of
+    each part of the effects' linearisation."""
+    return jnp.sqrt(jnp.sum(A * A))
 
 
 def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:

@@ -66,3 +66,7 @@ class SpatialFreeRigidBody(AbstractRigidBody):
 
     def at(self, base, t, y):
         return self.inertia_inv @ base, None
+
+    def turn_tangent(self, point, xi):
+        # The point is m = R^T L, which the turn R exp(hat(eps xi)) moves by m x xi.
+        return so3.cross(point, xi)

@@ -24,7 +24,7 @@ from jax.flatten_util import ravel_pytree
 
 from .. import so3
 from ..tableaux import DOP853 as _DOP853
-from ..tableaux import DOPRI54, FEHLBERG45, RK4, ButcherTableau
+from ..tableaux import DOPRI54, FEHLBERG45, RK4, ButcherTableau, blend_estimates
 from .base import AbstractSolver, Step
 
 
@@ -140,11 +140,10 @@ class AbstractRKMK(AbstractSolver):
     def error_norm(self, error, norm):
         if len(error) == 1:
             return norm(*error[0])
-        # DOP853's 5th- and 3rd-order estimates, blended so that the norm
-        # behaves like O(h^8) (Hairer, Norsett, Wanner I, II.10).
+        # DOP853's two estimates (`tableaux.blend_estimates`); both 0 give 0.
         err, e3 = norm(*error[0]), norm(*error[1])
-        denom = jnp.sqrt(err * err + 0.01 * e3 * e3)
-        blend = jnp.where(denom > 0, err * err / jnp.where(denom > 0, denom, 1.0), 0.0)
+        both = (err > 0) | (e3 > 0)
+        blend = jnp.where(both, blend_estimates(err, jnp.where(both, e3, 1.0), jnp.sqrt), 0.0)
         # A rejected stage (inf) must stay inf: inf/inf would be NaN.
         return jnp.where(jnp.isfinite(err) & jnp.isfinite(e3), blend, jnp.inf)
 

@@ -1,0 +1,132 @@
+"""The variational equations of a rigid body, integrated with the body.
+
+`Variational` wraps a `RigidBodyWithEffects` and adds to its state the
+derivative of the state along ``P`` input directions.  A direction's
+perturbation of the attitude is the body-frame turn ``xi`` (rad per unit of
+the input: ``R -> R exp(hat(eps xi))``), of the momentum ``dm``; they obey
+
+    xi' = xi x omega + d omega,
+    dm' = d(dm/dt),
+
+where ``d omega`` and ``d(dm/dt)`` are the field's derivative along
+``(xi, dm)`` (a `jax.jvp` of the body's field at the stage point, so every
+effect is covered).  Any solver that advances extra state with its tableau
+(RKMK, CF4, Euler) then gives the Jacobian of the exact flow to its own
+order: this is the "differentiate, then discretise" sensitivity.  It is not
+the derivative of the discrete solve (`jax.jacfwd` through `lierk.solve`
+gives that), and it is cheaper: `lierk.sensitivity` with
+``method="variational"`` uses it.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from jax import Array
+
+from .. import so3
+from .base import AbstractProblem
+from .rigid_body import RigidBodyWithEffects
+
+__all__ = ["Variational"]
+
+
+class Variational(AbstractProblem):
+    """A `RigidBodyWithEffects` with its variational equations: state
+    ``y = (m, xi, dm)``, ``m`` ``(3,)`` the body momentum (kg m^2/s), ``xi``
+    ``(P, 3)`` the attitude's body-frame derivative along each of ``P`` input
+    directions (rad per unit of the input) and ``dm`` ``(P, 3)`` the
+    momentum's (kg m^2/s per unit).
+
+    Adaptive solves hold the derivatives to the same tolerances as the state
+    (each direction's ``xi`` and ``dm`` as vectors, relative to their size;
+    `error_tolerance`), so the step control sees their own oscillations,
+    which about a steady spin the state does not show.
+
+    Args:
+        problem: the body.
+        xi0: ``(P, 3)`` initial attitude derivatives.
+        dm0: ``(P, 3)`` initial momentum derivatives.
+    """
+
+    problem: RigidBodyWithEffects
+    R0: Array
+    y0: tuple
+    # Each direction's reference sizes for absolute tolerances, ``(P, 1)``:
+    # xi's (rad per unit) and dm's (kg m^2/s per unit).
+    xi_scale: Array
+    dm_scale: Array
+
+    def __init__(self, problem: RigidBodyWithEffects, xi0: Array, dm0: Array):
+        if not isinstance(problem, RigidBodyWithEffects):
+            raise ValueError(f"Variational needs a RigidBodyWithEffects (or FreeRigidBody), got {type(problem).__name__}")
+        dtype = problem.y0.dtype
+        xi0, dm0 = jnp.asarray(xi0, dtype), jnp.asarray(dm0, dtype)
+        if xi0.ndim != 2 or xi0.shape[1:] != (3,) or dm0.shape != xi0.shape:
+            raise ValueError(f"xi0 and dm0 must both have shape (P, 3), got {xi0.shape} and {dm0.shape}")
+        self.problem = problem
+        self.R0 = problem.R0
+        self.y0 = (problem.y0, xi0, dm0)
+        size = lambda v: jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))  # noqa: E731
+        # A turn of 1 rad per unit, or the turn 1 s of the direction's
+        # angular velocity makes; the momentum the body has, turned, or the
+        # direction's own.
+        xi_scale = size(xi0) + size(so3.matvec(problem.inertia_inv, dm0))
+        dm_scale = size(dm0) + problem.momentum_scale * size(xi0)
+        self.xi_scale = jnp.where(xi_scale > 0, xi_scale, 1.0)
+        self.dm_scale = jnp.where(dm_scale > 0, dm_scale, problem.momentum_scale)
+
+    def base(self, t, R, y):
+        return self.problem.base(t, R, y[0])
+
+    def advance(self, base, u, coefficients=None):
+        return self.problem.advance(base, u, coefficients)
+
+    def at(self, base, t, y):
+        m, xi, dm = y
+
+        def field(point, m):
+            return self.problem.at(point, t, m)
+
+        omega, mdot = field(base, m)
+
+        def tangent(xi, dm):
+            domega, dmdot = jax.jvp(field, (base, m), (self.problem.turn_tangent(base, xi), dm))[1]
+            return so3.cross(xi, omega) + domega, dmdot
+
+        xidot, dmdot = jax.vmap(tangent)(xi, dm)
+        return omega, (mdot, xidot, dmdot)
+
+    def field(self, t, R, y):
+        return self.at(self.base(t, R, y), t, y)
+
+    def local(self, base, t, u, y, coefficients=None):
+        return self.at(self.advance(base, u, coefficients), t, y)
+
+    def error_tolerance(self, y0, y1, rtol, atol):
+        """The body's own for ``m``; each direction's ``xi`` and ``dm`` against
+        ``atol * scale + rtol * max(|v_n|, |v_n+1|)`` (vector norms)."""
+
+        def tol(a, b, scale):
+            size = jnp.maximum(jnp.sqrt(jnp.sum(a * a, axis=-1, keepdims=True)), jnp.sqrt(jnp.sum(b * b, axis=-1, keepdims=True)))
+            return jnp.broadcast_to(atol * scale + rtol * size, a.shape)
+
+        return (
+            self.problem.error_tolerance(y0[0], y1[0], rtol, atol),
+            tol(y0[1], y1[1], self.xi_scale),
+            tol(y0[2], y1[2], self.dm_scale),
+        )
+
+    def modes(self, t, R, y):
+        return self.problem.modes(t, R, y[0])
+
+    def invariants(self, R, y) -> dict[str, Array]:
+        return self.problem.invariants(R, y[0])
+
+    def conserved(self) -> tuple[str, ...]:
+        return self.problem.conserved()
+
+    def invariant_scales(self) -> dict[str, Any]:
+        return self.problem.invariant_scales()
