@@ -22,8 +22,8 @@ solve (``2 dt/3`` for fixed steps, tolerances divided by 10 for adaptive ones).
 ``method="variational"`` instead integrates the body's variational equations
 with it (`lierk.problems.Variational`): the Jacobian of the exact flow to the
 solver's order, not the derivative of the discrete solve.  Per Jacobian
-error it is the cheaper of the two on rigid bodies
-(``benchmarks/results/sensitivity.md``); use the default where the derivative
+error it was the cheaper of the two on the benchmark's near-axis T-handles
+and heavy tops, not on every state (``benchmarks/results/sensitivity.md``); use the default where the derivative
 of the computed state is what is needed (an optimiser's line search on a
 coarse solve, a check against finite differences of the solve).
 """
@@ -42,10 +42,11 @@ from jax.typing import ArrayLike
 from . import so3
 from .adjoint import ForwardMode
 from .controller import Controller
-from .problems import AbstractProblem, AbstractRigidBody
+from .problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from .solution import RESULTS, SaveAt, raise_if_failed
 from .global_error import TOLERANCE_RATIO, finer
 from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, solve
+from .solvers import AbstractSplitting
 from .solvers.base import AbstractSolver
 
 __all__ = ["Sensitivity", "sensitivity"]
@@ -248,9 +249,6 @@ def sensitivity(
 
 def _check_variational(problem, solver, wrt, mode) -> None:
     """What ``method="variational"`` covers; a clear error otherwise."""
-    from .problems import RigidBodyWithEffects
-    from .solvers import AbstractSplitting
-
     if not isinstance(problem, RigidBodyWithEffects):
         raise ValueError(
             f"method='variational' needs a RigidBodyWithEffects or FreeRigidBody, got {type(problem).__name__}; "
@@ -271,8 +269,6 @@ def _variational(problem, wrt: str):
     """The body with its variational equations along the input's unit
     directions: ``omega0`` moves the momentum by ``I e_j``, ``R0`` turns the
     attitude by ``e_j`` (rad, body frame)."""
-    from .problems import Variational
-
     eye = jnp.eye(3, dtype=problem.y0.dtype)
     zero = jnp.zeros((3, 3), problem.y0.dtype)
     if wrt == "omega0":
