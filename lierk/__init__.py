@@ -52,6 +52,7 @@ from .batch import sweep_chunks as sweep_chunks
 from .solve import solve as solve
 from .sensitivity import Sensitivity as Sensitivity
 from .sensitivity import sensitivity as sensitivity
+from .sensitivity import sensitivity_method as sensitivity_method
 from .solvers import CF4 as CF4
 from .solvers import DOP853 as DOP853
 from .solvers import DP54 as DP54

@@ -157,8 +157,9 @@ _SWEEP = """
     Solve SCENE.toml for a grid of initial body angular velocities omega0 (rad/s), vmapped and sharded
     across devices, and draw for each: the flip interval of the intermediate axis (exact solution,
     torque-free bodies), the final attitude angle |log R(T)| (rad) and the sensitivity ||dR(T)/d omega0||
-    (s, forward-mode derivative through the solver). Near the intermediate axis the flip interval
-    diverges and the sensitivity is largest. Writes <name>_sweep.png and <name>_sweep.npz to DIR.
+    (s, forward mode: the variational equations for RKMK and CF4 solvers, the derivative of the solve for
+    the splittings). Near the intermediate axis the flip interval diverges and the sensitivity is
+    largest. Writes <name>_sweep.png and <name>_sweep.npz to DIR.
 """
 
 _SWEEP_EPILOG = """

@@ -19,7 +19,7 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-__all__ = ["OmegaSweep", "omega_grid", "open_sweep_store", "sweep_omega0"]
+__all__ = ["OmegaSweep", "omega_grid", "open_sweep_store", "sweep_method", "sweep_omega0"]
 
 # Per point: angle, sensitivity, its error, Lyapunov exponent, flip interval, result, omega0.
 _VALUES_PER_POINT = 7
@@ -39,12 +39,15 @@ class OmegaSweep:
             failed (except the flip interval, which is exact).
         failed: bool array of shape `shape`: the solve did not succeed.
         t1: the final time T (s).
+        method: how the sensitivity was taken (`lierk.sensitivity_method`):
+            ``"variational"`` or ``"derivative"``.
     """
 
     axes: tuple[np.ndarray, np.ndarray, np.ndarray]
     values: dict[str, np.ndarray]
     failed: np.ndarray
     t1: float
+    method: str = "derivative"
 
     @property
     def varied(self) -> list[int]:
@@ -69,7 +72,8 @@ class OmegaSweep:
         if self.failed.any():
             lines.append(f"  {int(self.failed.sum())} points failed to integrate (NaN in the outputs)")
         s = v["sensitivity"]
-        lines.append(f"  ||dR(T)/d omega0||: {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
+        how = "variational equations" if self.method == "variational" else "derivative of the solve"
+        lines.append(f"  ||dR(T)/d omega0|| ({how}): {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
                      f"(estimated error of it: up to {np.nanmax(v['sensitivity_error'] / s):.1g} relative)")
         lam = v["lyapunov"]
         lines.append(f"  finite-time Lyapunov exponent: {np.nanmin(lam):.3g} .. {np.nanmax(lam):.3g} 1/s")
@@ -133,6 +137,16 @@ def _checked(scene, axes):
     return axes, varied, _grid(axes), kw
 
 
+def sweep_method(scene) -> str:
+    """How a sweep of ``scene`` takes each point's sensitivity: ``"variational"``
+    (the body's variational equations, integrated with it by the scene's
+    solver) where `lierk.sensitivity` offers it, else ``"derivative"`` (the
+    derivative of each solve)."""
+    from .sensitivity import sensitivity_method
+
+    return sensitivity_method(scene.problem, scene.solver, "omega0", "forward", "auto")
+
+
 def open_sweep_store(scene, axes: Sequence[np.ndarray], directory: str | os.PathLike, *, chunk_size: int = 256,
                      key: dict | None = None):
     """The `lierk.store.ChunkStore` that keeps a sweep's chunks in ``directory``,
@@ -158,6 +172,7 @@ def open_sweep_store(scene, axes: Sequence[np.ndarray], directory: str | os.Path
         "grid": hashlib.sha256(np.ascontiguousarray(grid, dtype).tobytes()).hexdigest(),
         "grid_shape": [len(axes[k]) for k in varied],
         "solver": scene.solver.name,
+        "sensitivity_method": sweep_method(scene),
         "settings": {k: repr(v) for k, v in sorted(kw.items())},
         "dtype": np.dtype(dtype).name,
         "chunk_size": chunk_size,
@@ -184,7 +199,8 @@ def sweep_omega0(
     on_chunk: Callable[[int], None] | None = None,
 ) -> OmegaSweep | None:
     """Solve ``scene`` from every omega0 of the grid ``axes`` (`omega_grid`)
-    with its sensitivity (`lierk.sensitivity`, forward mode).
+    with its sensitivity (`lierk.sensitivity`, forward mode, ``method="auto"``:
+    the variational equations where they apply, see `sweep_method`).
 
     Args:
         scene: a `lierk.scene.Scene` with ``run.dt`` or ``run.rtol``.
@@ -217,8 +233,10 @@ def sweep_omega0(
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
     shape = tuple(len(axes[k]) for k in varied)
 
+    method = sweep_method(scene)
+
     def point(w):
-        s = sensitivity(problem.with_omega0(w), solver, t1, throw=False, **kw)
+        s = sensitivity(problem.with_omega0(w), solver, t1, method=method, throw=False, **kw)
         out = {
             "angle": jnp.linalg.norm(so3.log(s.R), axis=-1),
             "sensitivity": jnp.sqrt(jnp.sum(s.jacobian_R**2)),
@@ -251,4 +269,4 @@ def sweep_omega0(
     res = {k: np.asarray(v).reshape(shape) for k, v in res.items()}
     failed = res.pop("result") != 0
     values = {k: (v if k == "flip_interval" else np.where(failed, np.nan, v)) for k, v in res.items()}
-    return OmegaSweep(axes, values, failed, t1)
+    return OmegaSweep(axes, values, failed, t1, method)

@@ -49,7 +49,7 @@ from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, solve
 from .solvers import AbstractSplitting
 from .solvers.base import AbstractSolver
 
-__all__ = ["Sensitivity", "sensitivity"]
+__all__ = ["Sensitivity", "sensitivity", "sensitivity_method"]
 
 _INPUTS = ("omega0", "R0", "inertia")
 
@@ -199,12 +199,14 @@ def sensitivity(
             `ForwardSensitivity`, the same forward pass for a few inputs, and
             six reverse passes for many).
         method: ``"derivative"`` (the derivative of the solve that was run,
-            by autodiff through it) or ``"variational"`` (the variational
+            by autodiff through it), ``"variational"`` (the variational
             equations integrated with the body by the same solver: the
             exact flow's Jacobian to the solver's order; a
             `RigidBodyWithEffects` with ``wrt="omega0"`` or ``"R0"``, any
             solver but the splittings, ``mode="forward"``; adaptive steps
-            hold the Jacobian to the same tolerances as the state).
+            hold the Jacobian to the same tolerances as the state), or
+            ``"auto"``: variational where it applies, else the derivative
+            (`sensitivity_method` says which).
         estimate_error: also take the Jacobian of a finer solve and fill
             `Sensitivity.error_estimate` (about 2.5x the cost).
         throw: raise if the solve fails; with False read `Sensitivity.result`.
@@ -234,10 +236,7 @@ def sensitivity(
         raise ValueError(f"mode must be 'forward' or 'reverse', got {mode!r}")
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
-    if method not in ("derivative", "variational"):
-        raise ValueError(f"method must be 'derivative' or 'variational', got {method!r}")
-    if method == "variational":
-        _check_variational(problem, solver, wrt, mode)
+    method = sensitivity_method(problem, solver, wrt, mode, method)
     fixed = solve_options.get("dt") is not None
     if not fixed and method == "derivative":
         solve_options = _resolving_modes(solve_options)
@@ -247,22 +246,43 @@ def sensitivity(
     return _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options)
 
 
-def _check_variational(problem, solver, wrt, mode) -> None:
-    """What ``method="variational"`` covers; a clear error otherwise."""
+def sensitivity_method(problem, solver, wrt="omega0", mode: str = "forward", method: str = "auto") -> str:
+    """The method `sensitivity` takes for these arguments: ``"derivative"``
+    or ``"variational"``; ``"auto"`` is variational where it applies.
+
+    Raises:
+        ValueError: an unknown ``method``, or ``"variational"`` where it does
+            not apply (the message says why).
+    """
+    if method not in ("derivative", "variational", "auto"):
+        raise ValueError(f"method must be 'derivative', 'variational' or 'auto', got {method!r}")
+    if method == "derivative":
+        return method
+    refusal = _variational_refusal(problem, solver, wrt, mode)
+    if refusal is None:
+        return "variational"
+    if method == "auto":
+        return "derivative"
+    raise ValueError(refusal)
+
+
+def _variational_refusal(problem, solver, wrt, mode) -> str | None:
+    """Why ``method="variational"`` does not cover these arguments, or None."""
     if not isinstance(problem, RigidBodyWithEffects):
-        raise ValueError(
+        return (
             f"method='variational' needs a RigidBodyWithEffects or FreeRigidBody, got {type(problem).__name__}; "
             "use method='derivative'"
         )
     if isinstance(solver, AbstractSplitting):
-        raise ValueError(
+        return (
             f"method='variational' needs a solver that advances extra state with its tableau (RKMK, CF4), "
             f"not the splitting {solver.name}; use method='derivative'"
         )
     if not (isinstance(wrt, str) and wrt in ("omega0", "R0")):
-        raise ValueError(f"method='variational' covers wrt='omega0' and wrt='R0', got {wrt!r}; use method='derivative'")
+        return f"method='variational' covers wrt='omega0' and wrt='R0', got {wrt!r}; use method='derivative'"
     if mode != "forward":
-        raise ValueError("method='variational' integrates the derivatives forward with the body: leave mode='forward'")
+        return "method='variational' integrates the derivatives forward with the body: leave mode='forward'"
+    return None
 
 
 def _variational(problem, wrt: str):

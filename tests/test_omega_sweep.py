@@ -8,7 +8,7 @@ import pytest
 import lierk
 from lierk import scene as S
 from lierk import so3
-from lierk.omega_sweep import omega_grid, open_sweep_store, sweep_omega0
+from lierk.omega_sweep import omega_grid, open_sweep_store, sweep_method, sweep_omega0
 
 TEE = [9.82271303e-05, 7.22671030e-05, 1.57865031e-04]
 
@@ -20,6 +20,8 @@ def _scene(**run):
 
 def test_sweep_matches_a_python_loop_of_sensitivities():
     scene = _scene()
+    # An RKMK solver on a rigid body: the variational equations.
+    assert sweep_method(scene) == "variational"
     axes = omega_grid(np.asarray(scene.problem.omega0), [None, (0.0, 0.1, 2), (0.2, 0.4, 3)])
     res = sweep_omega0(scene, axes, chunk_size=4)
     assert res.varied == [1, 2] and res.shape == (2, 3) and not res.failed.any()
@@ -27,11 +29,23 @@ def test_sweep_matches_a_python_loop_of_sensitivities():
         for j in range(3):
             w = res.grid[i, j]
             np.testing.assert_allclose(w, [1.0, axes[1][i], axes[2][j]])
-            s = lierk.sensitivity(scene.problem.with_omega0(w), scene.solver, 0.5, dt=0.05)
+            s = lierk.sensitivity(scene.problem.with_omega0(w), scene.solver, 0.5, dt=0.05, method="variational")
             np.testing.assert_allclose(res.values["sensitivity"][i, j], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10)
             np.testing.assert_allclose(res.values["angle"][i, j], np.linalg.norm(np.asarray(so3.log(s.R))), rtol=1e-10)
             tau = float(lierk.exact.flip_interval(scene.problem.inertia, w))
             assert res.values["flip_interval"][i, j] == pytest.approx(tau, rel=1e-12) or not np.isfinite(tau)
+
+
+def test_a_splitting_sweep_takes_the_derivative():
+    # The splittings step through drift and kick, not a tableau that could
+    # carry the variational equations: the sweep differentiates the solve.
+    scene = _scene(solver="Strang")
+    assert sweep_method(scene) == "derivative"
+    axes = omega_grid(np.asarray(scene.problem.omega0), [None, (0.0, 0.1, 2), None])
+    res = sweep_omega0(scene, axes, chunk_size=2)
+    for i in range(2):
+        s = lierk.sensitivity(scene.problem.with_omega0(res.grid[i]), scene.solver, 0.5, dt=0.05)
+        np.testing.assert_allclose(res.values["sensitivity"][i], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10)
 
 
 def test_a_stored_sweep_resumes_to_the_same_numbers(tmp_path):
@@ -79,13 +93,13 @@ def test_summary_gives_the_ranges_lierk_sweep_prints():
     res = OmegaSweep(axes, values, failed, 0.5)
     assert res.summary().splitlines() == [
         "  1 points failed to integrate (NaN in the outputs)",
-        "  ||dR(T)/d omega0||: 2 .. 40 s (estimated error of it: up to 1e-07 relative)",
+        "  ||dR(T)/d omega0|| (derivative of the solve): 2 .. 40 s (estimated error of it: up to 1e-07 relative)",
         "  finite-time Lyapunov exponent: 0.5 .. 2.25 1/s",
         "  flip interval: 7.5 .. 12 s",
     ]
     # No failures and no flip anywhere (or a body with effects): those lines go.
-    calm = OmegaSweep(axes, {**values, "flip_interval": np.full((2, 2), np.inf)}, np.zeros((2, 2), bool), 0.5)
+    calm = OmegaSweep(axes, {**values, "flip_interval": np.full((2, 2), np.inf)}, np.zeros((2, 2), bool), 0.5, "variational")
     assert [line.split(":")[0] for line in calm.summary().splitlines()] == [
-        "  ||dR(T)/d omega0||", "  finite-time Lyapunov exponent"]
+        "  ||dR(T)/d omega0|| (variational equations)", "  finite-time Lyapunov exponent"]
     no_flip = {k: v for k, v in values.items() if k != "flip_interval"}
     assert len(OmegaSweep(axes, no_flip, failed, 0.5).summary().splitlines()) == 3

@@ -416,7 +416,7 @@ def test_variational_in_float32():
 
 def test_variational_refuses_what_it_does_not_cover():
     body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
-    with pytest.raises(ValueError, match="method must be"):
+    with pytest.raises(ValueError, match="method must be 'derivative', 'variational' or 'auto', got 'adjoint'"):
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, method="adjoint")
     with pytest.raises(ValueError, match="covers wrt='omega0' and wrt='R0', got 'inertia'"):
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt="inertia", method="variational")
@@ -426,6 +426,24 @@ def test_variational_refuses_what_it_does_not_cover():
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, mode="reverse", method="variational")
     with pytest.raises(ValueError, match="got SpatialFreeRigidBody"):
         lierk.sensitivity(lierk.SpatialFreeRigidBody(BOX, [0.3, 1.0, 0.2]), lierk.RKMK4(), 1.0, dt=0.1, method="variational")
+
+
+def test_auto_takes_the_variational_equations_where_they_apply():
+    body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
+    assert lierk.sensitivity_method(body, lierk.RKMK4()) == "variational"
+    for solver, wrt, mode in ((lierk.Strang(), "omega0", "forward"), (lierk.RKMK4(), "inertia", "forward"),
+                              (lierk.RKMK4(), "omega0", "reverse")):
+        assert lierk.sensitivity_method(body, solver, wrt, mode) == "derivative"
+    assert lierk.sensitivity_method(body, lierk.Strang(), method="derivative") == "derivative"
+    auto = lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, method="auto", estimate_error=False)
+    var = lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, method="variational", estimate_error=False)
+    der = lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, estimate_error=False)
+    np.testing.assert_array_equal(np.asarray(auto.jacobian), np.asarray(var.jacobian))
+    # The two methods differ by the step's truncation error, so they can be told apart.
+    assert np.max(np.abs(np.asarray(var.jacobian) - np.asarray(der.jacobian))) > 1e-9
+    split = lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, method="auto", estimate_error=False)
+    np.testing.assert_array_equal(
+        np.asarray(split.jacobian), np.asarray(lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, estimate_error=False).jacobian))
 
 
 def test_variational_resolves_a_sleeping_top():
