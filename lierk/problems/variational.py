@@ -102,9 +102,6 @@ class Variational(AbstractProblem):
     def field(self, t, R, y):
         return self.at(self.base(t, R, y), t, y)
 
-    def local(self, base, t, u, y, coefficients=None):
-        return self.at(self.advance(base, u, coefficients), t, y)
-
     def error_tolerance(self, y0, y1, rtol, atol):
         """The body's own for ``m``; each direction's ``xi`` and ``dm`` against
         ``atol * scale + rtol * max(|v_n|, |v_n+1|)`` (vector norms)."""
