@@ -10,6 +10,8 @@ Every function broadcasts over leading batch axes: vectors are ``(..., 3)`` and
 matrices ``(..., 3, 3)``.  Each works in float32 and float64 and is safe for
 autodiff everywhere it is smooth, including ``w = 0`` ("double where": the
 unselected branch never sees a division by zero, so its cotangent is finite).
+The conversions refuse a wrong shape, and a known (not traced) finite input that
+is no rotation: a matrix off SO(3) by more than rounding, a zero quaternion.
 
 References:
     Munthe-Kaas, "High order Runge-Kutta methods on manifolds", Appl. Numer.
@@ -24,8 +26,11 @@ import operator
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
+
+from . import validation
 
 __all__ = [
     "hat",
@@ -435,14 +440,47 @@ def dexpinv(u: ArrayLike, v: ArrayLike, terms: int | None = None, coefficients: 
     return v - 0.5 * uv + D[..., None] * _cross_cross(u, v)
 
 
-def to_quaternion(R: ArrayLike) -> Array:
-    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix.
+def _rotation_tolerance(dtype) -> float:
+    # ||R^T R - I|| allowed of an input rotation: check_attitude's 1e-6 in
+    # float64, and about a thousand roundings in narrower types (float32:
+    # 1.2e-4; a float32 solve keeps R within ~1e-6, and a float32 product of
+    # a few thousand rotations within ~1e-5).
+    return max(1e-6, 1000 * float(jnp.finfo(dtype).eps))
 
-    Shepperd's method: the branch on the largest of ``(tr R, R_00, R_11, R_22)``
-    keeps the square root well away from zero, so it is accurate at every angle
-    including pi.  ``(..., 3, 3) -> (..., 4)``.
-    """
+
+def _rotation_input(R: ArrayLike, where: str) -> Array:
+    """``R`` as a float array of rotation matrices, or a ValueError naming
+    ``where`` and the shape; when ``R`` is known now (not traced), also the
+    first matrix, by index, that is not a rotation (``||R^T R - I||`` over
+    `_rotation_tolerance`, or ``det R < 0``).  The value is checked in NumPy:
+    no program is compiled for it.  Matrices with NaN or inf entries pass (a
+    diverged solve's states convert to NaN, as every map here does), and a
+    traced ``R`` is not checked at all: a run-time check would be a host
+    callback in every compiled caller."""
+    x = R
     R = _float(R)
+    if R.shape[-2:] != (3, 3):
+        raise ValueError(f"{where} expects rotation matrices of shape (..., 3, 3), got shape {R.shape}")
+    if not validation.is_traced(x):
+        M = np.asarray(x, np.float64).reshape(R.shape)
+        with np.errstate(all="ignore"):  # NaN and inf entries pass, below
+            E = np.swapaxes(M, -1, -2) @ M - np.eye(3)
+            err = np.sqrt(np.sum(E * E, axis=(-2, -1)))
+            det = np.linalg.det(M)
+        tol = _rotation_tolerance(R.dtype)
+        bad = np.isfinite(M).all(axis=(-2, -1)) & ((err > tol) | (det < 0))
+        if bad.any():
+            i = tuple(int(k) for k in np.argwhere(bad)[0])
+            name = f"R[{', '.join(map(str, i))}]" if i else "R"
+            raise ValueError(
+                f"{where} expects rotation matrices (||R^T R - I|| <= {tol:.2g} in {R.dtype.name}, det R = +1); "
+                f"{name} has ||R^T R - I|| = {err[i]:.3g} and det R = {det[i]:.6g}: {validation._show(M[i])}"
+            )
+    return R
+
+
+def _quaternion(R: Array) -> Array:
+    """`to_quaternion` without its input checks (for the conversions built on it)."""
     r00, r11, r22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
     tr = r00 + r11 + r22
     d21 = R[..., 2, 1] - R[..., 1, 2]
@@ -454,8 +492,10 @@ def to_quaternion(R: ArrayLike) -> Array:
 
     def safe_sqrt(x):
         # Branches that are not selected may see a negative argument; keep their
-        # values and cotangents finite.
-        return jnp.sqrt(jnp.where(x > 0.25, x, jnp.ones_like(x)))
+        # values and cotangents finite.  (The selected one has x >= 1, so no
+        # branch divides by less than 2 t = 1 below.)  NaN is kept: a NaN
+        # matrix gives a NaN quaternion, not (0.5, NaN, NaN, NaN).
+        return jnp.sqrt(jnp.where(x <= 0.25, jnp.ones_like(x), x))
 
     # Each candidate is 4 q_k^2 for its largest component k, times the others.
     t0 = safe_sqrt(1.0 + tr)
@@ -471,12 +511,38 @@ def to_quaternion(R: ArrayLike) -> Array:
     return jnp.where(q[..., :1] < 0, -q, q)
 
 
+def to_quaternion(R: ArrayLike) -> Array:
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` of a rotation matrix.
+
+    Shepperd's method: the branch on the largest of ``(tr R, R_00, R_11, R_22)``
+    keeps the square root well away from zero, so it is accurate at every angle
+    including pi, and its derivatives are finite there (at ``w = 0`` exactly,
+    those of the branch whose sign was kept).  ``(..., 3, 3) -> (..., 4)``.
+
+    Raises ValueError on another shape, and on a known (not traced) ``R``
+    that is not a rotation, by more than rounding (see `_rotation_input`).
+    """
+    return _quaternion(_rotation_input(R, "to_quaternion"))
+
+
 def from_quaternion(q: ArrayLike) -> Array:
     """Rotation matrix of a quaternion ``(w, x, y, z)`` (normalised first):
-    ``(..., 4) -> (..., 3, 3)``."""
+    ``(..., 4) -> (..., 3, 3)``.
+
+    Raises ValueError on another shape, and on a known (not traced) zero
+    quaternion, or one whose squared norm underflows in its dtype (it has no
+    direction to normalise: the result would be NaN)."""
+    x = q
     q = _float(q)
     if q.shape[-1:] != (4,):
-        raise ValueError(f"from_quaternion expects shape (..., 4), got {q.shape}")
+        raise ValueError(f"from_quaternion expects shape (..., 4), got shape {q.shape}")
+    if not validation.is_traced(x):
+        qn = np.asarray(x).astype(np.dtype(q.dtype)).reshape(q.shape)
+        bad = np.sum(qn * qn, axis=-1) == 0
+        if bad.any():
+            i = tuple(int(k) for k in np.argwhere(bad)[0])
+            name = f"q[{', '.join(map(str, i))}]" if i else "q"
+            raise ValueError(f"from_quaternion needs a non-zero quaternion, got {name} = {validation._show(qn[i])}")
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     w, v = q[..., 0], q[..., 1:]
     K = hat(v)
@@ -496,9 +562,9 @@ def to_mrp(R: ArrayLike) -> Array:
     saved history jumps from ``sigma`` to its shadow where the angle passes
     pi.  From the quaternion with ``w >= 0`` (`to_quaternion`):
     ``sigma = v/(1 + w)``, with ``1 + w >= 1``, so it is finite and
-    differentiable at 0 and at pi.
+    differentiable at 0 and at pi.  Raises ValueError as `to_quaternion` does.
     """
-    q = to_quaternion(R)
+    q = _quaternion(_rotation_input(R, "to_mrp"))
     return q[..., 1:] / (1.0 + q[..., :1])
 
 
@@ -523,20 +589,24 @@ def log(R: ArrayLike) -> Array:
 
     Goes through the quaternion (never ``arccos`` of the trace), so it is stable
     near 0 and near pi, and ``log(exp(w)) == w`` for ``|w| < pi``.
-    ``(..., 3, 3) -> (..., 3)``.
+    ``(..., 3, 3) -> (..., 3)``.  Its derivatives are finite everywhere in both
+    modes; at a half turn, where log jumps between ``+pi n`` and ``-pi n``,
+    they are those of the side whose value it returns.  Raises ValueError as
+    `to_quaternion` does.
     """
-    R = _float(R)
-    if R.shape[-2:] != (3, 3):
-        raise ValueError(f"log expects shape (..., 3, 3), got {R.shape}")
-    q = to_quaternion(R)
+    q = _quaternion(_rotation_input(R, "log"))
     w, v = q[..., 0], q[..., 1:]
     n2 = _sq(v)
     small = n2 < _small(n2.dtype) * 1e-2
     n = jnp.sqrt(jnp.where(small, jnp.ones_like(n2), n2))
     closed = 2.0 * jnp.arctan2(n, w) / n
     # 2 atan(n/w)/n = (2/w)(1 - x/3 + x^2/5 - x^3/7 + ...), x = (n/w)^2, w ~ 1.
-    x = n2 / (w * w)
-    series = 2.0 / w * (1.0 - x / 3.0 + x * x / 5.0 - x * x * x / 7.0)
+    # The series sees w = 1 where it is not taken: at a half turn w -> 0, and
+    # its 1/w (or, in float32 within 1e-6 of pi, its overflowing x^3) turned
+    # the zero cotangent of the unused branch into NaN.
+    ws = jnp.where(small, w, jnp.ones_like(w))
+    x = n2 / (ws * ws)
+    series = 2.0 / ws * (1.0 - x / 3.0 + x * x / 5.0 - x * x * x / 7.0)
     return jnp.where(small, series, closed)[..., None] * v
 
 
@@ -572,28 +642,74 @@ def _convention(convention: str) -> str:
     return convention
 
 
+def _wrap(a: Array) -> Array:
+    # Into (-pi, pi] by one turn at most (the sums of two half angles below
+    # lie in (-2 pi, 2 pi]), added only where needed: a small angle keeps its
+    # relative accuracy, which a remainder modulo 2 pi would round away.
+    return jnp.where(a > math.pi, a - 2 * math.pi, jnp.where(a <= -math.pi, a + 2 * math.pi, a))
+
+
+def _safe_norm(s2: Array) -> Array:
+    # sqrt(s2) of a sum of squares, with a finite derivative (0) at s2 = 0
+    # (and NaN kept NaN).
+    pos = s2 > 0
+    return jnp.where(pos, jnp.sqrt(jnp.where(pos, s2, jnp.ones_like(s2))), s2)
+
+
 def to_euler(R: ArrayLike, convention: str = "zyx") -> Array:
     """Euler angles ``(phi, theta, psi)`` (rad) of ``R`` (see `from_euler`):
-    ``(..., 3, 3) -> (..., 3)``.
+    ``(..., 3, 3) -> (..., 3)``, ``phi`` and ``psi`` in ``(-pi, pi]``.
 
     - ``"zyx"``: ``theta`` lies in ``[-pi/2, pi/2]``; at the gimbal lock
       ``|theta| = pi/2`` only ``phi - psi`` (or ``phi + psi``) is determined,
       and ``psi`` is set to 0.
     - ``"zxz"``: ``theta`` lies in ``[0, pi]``; at ``theta = 0`` or ``pi`` only
       ``phi + psi`` (or ``phi - psi``) is determined, and ``psi`` is set to 0.
+
+    From the quaternion (`to_quaternion`), after Bernardes and Viollet,
+    "Quaternion to Euler angles conversion: a direct, general and
+    computationally efficient method", PLoS ONE 17 (2022), as SciPy's
+    ``as_euler``: the quaternion falls into two pairs ``(a, b)`` and
+    ``(c, d)`` whose lengths are the cosine and sine of the middle angle's
+    half (of ``theta + pi/2`` for ``"zyx"``) and whose directions are the half
+    sum and half difference of the outer angles.  The middle angle is an
+    ``atan2`` of those lengths, accurate to rounding in absolute terms at and
+    near the lock (``arcsin``/``arccos`` of one entry lose half the digits
+    there) and relatively near ``theta = 0``.  Near the lock the outer angles
+    are each as ill-determined as the lock is close (``eps/|cos theta|``),
+    but their errors cancel in the rotation: ``from_euler`` of the result is
+    ``R`` to rounding at every distance from the lock.  Only where a pair's
+    length is within a few roundings of 0 (the lock itself) is ``psi`` set to
+    0.  Derivatives are finite everywhere (at the lock, those with ``psi``
+    held at 0).  Raises ValueError as `to_quaternion` does.
     """
-    R = _float(R)
-    tiny = 10 * jnp.finfo(R.dtype).eps
-    if _convention(convention) == "zxz":
-        c = jnp.clip(R[..., 2, 2], -1.0, 1.0)
-        theta = jnp.arccos(c)
-        lock = jnp.abs(c) > 1.0 - tiny
-        phi = jnp.where(lock, jnp.arctan2(R[..., 1, 0], R[..., 0, 0]), jnp.arctan2(R[..., 0, 2], -R[..., 1, 2]))
-        psi = jnp.where(lock, jnp.zeros_like(theta), jnp.arctan2(R[..., 2, 0], R[..., 2, 1]))
-        return jnp.stack([phi, theta, psi], axis=-1)
-    s = jnp.clip(-R[..., 2, 0], -1.0, 1.0)
-    theta = jnp.arcsin(s)
-    lock = jnp.abs(s) > 1.0 - tiny
-    phi = jnp.where(lock, jnp.arctan2(-R[..., 0, 1], R[..., 1, 1]), jnp.arctan2(R[..., 1, 0], R[..., 0, 0]))
-    psi = jnp.where(lock, jnp.zeros_like(theta), jnp.arctan2(R[..., 2, 1], R[..., 2, 2]))
+    convention = _convention(convention)
+    q = _quaternion(_rotation_input(R, "to_euler"))
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    if convention == "zxz":
+        # Rz(phi) Rx(theta) Rz(psi): (w, z) = cos(theta/2) (cos, sin)((phi + psi)/2),
+        # (x, y) = sin(theta/2) (cos, sin)((phi - psi)/2).
+        a, b, c, d = w, z, x, y
+    else:
+        # Rz(phi) Ry(theta) Rx(psi), whose pairs are those of a symmetric
+        # sequence turned by pi/2 about y: the middle angle is theta + pi/2.
+        a, b, c, d = w - y, x + z, w + y, z - x
+    h_ab, h_cd = _safe_norm(a * a + b * b), _safe_norm(c * c + d * d)
+    if convention == "zxz":
+        theta = 2.0 * jnp.arctan2(h_cd, h_ab)
+    else:
+        # sin theta = -R_20 = 2 (w y - x z) = (h_cd^2 - h_ab^2)/2 and
+        # cos theta = h_ab h_cd: formed so, theta keeps its relative accuracy
+        # near 0, which 2 atan2(h_cd, h_ab) - pi/2 would round to ulp(pi/2).
+        theta = jnp.arctan2(2.0 * (w * y - x * z), h_ab * h_cd)
+    # At a lock one pair vanishes and its direction is rounding noise; its
+    # half angle is then taken equal to the other's, which sets psi to 0.
+    # (Each atan2 sees (0, 1) where it is not used: finite cotangents.)
+    tiny = 4 * jnp.finfo(q.dtype).eps
+    no_cd, no_ab = h_cd <= tiny * h_ab, h_ab <= tiny * h_cd
+    one, zero = jnp.ones_like(a), jnp.zeros_like(a)
+    half_sum = jnp.arctan2(jnp.where(no_ab, zero, b), jnp.where(no_ab, one, a))
+    half_diff = jnp.arctan2(jnp.where(no_cd, zero, d), jnp.where(no_cd, one, c))
+    half_sum, half_diff = jnp.where(no_ab, half_diff, half_sum), jnp.where(no_cd, half_sum, half_diff)
+    phi, psi = _wrap(half_sum + half_diff), _wrap(half_sum - half_diff)
     return jnp.stack([phi, theta, psi], axis=-1)

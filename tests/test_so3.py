@@ -1,7 +1,10 @@
 """Claims of lierk.so3: batching, dtypes, exactness at 0 and past 2 pi,
-stability of log near 0 and pi, derivatives, and dexp/dexpinv."""
+stability of log near 0 and pi, derivatives (finite at half turns), dexp/dexpinv,
+Euler angles at and near the gimbal lock (against SciPy), and input checks."""
 
 from __future__ import annotations
+
+import re
 
 import jax
 import jax.numpy as jnp
@@ -108,6 +111,75 @@ def test_wrong_shapes_raise():
         so3.log(np.zeros((3, 4)))
     with pytest.raises(ValueError, match=r"\(\.\.\., 3, 3\)"):
         so3.vee(np.zeros(3))
+
+
+@pytest.mark.parametrize("name", ["to_quaternion", "to_mrp", "to_euler", "log"])
+def test_matrix_conversions_refuse_other_shapes_even_traced(name):
+    """A shape is static, so it is refused inside jit as well; to_mrp of a
+    vector raised IndexError, to_quaternion and to_euler read whatever entries
+    were there."""
+    f = getattr(_so3, name)
+    for shape in [(3,), (3, 4), (2, 4, 3)]:
+        with pytest.raises(ValueError, match=rf"{name} expects .*\(\.\.\., 3, 3\), got shape {re.escape(str(shape))}"):
+            f(np.zeros(shape))
+        with pytest.raises(ValueError, match=re.escape(str(shape))):
+            jax.jit(f)(np.zeros(shape))
+
+
+@pytest.mark.parametrize("name", ["to_quaternion", "to_mrp", "to_euler", "log"])
+def test_matrix_conversions_refuse_known_non_rotations(name):
+    """A known (not traced) matrix that is not a rotation is refused with its
+    index, ||R^T R - I||, det R and entries: 2 I (to_quaternion returned
+    (1.32, 0, 0, 0) for it), a reflection (det -1), and a rotation scaled by
+    1 + 1e-5 in float64 or off by 1e-3 in float32."""
+    f = getattr(_so3, name)
+    with pytest.raises(ValueError, match=rf"{name} expects rotation.* R has \|\|R\^T R - I\|\| = 5\.2 and det R = 8: \[\[2\., 0\., 0\.\]"):
+        f(2 * np.eye(3))
+    good = Rotation.random(3, random_state=6).as_matrix()
+    flipped = good.copy()
+    flipped[1] = np.diag([1.0, 1.0, -1.0])
+    with pytest.raises(ValueError, match=r"R\[1\] has .* det R = -1: \[\[ 1\., +0\., +0\.\]"):
+        f(flipped)
+    off = good.copy()
+    off[2] *= 1 + 1e-5  # R^T R - I = (2e-5 + 1e-10) I
+    with pytest.raises(ValueError, match=r"R\[2\] has \|\|R\^T R - I\|\| = 3.46e-05 and det R = 1.00003"):
+        f(off)
+    off32 = good.astype(np.float32)
+    off32[0, 1, 1] += 1e-3
+    with pytest.raises(ValueError, match=r"<= 0.00012 in float32, .*R\[0\] has \|\|R\^T R - I\|\| = 0.0018"):
+        f(off32)
+
+
+def test_rotation_check_passes_rounded_rotations_nan_and_traced_values():
+    """Rotations rounded in float32 pass, even after 1000 unnormalised float32
+    products (||R^T R - I|| ~ 1e-5); NaN states (a failed solve's padding) pass
+    through as NaN; traced values are not checked (a check would be a host
+    callback in every compiled caller)."""
+    R32 = np.eye(3, dtype=np.float32)
+    for Q in Rotation.random(1000, random_state=8).as_matrix().astype(np.float32):
+        R32 = R32 @ Q
+    assert 1e-6 < float(np.asarray(so3.orthogonality_error(R32))) < 1e-4
+    q = np.asarray(_so3.to_quaternion(np.stack([R32, np.full((3, 3), np.nan, np.float32)])))
+    np.testing.assert_allclose(q[0], Rotation.from_matrix(R32.astype(np.float64)).as_quat(canonical=True, scalar_first=True), atol=1e-5)
+    assert np.all(np.isnan(q[1]))
+    so3.to_quaternion(2 * np.eye(3))
+
+
+def test_from_quaternion_refuses_a_zero_quaternion():
+    """A zero quaternion has no direction to normalise (it gave a NaN matrix):
+    refused with its index and value when known, and for a shape other than (..., 4)
+    even inside jit."""
+    with pytest.raises(ValueError, match=r"non-zero quaternion, got q = \[0\., 0\., 0\., 0\.\]"):
+        _so3.from_quaternion(np.zeros(4))
+    q = np.array([[1.0, 0, 0, 0], [0.0, 0, 0, 0]])
+    with pytest.raises(ValueError, match=r"got q\[1\] = \[0\., 0\., 0\., 0\.\]"):
+        _so3.from_quaternion(q)
+    # Squared norm underflowing in float32 is as bad as zero.
+    with pytest.raises(ValueError, match=r"q = \[1\.e-30, 0\.e\+00, 0\.e\+00, 0\.e\+00\]"):
+        _so3.from_quaternion(np.array([1e-30, 0, 0, 0], np.float32))
+    with pytest.raises(ValueError, match=r"\(\.\.\., 4\), got shape \(3,\)"):
+        jax.jit(_so3.from_quaternion)(np.ones(3))
+    np.testing.assert_allclose(_so3.from_quaternion(np.array([2.0, 0, 0, 0])), np.eye(3), atol=0)
 
 
 # --- exp --------------------------------------------------------------------------------
@@ -350,6 +422,75 @@ def test_log_jacobian_at_identity_is_vee():
         assert abs(np.sum(np.asarray(g) * np.asarray(so3.hat(b))) - a @ b) < 1e-15
 
 
+def _log_branch_jacobian(x, u):
+    """d/dx log(exp(x)) on the branch whose value u = log(exp(x)) was returned:
+    I where u = x, and the derivative of x - 2 pi x/|x| where the angle passed pi."""
+    x, u = np.asarray(x, np.float64), np.asarray(u, np.float64)
+    t = np.linalg.norm(x)
+    if np.linalg.norm(u - x) < 1e-3:
+        return np.eye(3)
+    n = x / t
+    return np.eye(3) - 2 * np.pi / t * (np.eye(3) - np.outer(n, n))
+
+
+_HALF_TURN_AXES = np.concatenate([np.eye(3), _vectors_with_norms(np.ones(4), np.random.default_rng(11))])
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 2e-15), (np.float32, 1e-6)])
+def test_log_derivatives_at_and_near_a_half_turn(dtype, tol):
+    """x -> log(exp(x)) at pi - gap times e_0, e_1, e_2 and four random unit
+    axes, gap = 0, 1e-7, 1e-6 and -1e-7 (just past pi), in both modes: finite,
+    and the derivative of the branch log returned (the identity below pi;
+    in float32 pi itself rounds above pi, so there the angle has passed it).
+    Before, the unused series branch of log (1/w, and x^3 overflowing in float32)
+    turned reverse mode into NaN within 7e-7 of pi in float32: jax.grad of
+    log(exp(x)).sum() at x = (pi, 0, 0) was (NaN, NaN, NaN)."""
+    gaps = np.array([0.0, 1e-7, 1e-6, -1e-7])
+    x = ((np.pi - gaps)[:, None, None] * _HALF_TURN_AXES).reshape(-1, 3).astype(dtype)
+    u = np.asarray(so3.log(so3.exp(x)))
+    # log(I exp(x)), through the programs the finite-difference test compiled
+    # (a call each costs far less than compiling a vmapped pair).
+    _, jf, jr = _JACOBIANS["log_along_group"]
+    eye = np.eye(3, dtype=dtype)
+    for xi, ui in zip(x, u):
+        want = _log_branch_jacobian(xi, ui)
+        for jac in (jf, jr):
+            J = np.asarray(jac(xi, eye))
+            assert J.dtype == dtype
+            assert np.all(np.isfinite(J)), (xi, jac)
+            np.testing.assert_allclose(J, want, rtol=0, atol=tol, err_msg=str(xi))
+
+
+def _matrix_conversions(R):
+    """log, to_quaternion and to_mrp of R, concatenated: (10,)."""
+    return jnp.concatenate([_so3.log(R), _so3.to_quaternion(R), _so3.to_mrp(R)])
+
+
+@pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-15), (np.float32, 2e-7)])
+def test_log_quaternion_and_mrp_derivatives_at_exact_half_turns(dtype, tol):
+    """At R = diag(1, -1, -1) and its permutations (w = 0 exactly), the Jacobians
+    of log, to_quaternion and to_mrp in R's entries are finite in both modes
+    (log's were NaN in reverse mode, also in float64), and log along the group,
+    x -> log(R exp(x)) at 0, has the one-sided derivative of the value it
+    returns, u: the inverse right Jacobian I + hat(u)/2 + hat(u)^2/pi^2
+    (D(pi) = 1/pi^2).  log(R) itself jumps there."""
+    Rs = np.stack([np.diag(d) for d in ([1.0, -1, -1], [-1.0, 1, -1], [-1.0, -1, 1])]).astype(dtype)
+    for jac in (jax.jacfwd, jax.jacrev):
+        J = np.asarray(jax.jit(jax.vmap(jac(_matrix_conversions)))(Rs))
+        assert J.dtype == dtype
+        assert np.all(np.isfinite(J)), jac.__name__
+    u = np.asarray(so3.log(Rs), np.float64)
+    np.testing.assert_allclose(np.abs(u), np.pi * np.eye(3), atol=tol)
+    _, jf, jr = _JACOBIANS["log_along_group"]
+    for R, ui in zip(Rs, u):
+        H = np.asarray(_so3.hat(ui))
+        want = np.eye(3) + H / 2 + H @ H / np.pi**2
+        for jac in (jf, jr):
+            J = np.asarray(jac(np.zeros(3, dtype), R))
+            assert J.dtype == dtype
+            np.testing.assert_allclose(J, want, rtol=0, atol=4 * tol)
+
+
 # --- dexp and dexpinv -------------------------------------------------------------------
 
 
@@ -464,6 +605,142 @@ def test_classical_zxz_angles_round_trip_and_name_the_tilt():
     np.testing.assert_allclose(so3.from_euler(*so3.to_euler(R0, "zxz"), "zxz"), R0, atol=1e-15)
     with pytest.raises(ValueError, match="convention"):
         so3.to_euler(R0, "xyz")
+
+
+# Lierk's "zyx" is R = Rz(phi) Ry(theta) Rx(psi), SciPy's intrinsic "ZYX"; "zxz" is SciPy's "ZXZ".
+_SCIPY_SEQ = {"zyx": "ZYX", "zxz": "ZXZ"}
+_TO_EULER = jax.jit(_so3.to_euler, static_argnums=1)
+_FROM_EULER = jax.jit(_so3.from_euler, static_argnums=3)
+
+
+def _euler_round_trip_error(R, convention):
+    """max |from_euler(to_euler(R)) - R| per matrix, and the angles."""
+    a = np.asarray(_TO_EULER(R, convention))
+    back = np.asarray(_FROM_EULER(a[..., 0], a[..., 1], a[..., 2], convention))
+    return np.abs(back - R).max(axis=(-2, -1)), a
+
+
+def _angle_gap(a, b):
+    return np.abs((a - b + np.pi) % (2 * np.pi) - np.pi)
+
+
+@pytest.mark.parametrize("convention", ["zyx", "zxz"])
+def test_euler_angles_match_scipy_for_random_rotations(convention):
+    """SciPy's own as_euler tests, with lierk in its place: 1000 angles (outer
+    uniform in (-pi, pi), middle over its whole range) back from SciPy's matrices
+    to SciPy's tolerances (relative 1e-12 for zyx, 1.1e-13 for the symmetric zxz,
+    which arccos of R_22 missed in 11 of the 1000); and 1000 random rotations
+    agree with SciPy's as_euler and come back through from_euler to 1e-14."""
+    seq = _SCIPY_SEQ[convention]
+    rnd = np.random.RandomState(0)
+    n = 1000
+    angles = np.empty((n, 3))
+    angles[:, 0] = rnd.uniform(-np.pi, np.pi, n)
+    angles[:, 1] = rnd.uniform(-np.pi / 2, np.pi / 2, n) if convention == "zyx" else rnd.uniform(0, np.pi, n)
+    angles[:, 2] = rnd.uniform(-np.pi, np.pi, n)
+    got = np.asarray(_TO_EULER(Rotation.from_euler(seq, angles).as_matrix(), convention))
+    np.testing.assert_allclose(got, angles, atol=0, rtol=1e-12 if convention == "zyx" else 1.1e-13)
+    R = Rotation.random(n, random_state=4).as_matrix()
+    err, got = _euler_round_trip_error(R, convention)
+    assert err.max() < 1e-14, err.max()
+    assert _angle_gap(got, Rotation.from_matrix(R).as_euler(seq)).max() < 1e-13
+
+
+def _near_lock_angles(convention):
+    """(phi, theta, psi) rows, and each row's distance from the lock: the middle
+    angle at the lock exactly and 1e-10..1e-4 from it, for three outer pairs."""
+    gaps = np.array([0.0, 1e-10, 1e-9, 1e-8, 1e-7, 1e-6, 1e-5, 1e-4])
+    if convention == "zyx":
+        middles = np.concatenate([np.pi / 2 - gaps, gaps - np.pi / 2])
+    else:
+        middles = np.concatenate([gaps, np.pi - gaps])
+    outer = np.array([[0.4, 0.3], [-2.5, 3.0], [3.1, -1.2]])
+    rows = [[p, m, s] for m in middles for p, s in outer]
+    return np.array(rows), np.repeat(np.concatenate([gaps, gaps]), len(outer))
+
+
+@pytest.mark.parametrize("convention", ["zyx", "zxz"])
+def test_euler_angles_at_and_near_the_gimbal_lock(convention):
+    """At the lock and 1e-10..1e-4 rad from it (zxz: from theta = 0 and from pi),
+    against the angles a matrix was built from (by SciPy) and SciPy's as_euler:
+
+    - the middle angle to rounding: absolutely, and for zxz near 0 relatively
+      (arcsin/arccos of one entry missed it by sqrt(eps): 1e-9 rad at 1e-9 from
+      the lock, 4.4e-11 at theta = 1e-6);
+    - from_euler of the angles is the matrix to 1e-14 at every distance (2e-8 before);
+    - the outer angles are those built from, to eps over the distance (how
+      ill-determined the lock makes them); at the lock, psi is 0 and phi is SciPy's.
+    """
+    seq = _SCIPY_SEQ[convention]
+    angles, gap = _near_lock_angles(convention)
+    R = Rotation.from_euler(seq, angles).as_matrix()
+    err, got = _euler_round_trip_error(R, convention)
+    assert err.max() < 1e-14, (err.max(), angles[np.argmax(err)])
+    theta = angles[:, 1]
+    # Relative near theta = 0; absolute (one ulp of pi/2 or pi) elsewhere.
+    tol = 1e-15 * np.minimum(np.abs(theta), 1.0) + 1e-15 * (np.abs(theta) > 1)
+    assert np.all(np.abs(got[:, 1] - theta) <= tol), np.max(np.abs(got[:, 1] - theta) / tol)
+    scipy = Rotation.from_matrix(R).as_euler(seq, suppress_warnings=True)
+    assert np.all(np.abs(got[:, 1] - scipy[:, 1]) <= 2 * tol)
+    at_lock = gap == 0
+    np.testing.assert_array_equal(got[at_lock, 2], 0.0)
+    assert _angle_gap(got[at_lock], scipy[at_lock]).max() < 1e-14
+    # SciPy sets psi = 0 within 1e-7 of the lock; lierk only at it.
+    off = ~at_lock
+    outer_err = _angle_gap(got[off][:, [0, 2]], angles[off][:, [0, 2]]).max(axis=-1)
+    assert np.all(outer_err <= 1e-15 / gap[off] + 1e-14), np.max(outer_err * gap[off])
+
+
+@pytest.mark.parametrize("convention", ["zyx", "zxz"])
+def test_euler_float32_round_trip_at_rounding_level(convention):
+    """In float32, random rotations and the lock cases above come back through
+    from_euler(to_euler(R)) to a few float32 roundings (arcsin lost 1e-4 near the lock)."""
+    angles, _ = _near_lock_angles(convention)
+    R = np.concatenate([Rotation.from_euler(_SCIPY_SEQ[convention], angles).as_matrix(),
+                        Rotation.random(200, random_state=5).as_matrix()]).astype(np.float32)
+    err, got = _euler_round_trip_error(R, convention)
+    assert got.dtype == np.float32
+    assert err.max() < 8 * np.finfo(np.float32).eps, err.max()
+
+
+def _body_rates(angles, convention):
+    """B(a), (n, 3, 3): d/dt from_euler(a(t)) = R hat(B(a) a'), the body angular
+    velocity of each angle's rate.  zyx: columns Rx(psi)^T Ry(theta)^T e_z,
+    Rx(psi)^T e_y, e_x; zxz: Rz(psi)^T Rx(theta)^T e_z, Rz(psi)^T e_x, e_z."""
+    _, theta, psi = angles.T
+    middle, last = ("Y", "X") if convention == "zyx" else ("X", "Z")
+    Rm, Rl = (Rotation.from_euler(ax, t[:, None]).as_matrix() for ax, t in [(middle, theta), (last, psi)])
+    axis = {"X": E[0], "Y": E[1], "Z": E[2]}
+    c0 = np.einsum("nji,nkj,k->ni", Rl, Rm, E[2])
+    c1 = np.einsum("nji,j->ni", Rl, axis[middle])
+    c2 = np.broadcast_to(axis[last], c0.shape)
+    return np.stack([c0, c1, c2], axis=-1)
+
+
+@pytest.mark.parametrize("convention", ["zyx", "zxz"])
+def test_euler_derivatives_invert_those_of_from_euler(convention):
+    """d/dx to_euler(R0 exp(x)) at 0, from both modes' Jacobians in R's entries,
+    is the inverse of the body rates of the angles, B(a) (from SciPy's
+    elementary rotations), to rounding relative to its size (it grows like
+    1/distance) at every distance from the lock down to 1e-10; at the lock
+    itself it is finite (psi held at 0; arcsin's derivative was infinite there)."""
+    angles, gap = _near_lock_angles(convention)
+    R0 = np.asarray(_FROM_EULER(angles[:, 0], angles[:, 1], angles[:, 2], convention))
+
+    def euler(R):
+        a = _so3.to_euler(R, convention)
+        return a, a
+
+    # Along the group: d/dx R0 exp(x) at 0 is R0 hat(e_k).
+    tangents = R0[:, None] @ np.asarray(_so3.hat(E))[None]  # (n, k, 3, 3)
+    off = gap > 0
+    for jac in (jax.jacfwd, jax.jacrev):
+        JR, a0 = (np.asarray(v) for v in jax.jit(jax.vmap(jac(euler, has_aux=True)))(R0))
+        assert np.all(np.isfinite(JR)), jac.__name__
+        J = np.einsum("nijl,nkjl->nik", JR, tangents)
+        prod = np.einsum("nij,njk->nik", _body_rates(a0[off], convention), J[off])
+        scale = np.abs(J[off]).max(axis=(-2, -1))
+        assert np.all(np.abs(prod - np.eye(3)).max(axis=(-2, -1)) <= 1e-14 * scale), jac.__name__
 
 
 # --- modified Rodrigues parameters (Basilisk's sigma_BN) --------------------------
