@@ -42,6 +42,7 @@ from .problems.effects import SpaceTorque as SpaceTorque
 from .problems.effects import TimedTorque as TimedTorque
 from .problems.spacecraft import GravityGradient as GravityGradient
 from .problems.spacecraft import MagneticTorque as MagneticTorque
+from .problems.spacecraft import ReactionWheels as ReactionWheels
 from .problems.spacecraft import Rotor as Rotor
 from .problems.spacecraft import dipole_field as dipole_field
 from .solution import RESULTS as RESULTS

@@ -400,7 +400,7 @@ def default_solvers(problem) -> tuple[str, ...]:
     from .problems import AbstractRigidBody
 
     names = list(METHODS[:7])
-    if isinstance(problem, AbstractRigidBody) and not problem.torque_free:
+    if isinstance(problem, AbstractRigidBody) and not problem.torque_free and getattr(problem, "splitting_refusal", None) is None:
         names += ["Strang", "BlanesMoan4", "BlanesMoan6"]
         if not problem.kick_reads_momentum:
             names += ["BlanesMoanRKN4", "BlanesMoanRKN6"]

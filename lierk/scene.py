@@ -58,7 +58,14 @@ Schema (every table rejects keys it does not know)::
     #                        B0 = 3.12e-5 (T); dipole = [x, y, z] (A m^2) or bdot_gain = k
     # kind = "rotor"         momentum = [x, y, z] (kg m^2/s, constant, body frame); or
     #                        axes = [[1, 0, 0], ...], momentum = [h1, ...] (per wheel),
-    #                        optional torque = [[u1, ...], ...] at times = [...] (N m, s)
+    #                        optional torque = [[u1, ...], ...] at times = [...] (N m, s):
+    #                        the rate of the momentum relative to the body (a
+    #                        speed-controlled wheel), not a motor torque
+    # kind = "reaction_wheels"  axes = [[1, 0, 0], ...] (body frame), spin_inertia = [Js1, ...]
+    #                        (kg m^2), speeds = [Omega1, ...] (rad/s relative to the body,
+    #                        default 0); motor torques: torque = [u1, ...] (N m, constant)
+    #                        or torque = [[u1, ...], ...] at times = [...] (s); the body's
+    #                        inertia includes the wheels (lierk.ReactionWheels)
 
     [[events]]                  # zero or more: when they happen is reported (lierk.Event)
     kind = "flip"               # the intermediate-axis flip (lierk.conditions.flip)
@@ -102,7 +109,11 @@ Every mistake raises `ValueError` before anything runs, naming the key (as a
 path such as ``effects[1].kind``), the value and what is allowed.  That
 includes runs too large to attempt (more than `MAX_STEPS` fixed steps, more
 than `MAX_SAVED` saved states) and a body whose initial momentum, energy or
-inverse inertia overflows.
+inverse inertia overflows, or whose state does not fit the working precision
+(`lierk.validation.state_range_error`: ``|L|^2``, ``2T``, ``2T I_k``, the
+moments and their product must be normal numbers; 1e300 kg m^2 spinning at 1
+rad/s is refused).  An inertia no rigid body has (the triangle inequality)
+is warned about once, as ``body.inertia``.
 
 Example:
     >>> scene = lierk.scene.load("examples/heavy_top.toml")
@@ -117,6 +128,7 @@ import math
 import os
 import re
 import tomllib
+import warnings
 from typing import Any
 
 import jax.numpy as jnp
@@ -127,6 +139,7 @@ from . import solvers as _solvers
 from .problems import spacecraft
 from .problems.effects import AbstractEffect, BodyTorque, Damping, Gravity, SpaceTorque, TimedTorque
 from .problems import AbstractProblem
+from . import validation
 from .validation import check_attitude
 from .problems import FreeRigidBody, RigidBodyWithEffects
 from .solution import SaveAt, Solution
@@ -343,7 +356,10 @@ class Scene:
         (`lierk.conditions.flip`, named ``"flip"``), when its body has three
         distinct principal moments and the scene has no flip event yet; the
         scene itself otherwise, and for a ``target_error`` run (which takes
-        no events).  ``lierk simulate`` reports and marks flips this way."""
+        no events).  ``lierk simulate`` reports and marks flips this way
+        (`lierk.simulation.simulate`); a solver that cannot locate events
+        (ExplicitEuler) refuses the event when the scene is solved, and
+        ``simulate`` then solves without it and says so."""
         if self.target_error is not None or any(name == "flip" for name, _ in self.events):
             return self
         moments = np.linalg.eigvalsh(np.asarray(self.problem.inertia, dtype=float))
@@ -413,17 +429,31 @@ def load(path: str | os.PathLike) -> Scene:
 def from_dict(d: dict, name: str = "scene", directory: str | os.PathLike = ".") -> Scene:
     """Build a scene from a parsed TOML document (a dict); ``d["name"]``, if
     present, overrides ``name``.  Relative file names in it (a mesh) are
-    read from ``directory`` (`load`: the scene file's)."""
-    # Overflows are reported as errors below, not as NumPy warnings.
-    with np.errstate(all="ignore"):
-        return _from_dict(d, name, directory)
+    read from ``directory`` (`load`: the scene file's).
+
+    Warns once (`UserWarning`) about a ``body.inertia`` no rigid body has
+    (the triangle inequality) and about an inertia nearly singular for the
+    working precision; the problem, its effects and events, built from the
+    same inertia, do not warn again."""
+    # Overflows are reported as errors below, not as NumPy warnings.  The
+    # inertia is warned about here, by its key, not again by each object
+    # built from it (lierk.inertia.tensor, the problem, a gravity gradient).
+    with np.errstate(all="ignore"), validation.inertia_warned():
+        scene, warnings_ = _from_dict(d, name, directory)
+    for text in warnings_:
+        warnings.warn(text, stacklevel=3)
+    return scene
 
 
-def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
+def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[Scene, list[str]]:
+    """The scene, and the warnings it deserves (given by `from_dict`)."""
     _table(d, "scene", {"name", "description", "body", "initial", "effects", "events", "run"}, required={"body", "initial", "run"})
     name = _string(d.get("name", name), "name")
     description = _string(d.get("description", ""), "description")
     body = _body(d["body"], directory)
+    # The body as given, before gravity moves its inertia to the pivot (which
+    # can hide an impossible one); solids always keep the triangle inequality.
+    impossible = validation.impossible_inertia(body.inertia, "body.inertia") if body.parts is None else None
     omega0, R0 = _initial(d["initial"])
     effects_list = d.get("effects", [])
     if not isinstance(effects_list, list):
@@ -441,10 +471,12 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
     else:
         inertia = body.inertia
         fixed_point = body.com
-    _check_state(inertia, omega0, "body" if pivot_to_com is None else "body about the gravity pivot")
     # In JAX's default float type (float32 unless x64 is on), so that building
     # the problem does not ask JAX for float64 it would truncate, with a warning.
     dtype = jnp.result_type(float)
+    _check_state(inertia, omega0, dtype, "body" if pivot_to_com is None else "body about the gravity pivot",
+                 "body.inertia" if body.parts is None and pivot_to_com is None else "inertia")
+    singular = validation.nearly_singular_inertia(inertia, dtype, "the body's inertia")
     inertia, omega0, R0 = (np.asarray(a, dtype=dtype) for a in (inertia, omega0, R0))
     if not effects:
         problem = FreeRigidBody(inertia, omega0, R0)
@@ -455,7 +487,7 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
         raise ValueError(f"events must be an array of tables ([[events]]), got {events_list!r}")
     if events_list and "target_error" in solve_kwargs:
         raise ValueError("events: a run with target_error takes no events (its solves stop at different times); give dt or rtol")
-    return Scene(
+    scene = Scene(
         events=_events(events_list, problem, pivot_to_com),
         name=name,
         problem=problem,
@@ -471,6 +503,7 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> Scene:
         fixed_point=np.asarray(fixed_point, dtype=float),
         description=description,
     )
+    return scene, [text for text in (impossible, singular) if text is not None]
 
 
 # --- validation helpers ------------------------------------------------------
@@ -516,9 +549,12 @@ def _int(x, path: str, *, most: int = MAX_STEPS) -> int:
     return x
 
 
-def _check_state(inertia: np.ndarray, omega0: np.ndarray, what: str) -> None:
+def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key: str) -> None:
     """The body's inverse inertia, initial momentum and energy must be finite
-    (a body of 1e-320 kg m^2, or 1e200 kg m^2 spinning at 1e200 rad/s, is not)."""
+    (a body of 1e-320 kg m^2, or 1e200 kg m^2 spinning at 1e200 rad/s, is
+    not), and its state must fit ``dtype`` (`lierk.validation.state_range_error`:
+    |L|^2 of 1e300 kg m^2 at 1 rad/s overflows, although |L| does not).
+    ``key`` names the inertia in messages."""
     inertia = np.asarray(inertia, dtype=float)
     with np.errstate(all="ignore"):
         finite = np.isfinite(inertia).all()
@@ -532,11 +568,20 @@ def _check_state(inertia: np.ndarray, omega0: np.ndarray, what: str) -> None:
         raise ValueError(f"{what}: the inertia is not finite (too large, or a mass or size too small): {_show(inertia)}")
     if not np.isfinite(inv).all():
         raise ValueError(f"{what}: the inertia {_show(inertia)} kg m^2 is singular or too small to invert")
-    if not (np.isfinite(m).all() and math.isfinite(energy)):
+    if not np.isfinite(m).all():
         raise ValueError(
             f"{what}: the initial momentum I omega overflows (inertia {_show(inertia)} kg m^2, "
             f"omega {_show(omega0)} rad/s)"
         )
+    if not math.isfinite(energy):
+        raise ValueError(
+            f"{what}: the initial kinetic energy omega . I omega / 2 overflows (inertia {_show(inertia)} kg m^2, "
+            f"omega {_show(omega0)} rad/s)"
+        )
+    reason = validation.state_range_error(inertia, omega0, dtype)
+    if reason is not None:
+        shown = np.diagonal(inertia) if not np.any(inertia - np.diag(np.diagonal(inertia))) else inertia
+        raise ValueError(f"{what}: {key} = {_show(shown)} kg m^2 with initial.omega = {_show(omega0)} rad/s: {reason}")
 
 
 def _show(x) -> str:
@@ -732,6 +777,7 @@ _EFFECT_KEYS = {
     "gravity_gradient": ({"radius", "mean_motion", "mu", "phase"}, set()),
     "magnetic": ({"radius", "mean_motion", "tilt", "B0", "phase", "dipole", "bdot_gain"}, set()),
     "rotor": ({"momentum", "axes", "torque", "times"}, {"momentum"}),
+    "reaction_wheels": ({"axes", "spin_inertia", "speeds", "torque", "times"}, {"axes", "spin_inertia"}),
 }
 
 
@@ -847,7 +893,47 @@ def _rotor(t: dict, p: str, body: _Body):
     return spacecraft.Rotor(momentum, axes=axes, torque=torque, times=times)
 
 
-_SPACECRAFT = {"gravity_gradient": _gravity_gradient, "magnetic": _magnetic, "rotor": _rotor}
+def _reaction_wheels(t: dict, p: str, body: _Body):
+    if not isinstance(t["axes"], list) or not t["axes"]:
+        raise ValueError(f"{p}.axes must be a non-empty list of [x, y, z] wheel axes (body frame), got {_show(t['axes'])}")
+    axes = np.stack([_vec(a, f"{p}.axes[{j}]") for j, a in enumerate(t["axes"])])
+    for j, a in enumerate(axes):
+        if not np.any(a):
+            raise ValueError(f"{p}.axes[{j}] must be a non-zero vector, got {t['axes'][j]!r}")
+    k = len(axes)
+    spin = _vec(t["spin_inertia"], f"{p}.spin_inertia", k)
+    for j, js in enumerate(spin):
+        if not js > 0:
+            raise ValueError(f"{p}.spin_inertia[{j}] must be > 0 (kg m^2), got {t['spin_inertia'][j]!r}")
+    speeds = _vec(t["speeds"], f"{p}.speeds", k) if "speeds" in t else np.zeros(k)
+    if "times" in t:
+        times = t["times"]
+        if not isinstance(times, list) or not times:
+            raise ValueError(f"{p}.times must be a non-empty list of times (s), got {_show(times)}")
+        times = np.array([_number(x, f"{p}.times[{j}]") for j, x in enumerate(times)])
+        if np.any(np.diff(times) <= 0):
+            raise ValueError(f"{p}.times must be strictly increasing, got {_show(times)}")
+        if "torque" not in t:
+            raise ValueError(f"{p}: times need torque = [[u1, ...], ...], one row of {k} motor torques (N m) per time")
+        torque = t["torque"]
+        if not isinstance(torque, list) or len(torque) != len(times):
+            raise ValueError(f"{p}.torque must list one row of {k} motor torques (N m) per time ({len(times)}), got {_show(torque)}")
+        torque = np.stack([_vec(v, f"{p}.torque[{j}]", k) for j, v in enumerate(torque)])
+    elif "torque" in t:
+        if isinstance(t["torque"], list) and t["torque"] and isinstance(t["torque"][0], list):
+            raise ValueError(f"{p}.torque: rows of motor torques need times = [...] (s), one per row")
+        torque = _vec(t["torque"], f"{p}.torque", k)
+    else:
+        torque = None
+    return spacecraft.ReactionWheels(axes, spin, speeds, torque=torque, times=times if "times" in t else None)
+
+
+_SPACECRAFT = {
+    "gravity_gradient": _gravity_gradient,
+    "magnetic": _magnetic,
+    "rotor": _rotor,
+    "reaction_wheels": _reaction_wheels,
+}
 
 # --- events --------------------------------------------------------------------
 

@@ -3,7 +3,8 @@ library call.
 
 `simulate` solves a `lierk.scene.Scene` (in pieces, with progress if asked),
 with the scene's events and the intermediate-axis flip
-(`lierk.scene.Scene.with_flip_event`), and takes its
+(`lierk.scene.Scene.with_flip_event`; not with a solver that cannot locate
+events, ExplicitEuler, which the report says), and takes its
 `lierk.diagnostics.diagnostics`; the `Simulation` it returns
 gives the arrays ``lierk simulate`` saves (`Simulation.record`, one
 ``.npz``) and the report it prints (`Simulation.summary`).
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import sys
 import time
 from typing import Any
 
@@ -39,12 +41,17 @@ class Simulation:
         diagnostics: `lierk.diagnostics.diagnostics` of the solution, with
             its Euler angles in the scene's `lierk.scene.Scene.euler_convention`.
         wall: the solve's wall time (s), compilation included.
+        flips_untracked: why the flip is not among the scene's events
+            although the body has an intermediate axis (the solver's own
+            words: ExplicitEuler has no interpolant to locate events on), or
+            None.
     """
 
     scene: Any
     solution: Solution
     diagnostics: Diagnostics
     wall: float
+    flips_untracked: str | None = None
 
     @property
     def flip_interval(self) -> float | None:
@@ -69,7 +76,8 @@ class Simulation:
         ``solver`` and ``scene`` (names); ``invariant_<name>`` ``(n,)`` per
         invariant (`lierk.scene.identifier` of its name: ``|L|`` ->
         ``invariant_abs_L``); ``y``, the state besides ``R`` (when the
-        problem has one); ``error_estimate`` ``(n,)`` (when the solve
+        problem has one: the body momentum; with reaction wheels also
+        ``wheel_speeds`` ``(n, k)``, rad/s relative to the body); ``error_estimate`` ``(n,)`` (when the solve
         estimated its error); and ``event_<name>``, the times of each event
         (`event_times`)."""
         from .solution import trajectory
@@ -92,7 +100,9 @@ class Simulation:
             "scene": np.asarray(scene.name),
             **{f"invariant_{identifier(k)}": v for k, v in diag.invariants.items()},
         }
-        if y is not None:
+        if isinstance(y, tuple):  # reaction wheels: (m, Omega)
+            data["y"], data["wheel_speeds"] = y
+        elif y is not None:
             data["y"] = y
         if sol.error_estimate is not None:
             data["error_estimate"] = np.asarray(sol.error_estimate)[: len(ts)]
@@ -124,13 +134,16 @@ class Simulation:
         conserved = scene.problem.conserved()
         for k, v in diag.drift.items():
             note = "" if k in conserved else "  (not conserved by this scene)"
-            lines.append(f"  max relative change of {k}: {v:.2e}{note}")
+            shown = f"{v:.2e}" if math.isfinite(v) else f"not finite ({k} is inf or nan at a saved time)"
+            lines.append(f"  max relative change of {k}: {shown}{note}")
         lines.append(f"  max ||R^T R - I||: {diag.orthogonality:.2e}")
         flip = self.flip_interval
         if flip is not None and math.isfinite(flip):
             lines.append(f"  intermediate-axis flip interval (exact): {flip:.3f} s")
         elif flip is not None:
             lines.append("  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+        if self.flips_untracked is not None:
+            lines.append(f"  flips not tracked with {scene.solver.name}: {self.flips_untracked}")
         for (name, _), times, record in zip(scene.events, self.event_times.values(), sol.events or ()):
             shown = ", ".join(f"{t:.6g}" for t in times[:8]) + (", ..." if len(times) > 8 else "")
             count = int(record.count)
@@ -146,13 +159,24 @@ def simulate(scene, *, n_pieces: int | None = None, progress: bool = False) -> S
     (`lierk.scene.Scene.with_flip_event`; `Simulation.scene` is that scene),
     and read the solution's diagnostics.
 
+    A solver that cannot locate events (`lierk.AbstractSolver.no_interpolant`:
+    ExplicitEuler leaves SO(3), so its steps have no interpolant) solves the
+    scene without the flip, and `Simulation.flips_untracked` says why.  The
+    scene's own events it cannot do without: they raise.
+
     Raises:
+        ValueError: the solve refused its arguments (`lierk.solve`).
         RuntimeError: the solve failed (`lierk.scene.Scene.solve`).
     """
     from .diagnostics import diagnostics
 
-    scene = scene.with_flip_event()
+    flipped = scene.with_flip_event()
+    untracked = scene.solver.no_interpolant if flipped is not scene else None
+    tracked = flipped if untracked is None else scene
+    if untracked is not None and progress:
+        print(f"{scene.name}: flips not tracked with {scene.solver.name}: {untracked}", file=sys.stderr)
     start = time.perf_counter()
-    sol = scene.solve(n_pieces=n_pieces, progress=progress)
+    sol = tracked.solve(n_pieces=n_pieces, progress=progress)
     wall = time.perf_counter() - start
-    return Simulation(scene, sol, diagnostics(scene.problem, sol, euler_convention=scene.euler_convention), wall)
+    return Simulation(tracked, sol, diagnostics(tracked.problem, sol, euler_convention=tracked.euler_convention), wall,
+                      untracked)

@@ -159,6 +159,10 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["simulate", "{scene}", "--out", "{out}", "--t1", "1e300"], 2, "is 1e+302 steps, more than a run may take"),
         (["sweep", "{scene}", "--out", "{out}", "--t1", "1e300", "--omega-y", "0:0.1:2"], 2, "more than a run may take"),
         (["simulate", "{huge_t1_adaptive}", "--out", "{out}", "--float32"], 2, "outside single precision's range"),
+        # Used to exit 0 with six NumPy warnings and "|L|: nan".
+        (["simulate", "{huge_inertia}", "--out", "{out}"], 2,
+         "body: body.inertia = [1.e+300, 1.e+300, 1.e+300] kg m^2 with initial.omega = [0.3, 1. , 0.2] rad/s: "
+         "det(I), the product of the principal moments, = 1e+900 overflows float64"),
         (["simulate", "{scene}", "--out", "{a_file}"], 2, "exists and is not a directory"),
         (["simulate", "{scene}", "--out", "{below_a_file}"], 2, "is not a directory"),
         (["simulate", "{scene_dir}", "--out", "{out}"], 2, "scene file is a directory"),
@@ -181,6 +185,8 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
         "tiny_dt": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "dt = 1e-320"), "tiny_dt.toml"),
         "huge_t1": write(tmp_path, TEE_SCENE.replace("t1 = 100.0", "t1 = 1e300"), "huge_t1.toml"),
         "huge_t1_adaptive": write(tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300"), "huge_adaptive.toml"),
+        "huge_inertia": write(tmp_path, ADAPTIVE_SCENE.replace("[1.0, 2.0, 3.0]", "[1e300, 1e300, 1e300]"),
+                              "huge_inertia.toml"),
         "a_file": write(tmp_path, "", "a_file"),
         "below_a_file": tmp_path / "a_file" / "out",
         "scene_dir": tmp_path,
@@ -266,6 +272,24 @@ def test_flip_interval_only_for_scenes_that_flip(tmp_path, capsys, letter, flips
     assert code == 0, err
     assert ("intermediate-axis flip interval (exact): 23.631 s" in out) == flips
     assert ("no flip of the intermediate axis" in out) == (not flips)
+
+
+def test_explicit_euler_on_an_impossible_asymmetric_body(tmp_path, capsys):
+    """Two findings, one run: ExplicitEuler on an asymmetric body exited 1
+    ("dense output and events need a Lie-group solver": the flip event is
+    added for such bodies); the triangle-inequality warning was printed three
+    times.  Now: one warning, and the report says flips are not tracked."""
+    text = ADAPTIVE_SCENE.replace("[1.0, 2.0, 3.0]", "[0.5, 0.6, 1.5]")
+    text = text.replace('solver = "DP54"\nrtol = 1e-10', 'solver = "ExplicitEuler"\ndt = 0.01')
+    text = text.replace("t1 = 2.0\nn_save = 41", "t1 = 0.1")
+    argv = ["simulate", write(tmp_path, text), "--out", tmp_path / "out", "--no-gif", "--quiet", "--no-cache"]
+    code, out, err = run_inprocess(argv, capsys)
+    assert code == 0, err
+    assert [line for line in err.splitlines() if "warning" in line] == [
+        "lierk simulate: warning: body.inertia [0.5, 0.6, 1.5] breaks the triangle inequality I_max <= I_a + I_b: "
+        "no rigid body has these principal moments; the equations are solved as given"]
+    assert "  flips not tracked with ExplicitEuler: ExplicitEuler leaves SO(3)" in out
+    assert "event_flip" not in _npz(tmp_path / "out" / "adaptive.npz")
 
 
 def test_console_script_errors_without_traceback(tmp_path):

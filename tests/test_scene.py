@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import dataclasses
 import pathlib
+import warnings
 
 import jax
 import numpy as np
@@ -365,11 +366,73 @@ def test_with_t1_is_checked_like_run_t1():
         ({"body": {"kind": "box", "mass": 1e300, "lx": 1e200, "ly": 1.0, "lz": 1.0}}, "the inertia is not finite|NaN or inf"),
         ({"body": {"kind": "sphere", "mass": 1.0, "radius": 0.1}, "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e300]}]},
          "body about the gravity pivot: the inertia is not finite"),
+        # |L| = 1e155 is finite, its square is not.  (1e300 kg m^2 loaded and
+        # printed "|L|: nan"; its moments are refused now, below.)
+        ({"body": {"kind": "tensor", "inertia": [1e100, 1e100, 1e100]}, "initial": {"omega": [1e55, 0.0, 0.0]}},
+         r"^body: body.inertia = \[1.e\+100, 1.e\+100, 1.e\+100\] kg m\^2 with initial.omega = \[1.e\+55, 0.e\+00, "
+         r"0.e\+00\] rad/s: \|L\|\^2 = \|I omega\|\^2 = 1e\+310 overflows float64, whose normal numbers lie between "
+         r"2.2e-308 and 1.8e\+308"),
+        ({"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}},
+         r"^body: body.inertia = \[1.e\+300, 1.e\+300, 1.e\+300\] kg m\^2 with initial.omega = \[1. , 0.05, 0. \] "
+         r"rad/s: det\(I\), the product of the principal moments, = 1e\+900 overflows float64"),
+        # Was refused as "not positive definite" (the check's determinant underflowed).
+        ({"body": {"kind": "tensor", "inertia": [1e-300, 2e-300, 3e-300]}},
+         r"body.inertia = \[1.e-300, 2.e-300, 3.e-300\] .*: det\(I\), the product of the principal moments, = 6e-900 "
+         r"underflows float64"),
+        ({"initial": {"omega": [1e155, 0.0, 0.0]}}, r"\|omega\|\^2 = 1e\+310 overflows float64"),
+        # Was "the initial momentum I omega overflows", which it does not (1e196).
+        ({"initial": {"omega": [1e200, 0.0, 0.0]}}, "the initial kinetic energy omega . I omega / 2 overflows"),
+        ({"body": {"kind": "sphere", "mass": 1.0, "radius": 0.1},
+          "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e150]}]},
+         r"^body about the gravity pivot: inertia = .* det\(I\), the product of the principal moments, = .* overflows"),
     ],
 )
 def test_bodies_whose_state_overflows_are_rejected(changes, match):
     with pytest.raises(ValueError, match=match):
         S.from_dict(_tee(**changes))
+
+
+def test_state_range_holds_for_extreme_bodies_that_fit_and_follows_the_precision():
+    for moments in ([1e100, 2e100, 3e100], [1e-100, 2e-100, 3e-100]):
+        scene = S.from_dict(_tee(body={"kind": "tensor", "inertia": moments}))
+        np.testing.assert_array_equal(np.diagonal(np.asarray(scene.problem.inertia)), moments)
+    # Moments of 1e150 were refused as "not positive definite" (the check's
+    # determinant overflowed); they are too large, and now the message says why.
+    with pytest.raises(ValueError, match=r"det\(I\), the product of the principal moments, = 6e\+450 overflows float64"):
+        S.from_dict(_tee(body={"kind": "tensor", "inertia": [1e150, 2e150, 3e150]}))
+    # At rest nothing is squared, but the moments must fit.
+    S.from_dict(_tee(body={"kind": "tensor", "inertia": [1e100, 1e100, 1e100]}, initial={"omega": [0.0, 0.0, 0.0]}))
+    with pytest.raises(ValueError, match=r"det\(I\), the product of the principal moments, = 1e\+900 overflows"):
+        S.from_dict(_tee(body={"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}, initial={"omega": [0.0, 0.0, 0.0]}))
+    # Single precision (lierk --float32): the bound is float32's.
+    big = _tee(body={"kind": "tensor", "inertia": [1e10, 2e10, 2.5e10]}, initial={"omega": [1e10, 0.0, 0.0]})
+    S.from_dict(big)
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match=r"\|L\|\^2 = \|I omega\|\^2 = 1e\+40 overflows float32, whose normal "
+                                             r"numbers lie between 1.2e-38 and 3.4e\+38"):
+            S.from_dict(big)
+
+
+@pytest.mark.parametrize("effects", [[], [{"kind": "gravity_gradient", "radius": 7e6}]])
+def test_an_impossible_inertia_is_warned_about_once_by_its_key(effects):
+    """The tensor check, the problem and a gravity gradient each validate the
+    inertia; one warning names it (it was printed three times)."""
+    d = _tee(body={"kind": "tensor", "inertia": [0.5, 0.6, 1.5]}, effects=effects)
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        scene = S.from_dict(d)
+    assert [str(w.message) for w in shown] == [
+        "body.inertia [0.5, 0.6, 1.5] breaks the triangle inequality I_max <= I_a + I_b: no rigid body has these "
+        "principal moments; the equations are solved as given"]
+    # Re-validating the body's own inertia (lierk.exact, as the report does) is silent too.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        lierk.exact.flip_interval(scene.problem.inertia, scene.problem.omega0)
+    # A physical body, and a solid (never impossible), warn about nothing.
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        S.from_dict(_tee(body={"kind": "tensor", "inertia": [1.0, 2.0, 3.0]}, effects=effects))
+        S.from_dict(_tee(effects=effects))
 
 
 def test_load_reports_bytes_that_are_not_utf8(tmp_path):

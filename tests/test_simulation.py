@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import dataclasses
 import re
+import warnings
 
+import jax
 import numpy as np
 import pytest
 
@@ -107,3 +110,60 @@ def test_simulate_in_pieces_saves_what_one_solve_saves():
             np.testing.assert_allclose(b[k], v, rtol=1e-13, atol=1e-15, err_msg=k)
     with pytest.raises(ValueError, match="n_pieces must be a positive int"):
         simulate(scene, n_pieces=0)
+
+
+@pytest.mark.parametrize("solver, tracked", [("ExplicitEuler", False), ("LieEuler", True), ("NaiveLieRK4", True)])
+def test_flips_are_tracked_where_the_solver_can_locate_events(solver, tracked):
+    """The T-handle is asymmetric, so the flip event is added; ExplicitEuler
+    cannot locate events (it leaves SO(3)) and used to end the run with
+    "dense output and events need a Lie-group solver"."""
+    sim = simulate(_scene(solver=solver, t1=0.1, save_every=1))
+    assert int(sim.solution.result) == 0
+    assert ([name for name, _ in sim.scene.events] == ["flip"]) == tracked
+    assert ("event_flip" in sim.record()) == tracked
+    lines = sim.summary().splitlines()
+    if tracked:
+        assert sim.flips_untracked is None and lines[-1] == "  event flip: none"
+        assert not any("not tracked" in line for line in lines)
+    else:
+        assert sim.flips_untracked.startswith("ExplicitEuler leaves SO(3), so its steps have no interpolant")
+        assert lines[-1] == f"  flips not tracked with ExplicitEuler: {sim.flips_untracked}"
+        # The same steps as the scene solved as it is.
+        plain = _scene(solver=solver, t1=0.1, save_every=1).solve()
+        np.testing.assert_array_equal(np.asarray(sim.solution.R), np.asarray(plain.R))
+
+
+def test_events_the_scene_asks_for_still_need_a_solver_that_locates_them():
+    scene = S.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
+                         "events": [{"kind": "tilt", "angle": 0.5}], "run": {**RUN, "solver": "ExplicitEuler"}})
+    with pytest.raises(ValueError, match="dense output and events need a Lie-group solver"):
+        simulate(scene)
+
+
+def test_an_impossible_body_warns_once_from_loading_to_the_report():
+    """lierk simulate printed the triangle-inequality warning three times:
+    the tensor check, the problem and the report's exact flip interval."""
+    with warnings.catch_warnings(record=True) as shown:
+        warnings.simplefilter("always")
+        scene = S.from_dict({"body": {"kind": "tensor", "inertia": [0.5, 0.6, 1.5]},
+                             "initial": {"omega": [1.0, 0.05, 0.3]}, "run": RUN})
+        sim = simulate(scene)
+        sim.summary()
+    assert [str(w.message).split(" breaks")[0] for w in shown] == ["body.inertia [0.5, 0.6, 1.5]"]
+
+
+def test_an_invariant_that_is_not_finite_is_said_so():
+    """A state that overflowed at a saved point (a |L| of inf) gave six NumPy
+    warnings and "|L|: nan"; now the drift is nan, said so in the report."""
+    import equinox as eqx
+
+    sim = simulate(_scene(t1=0.05))
+    y = np.array(sim.solution.y)
+    y[-1] = [np.inf, 0.0, 0.0]
+    sol = eqx.tree_at(lambda s: s.y, sim.solution, jax.numpy.asarray(y))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        d = diagnostics(sim.scene.problem, sol)
+    assert np.isnan(d.drift["|L|"]) and np.isnan(d.drift["energy"])
+    lines = dataclasses.replace(sim, diagnostics=d).summary().splitlines()
+    assert "  max relative change of |L|: not finite (|L| is inf or nan at a saved time)" in lines

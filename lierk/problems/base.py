@@ -182,6 +182,13 @@ class AbstractRigidBody(AbstractProblem):
         body keeps it (``y`` itself, or ``R^T L``)."""
         return self._body_momenta(R, y)
 
+    def total_momentum(self, R: Array, y: Any) -> Array:
+        """The whole body's angular momentum in the body frame ``(..., 3)``
+        (kg m^2/s): `body_momentum`, plus what internal rotors carry
+        (`lierk.ReactionWheels`).  ``R @ total_momentum`` is the spatial
+        momentum that no internal torque changes."""
+        return self._body_momenta(R, y)
+
     def mode_frequency(self, t: Array, R: Array, y: Any) -> Array:
         """The torque-free part: the spectral radius (rad/s) of Euler's
         equations linearised at the momentum ``m`` of ``(R, y)``:

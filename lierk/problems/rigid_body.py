@@ -35,6 +35,7 @@ from .. import exact, so3, validation
 from .base import AbstractRigidBody
 from .effects import AbstractEffect
 from .kinematics import kinetic_energy
+from .spacecraft import ReactionWheels, _along, _spin_matrix, _wheel_sum
 
 __all__ = ["RigidBodyWithEffects", "FreeRigidBody"]
 
@@ -47,6 +48,13 @@ class RigidBodyWithEffects(AbstractRigidBody):
     only the effects present are traced: with ``effects=()`` the stages never
     form a rotation matrix at all.
 
+    With `lierk.ReactionWheels` among the effects the state is ``y = (m,
+    Omega)``, the body momentum and the wheels' speeds relative to the body
+    ``(k,)`` (rad/s), and the field is Basilisk's balanced wheels (see
+    `lierk.ReactionWheels`): the other effects' torques still add up, and the
+    sum turns the body through ``(I - G)^-1``.  `body_momentum` is still
+    ``m = I omega``; the invariants include the wheels.
+
     Adaptive solves measure the momentum's error relative to its size
     (`error_tolerance`), so ``rtol`` means the same for a 1e-4 kg m^2 handle
     and a 500 kg satellite.
@@ -57,7 +65,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
             otherwise the centre of mass).
         omega0: ``(3,)`` initial body angular velocity (rad/s).
         R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
-        effects: tuple of `lierk.effects.AbstractEffect`.
+        effects: tuple of `lierk.effects.AbstractEffect`; at most one
+            `lierk.ReactionWheels`.
 
     Example:
         >>> top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.0, 0.3, 50.0],
@@ -77,6 +86,10 @@ class RigidBodyWithEffects(AbstractRigidBody):
     # that inside jit even jnp.asarray(constant) is traced: pass NumPy arrays
     # or lists to get the closed form there.
     symmetry_axis: int | None = eqx.field(static=True)
+    # The position of the `ReactionWheels` effect in ``effects``, or None.
+    # Static: with wheels the state is a pair and the field another program;
+    # without, nothing of them is traced.
+    wheel_index: int | None = eqx.field(static=True)
     # Whether the inertia is a concrete diagonal matrix: then omega = I^-1 m is
     # an elementwise product, which XLA fuses with the rest of a stage, where
     # the 3x3 product is a kernel of its own (a DOP853 step on a heavy top ran
@@ -97,11 +110,29 @@ class RigidBodyWithEffects(AbstractRigidBody):
             if not isinstance(e, AbstractEffect):
                 raise ValueError(
                     f"effects[{i}] must be a lierk effect (Gravity, BodyTorque, SpaceTorque, TimedTorque, Damping, "
-                    f"GravityGradient, MagneticTorque, Rotor), got {e!r}"
+                    f"GravityGradient, MagneticTorque, Rotor, ReactionWheels), got {e!r}"
                 )
+        wheels = [i for i, e in enumerate(effects) if isinstance(e, ReactionWheels)]
+        if len(wheels) > 1:
+            raise ValueError(
+                f"effects[{wheels[1]}]: a body takes one ReactionWheels effect, and effects[{wheels[0]}] is one "
+                "already; give all the wheels to one (axes (k, 3))"
+            )
+        self.wheel_index = wheels[0] if wheels else None
         self.inertia, omega0, self.R0 = validation.rigid_body_inputs(inertia, omega0, R0)
-        self.inertia_inv, self.y0 = _inverse_and_momentum(self.inertia, omega0)
+        self.inertia_inv, m0 = _inverse_and_momentum(self.inertia, omega0)
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
+        if self.wheel_index is None:
+            self.y0 = m0
+        else:
+            w = self.wheels
+            checked = _check_wheels(self.inertia, w.axes, w.spin_inertia, f"effects[{self.wheel_index}]")
+            # Traced, the check rides on the values it guards (a discarded
+            # check would be dropped from the program).
+            self.inertia, axes, spin_inertia = checked
+            self.effects = eqx.tree_at(lambda es: (es[self.wheel_index].axes, es[self.wheel_index].spin_inertia),
+                                       self.effects, (axes, spin_inertia))
+            self.y0 = (m0, w.speeds)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
         diagonal = _concrete_diagonal(inertia)
@@ -109,19 +140,74 @@ class RigidBodyWithEffects(AbstractRigidBody):
         self.symmetry_axis = None if diagonal is None else _symmetry_axis(diagonal)
 
     @property
+    def wheels(self) -> ReactionWheels | None:
+        """The `lierk.ReactionWheels` effect, or None."""
+        return None if self.wheel_index is None else self.effects[self.wheel_index]
+
+    @property
     def L(self) -> Array:
         """Initial spatial angular momentum ``R0 m0`` ``(3,)`` (kg m^2/s);
-        constant in time for a torque-free body."""
-        return self.R0 @ self.y0
+        constant in time for a torque-free body.  With reaction wheels, the
+        whole spacecraft's, ``R0 (m0 + sum Js Omega0 g)``, constant in time
+        without other effects."""
+        return self.R0 @ self.total_momentum(self.R0, self.y0)
+
+    def total_momentum(self, R, y):
+        """`body_momentum`, and with reaction wheels their momentum relative
+        to the body, ``m + sum Js Omega g`` ``(..., 3)`` (kg m^2/s)."""
+        if self.wheel_index is None:
+            return y
+        m, speeds = y
+        return m + _wheel_sum(self.wheels.spin_inertia * speeds, self.wheels.axes)
 
     def _body_momenta(self, R, y):
-        return y
+        return y if self.wheel_index is None else y[0]
 
     def _momentum_state(self, m):
+        if self.wheel_index is not None:
+            self._refuse_splitting()
         return m
 
     def _with_initial_momentum(self, m0):
+        # With wheels the speeds relative to the body stay as they are (a
+        # sweep of omega0 turns the body, not the wheels' motors).
+        if self.wheel_index is not None:
+            return eqx.tree_at(lambda p: p.y0[0], self, m0)
         return eqx.tree_at(lambda p: p.y0, self, m0)
+
+    def with_omega0(self, omega0: ArrayLike) -> "RigidBodyWithEffects":
+        """The same body and effects started with body angular velocity
+        ``omega0`` ``(3,)`` (rad/s) instead; works on traced values (sweeps).
+        Reaction wheels keep the speeds relative to the body that the state
+        holds (so `lierk.sensitivity` with respect to ``omega0`` holds them
+        fixed)."""
+        return super().with_omega0(omega0)
+
+    @property
+    def splitting_refusal(self) -> str | None:
+        """Why the splitting solvers cannot take this body, or None: their
+        drift is the exact torque-free flow of a rigid body, which a body with
+        reaction wheels does not follow."""
+        if self.wheel_index is None:
+            return None
+        return (
+            "the splitting solvers (Strang, Yoshida4, BlanesMoan4, ...) drift with the exact torque-free flow of a "
+            f"rigid body, which a body with ReactionWheels (effects[{self.wheel_index}]) does not follow; use an RKMK, "
+            "CF4 or adaptive solver (RKMK4, CF4, DP54, DOP853, ...)"
+        )
+
+    def _refuse_splitting(self):
+        raise ValueError(self.splitting_refusal)
+
+    def drift(self, R, y, h):
+        if self.wheel_index is not None:
+            self._refuse_splitting()
+        return super().drift(R, y, h)
+
+    def kick(self, t, R, y, h):
+        if self.wheel_index is not None:
+            self._refuse_splitting()
+        return super().kick(t, R, y, h)
 
     def _space_vectors(self) -> Array | None:
         """The effects' `AbstractEffect.space_vectors` stacked, ``(K, 3)``, or
@@ -132,7 +218,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         # Constants stay NumPy: every stage asks for them, and jax.numpy would
         # trace the same constant operations again each time.
         xp = np if all(isinstance(v, np.ndarray) for v in vs) else jnp
-        return xp.concatenate([xp.asarray(v, self.y0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.y0.dtype)])
+        return xp.concatenate([xp.asarray(v, self.R0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.R0.dtype)])
 
     # Stages never need the whole attitude when every effect reads it only
     # through the body images R^T s of a few space-fixed vectors s (gravity's
@@ -158,21 +244,56 @@ class RigidBodyWithEffects(AbstractRigidBody):
         return so3.cross(point, xi)
 
     def at(self, base, t, y):
+        if self.wheel_index is not None:
+            return self._at_with_wheels(base, t, y)
         omega = jnp.diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
-        dm = so3.cross(y, omega)
+        return omega, self._add_torques(so3.cross(y, omega), base, t, y, omega)
+
+    def _add_torques(self, dm, base, t, m, omega):
+        """``dm`` plus every effect's torque at the point ``base``, time ``t``,
+        momentum ``m`` and angular velocity ``omega`` (reaction wheels, which
+        are no torque, aside)."""
         vectors = self._space_vectors() is not None
         start = 0
-        for e in self.effects:
+        for i, e in enumerate(self.effects):
+            if i == self.wheel_index:
+                continue
             # The scope names the effect's equations (including the sum, so a
             # constant torque shows up too) in jaxprs and profiles.
             with jax.named_scope(f"lierk_effect_{type(e).__name__}"):
                 if vectors:
                     k = np.shape(e.space_vectors())[0]
-                    dm = dm + e.torque_from(t, base[start : start + k], y, omega)
+                    dm = dm + e.torque_from(t, base[start : start + k], m, omega)
                     start += k
                 else:
-                    dm = dm + e.torque(t, base, y, omega)
-        return omega, dm
+                    dm = dm + e.torque(t, base, m, omega)
+        return dm
+
+    def _at_with_wheels(self, base, t, y):
+        """Basilisk's balanced wheels (`lierk.ReactionWheels`): ``(I - G)
+        omega' = (m + h_w) x omega - sum u g + tau`` with ``h_w = sum Js Omega
+        g``, then ``m' = I omega'`` and ``Omega' = u / Js - g . omega'``."""
+        m, speeds = y
+        w = self.wheels
+        omega = jnp.diagonal(self.inertia_inv) * m if self.diagonal else self.inertia_inv @ m
+        with jax.named_scope("lierk_effect_ReactionWheels"):
+            u = w.motor_torque(t)
+            u = None if u is None else u.astype(m.dtype)
+            rhs = so3.cross(m + _wheel_sum(w.spin_inertia * speeds, w.axes), omega)
+            if u is not None:
+                rhs = rhs - _wheel_sum(u, w.axes)
+        rhs = self._add_torques(rhs, base, t, m, omega)
+        with jax.named_scope("lierk_effect_ReactionWheels"):
+            # I - G is formed and solved here, not kept from the constructor:
+            # a perturbed spin inertia or axis (a sensitivity with respect to
+            # it) then turns the body as it should.  A 3x3 solve by cofactors
+            # is a few dozen products that fuse with the rest of the stage.
+            domega = _solve3(self.inertia - _spin_matrix(w.spin_inertia, w.axes), rhs)
+            dm = jnp.diagonal(self.inertia) * domega if self.diagonal else self.inertia @ domega
+            dspeeds = -_along(w.axes, domega)
+            if u is not None:
+                dspeeds = dspeeds + u / w.spin_inertia
+        return omega, (dm, dspeeds)
 
     def field(self, t, R, y):
         return self.at(self.base(t, R, y), t, y)
@@ -191,22 +312,29 @@ class RigidBodyWithEffects(AbstractRigidBody):
         (1/s), both ``(3, 3)``, and the rate
         (rad/s) at which time turns them, ``max(||dK/dt|| / ||K||)`` (an
         orbit's or a rotating field's; 0 for effects that do not depend on
-        time).  Not differentiated."""
-        t = jnp.asarray(t, y.dtype)
+        time).  Not differentiated.
+
+        With reaction wheels ``K_m`` is taken with the wheels' absolute
+        momenta ``Js (Omega + g . omega)`` held, which their motor torques
+        alone change: perturbations of them do not grow or turn, so the
+        modes are those of ``m`` with them fixed (the gyrostat's nutation
+        through ``I - G``)."""
+        m0 = self._body_momenta(R, y)
+        t = jnp.asarray(t, m0.dtype)
 
         def linearised(t):
             base = self.base(t, R, y)
 
             def torque(u, m):
-                omega, dm = self.local(base, t, u, m)
-                return dm - so3.cross(m, omega)
+                omega, dm = self.local(base, t, u, self._state_with_momentum(y, m))
+                return self._body_momenta(R, dm) - so3.cross(m, omega)
 
-            K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, y.dtype), y)
+            K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, m0.dtype), m0)
             return self.inertia_inv @ K_u, K_m
 
         if not any(e.depends_on_time for e in self.effects):
             K_u, K_m = linearised(t)
-            return jax.lax.stop_gradient((K_u, K_m, jnp.zeros((), y.dtype)))
+            return jax.lax.stop_gradient((K_u, K_m, jnp.zeros((), m0.dtype)))
         (K_u, K_m), (dK_u, dK_m) = jax.jvp(linearised, (t,), (jnp.ones_like(t),))
 
         def rate(K, dK):
@@ -214,6 +342,15 @@ class RigidBodyWithEffects(AbstractRigidBody):
             return jnp.where(size > 0, _frobenius(dK) / jnp.where(size > 0, size, 1.0), 0.0)
 
         return jax.lax.stop_gradient((K_u, K_m, jnp.maximum(rate(K_u, dK_u), rate(K_m, dK_m))))
+
+    def _state_with_momentum(self, y, m):
+        """The state ``y`` with its body momentum replaced by ``m``; reaction
+        wheels keep their absolute momenta (their relative speeds take up
+        the change of ``g . omega``)."""
+        if self.wheel_index is None:
+            return m
+        m0, speeds = y
+        return m, speeds - _along(self.wheels.axes, so3.matvec(self.inertia_inv, m - m0))
 
     def modes(self, t, R, y):
         """``(frequency, decay)``: bounds on the oscillation or growth (rad/s)
@@ -278,32 +415,104 @@ class RigidBodyWithEffects(AbstractRigidBody):
         ``atol * m_ref + rtol * max(|m_n|, |m_n+1|)``: relative to its size, so
         units and body size drop out, and near a principal axis the small
         components are not held to a relative accuracy they cannot matter for.
-        ``m_ref`` (`momentum_scale`) keeps a body at rest well defined."""
-        size = jnp.maximum(jnp.linalg.norm(y0), jnp.linalg.norm(y1))
-        return jnp.broadcast_to(atol * self.momentum_scale + rtol * size, y0.shape)
+        ``m_ref`` (`momentum_scale`) keeps a body at rest well defined.
+        Reaction wheels' speeds likewise, as one vector against ``atol *
+        Omega_ref + rtol * max(|Omega_n|, |Omega_n+1|)`` (`wheel_speed_scale`):
+        ``rtol`` is relative for them too."""
+        if self.wheel_index is not None:
+            (m0, s0), (m1, s1) = y0, y1
+            size = jnp.maximum(jnp.linalg.norm(s0), jnp.linalg.norm(s1))
+            speeds = jnp.broadcast_to(atol * self.wheel_speed_scale + rtol * size, s0.shape)
+            return self.error_tolerance_momentum(m0, m1, rtol, atol), speeds
+        return self.error_tolerance_momentum(y0, y1, rtol, atol)
+
+    def error_tolerance_momentum(self, m0, m1, rtol, atol):
+        """`error_tolerance`'s for the body momentum ``(3,)`` alone."""
+        size = jnp.maximum(jnp.linalg.norm(m0), jnp.linalg.norm(m1))
+        return jnp.broadcast_to(atol * self.momentum_scale + rtol * size, m0.shape)
 
     @property
     def momentum_scale(self) -> Array:
         """A reference momentum (kg m^2/s) for absolute tolerances: ``|m0|``, plus
         the momentum that the effects' potential energy can give the body,
-        ``sqrt(I_max * sum(effect.energy_scale()))``; for a body at rest without
-        potential, ``I_max * 1 rad/s``."""
+        ``sqrt(I_max * sum(effect.energy_scale()))``, plus the reaction wheels'
+        relative momentum ``|sum Js Omega0 g|`` (which they can hand to the
+        body); for a body at rest without potential, ``I_max * 1 rad/s``."""
         i_max = jnp.max(jnp.abs(self.inertia))
-        scale = jnp.linalg.norm(self.y0) + jnp.sqrt(i_max * self._effects_energy())
+        scale = jnp.linalg.norm(self._body_momenta(self.R0, self.y0)) + jnp.sqrt(i_max * self._effects_energy())
+        if self.wheel_index is not None:
+            w = self.wheels
+            scale = scale + jnp.linalg.norm(_wheel_sum(w.spin_inertia * self.y0[1], w.axes))
         # A body at rest without potential: I_max times 1 rad/s.
         return jnp.where(scale > 0, scale, i_max)
+
+    @property
+    def wheel_speed_scale(self) -> Array:
+        """A reference speed (rad/s) for the reaction wheels' absolute
+        tolerances: ``|Omega0|`` plus the body's rate scale ``momentum_scale /
+        I_max`` (1 rad/s for a body and wheels at rest)."""
+        if self.wheel_index is None:
+            raise ValueError("wheel_speed_scale: this body has no ReactionWheels")
+        return jnp.linalg.norm(self.y0[1]) + self.momentum_scale / jnp.max(jnp.abs(self.inertia))
 
     def invariant_scales(self):
         """Energies against the kinetic energy plus what the effects' potentials
         can give; momenta against `momentum_scale`."""
-        energy = kinetic_energy(self.inertia, self.omega0) + self._effects_energy()
+        if self.wheel_index is not None:
+            kinetic = self._wheels_kinetic_energy(*self.y0)
+        else:
+            kinetic = kinetic_energy(self.inertia, self.omega0)
+        energy = kinetic + self._effects_energy()
         return {k: (energy if k == "energy" else self.momentum_scale) for k in self.conserved()}
+
+    def _wheels_kinetic_energy(self, m, speeds):
+        """The kinetic energy (J) of the body with its reaction wheels,
+        ``omega . I omega / 2 + sum Js Omega (g . omega) + sum Js Omega^2 / 2``
+        (``I`` the whole spacecraft's inertia), at momenta ``m`` ``(..., 3)``
+        and speeds ``(..., k)``."""
+        w = self.wheels
+        omega = so3.matvec(self.inertia_inv, m)
+        spin = w.spin_inertia * speeds
+        return (
+            kinetic_energy(self.inertia, omega)
+            + jnp.sum(spin * _along(w.axes, omega), axis=-1)
+            + 0.5 * jnp.sum(spin * speeds, axis=-1)
+        )
+
+    def invariants(self, R, y):
+        """``"energy"`` (kinetic plus every effect's potential, J), ``"|L|"``
+        (kg m^2/s) and each effect's own `AbstractEffect.invariants`.  With
+        reaction wheels the kinetic energy and the momentum are the whole
+        spacecraft's (`lierk.ReactionWheels`), and the other effects'
+        invariants read its whole momentum ``m + sum Js Omega g``."""
+        if self.wheel_index is None:
+            return super().invariants(R, y)
+        m, speeds = y
+        w = self.wheels
+        H = m + _wheel_sum(w.spin_inertia * speeds, w.axes)
+        energy = self._wheels_kinetic_energy(m, speeds)
+        out = {}
+        for i, e in enumerate(self.effects):
+            if i != self.wheel_index:
+                energy = energy + e.potential(R)
+                out.update(e.invariants(R, H))
+        return {"energy": energy, "|L|": jnp.linalg.norm(H, axis=-1), **out}
+
+    def conserved(self):
+        """As `AbstractRigidBody.conserved`; with reaction wheels and no other
+        effect also ``"|L|"``, the whole spacecraft's momentum, driven or not
+        (the motors' torques are internal)."""
+        keys = super().conserved()
+        if self.wheel_index is not None and len(self.effects) == 1:
+            keys = keys + ("|L|",)
+        return keys
 
     def _effects_energy(self) -> Array:
         """The energy (J) the effects can give the body: sum of `energy_scale`."""
         # In the body's dtype: an effect's own 0 is the default float (float64
         # under x64), which made a float32 body's loop carry change dtype.
-        return sum((jnp.asarray(e.energy_scale(), self.y0.dtype) for e in self.effects), jnp.zeros((), self.y0.dtype))
+        dtype = self.R0.dtype
+        return sum((jnp.asarray(e.energy_scale(), dtype) for e in self.effects), jnp.zeros((), dtype))
 
 
 class FreeRigidBody(RigidBodyWithEffects):
@@ -328,6 +537,50 @@ class FreeRigidBody(RigidBodyWithEffects):
 
     def __init__(self, inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
         super().__init__(inertia, omega0, R0, effects=())
+
+
+def _solve3(M: Array, r: Array) -> Array:
+    """``M^-1 r`` for a symmetric ``(3, 3)`` ``M`` by cofactors: the rows of
+    ``M^-1`` are ``(c1 x c2, c2 x c0, c0 x c1) / det M`` for its columns
+    ``c_j`` (its rows, being symmetric)."""
+    c0, c1, c2 = M[0], M[1], M[2]
+    a, b, c = so3.cross(c1, c2), so3.cross(c2, c0), so3.cross(c0, c1)
+    det = c0[0] * a[0] + c0[1] * a[1] + c0[2] * a[2]
+    x = jnp.stack([a[0] * r[0] + a[1] * r[1] + a[2] * r[2], b[0] * r[0] + b[1] * r[1] + b[2] * r[2],
+                   c[0] * r[0] + c[1] * r[1] + c[2] * r[2]])
+    return x / det
+
+
+def _check_wheels(inertia: Array, axes: Array, spin_inertia: Array, path: str) -> tuple[Array, Array, Array]:
+    """``(inertia, axes, spin_inertia)``, checked: ``I - G`` must be positive
+    definite, ``I`` being the whole spacecraft's inertia and the wheels' spin
+    inertia ``G = sum Js g g^T`` part of it.  Concrete values raise now;
+    traced ones at run time (`lierk.validation.check`)."""
+    message = (
+        f"{path}.spin_inertia: the wheels' spin inertia G = sum Js g g^T must leave I - G positive definite, since "
+        "the body's inertia I is the whole spacecraft's, wheels included (I - G turns the body under a motor "
+        "torque)"
+    )
+    if validation.is_traced(inertia, axes, spin_inertia):
+
+        def positive_definite(x):
+            # Sylvester's leading minors, as `validation.check_inertia`.
+            A = x[0] - _spin_matrix(x[2], x[1])
+            minor2 = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
+            det = (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+                   + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+            return (A[0, 0] > 0) & (minor2 > 0) & (det > 0)
+
+        return validation.check((inertia, axes, spin_inertia), positive_definite, message + "; got {value}")
+    g, js, I = (np.asarray(x, float) for x in (axes, spin_inertia, inertia))
+    moments = np.linalg.eigvalsh(I - (g.T * js) @ g)
+    if not moments.min() > 1e-12 * np.abs(I).max():
+        raise ValueError(
+            f"{message}; with I = {np.array2string(I, precision=6, separator=', ')} and Js = "
+            f"{np.array2string(js, precision=6, separator=', ')}, I - G has eigenvalues "
+            f"{np.array2string(moments, precision=6, separator=', ')}"
+        )
+    return inertia, axes, spin_inertia
 
 
 def _frobenius(A: Array) -> Array:

@@ -1,7 +1,9 @@
 """Spacecraft effects: gravity-gradient torque, magnetic torque (a magnetorquer
-or a B-dot controller in a dipole field) and internal rotors (reaction or
-momentum wheels: a gyrostat).  Each is an opt-in `AbstractEffect` of
-`lierk.RigidBodyWithEffects`, compiled only where a problem holds it.
+or a B-dot controller in a dipole field), reaction wheels driven by motor
+torques (`ReactionWheels`, whose speeds are integrated) and rotors whose
+momentum relative to the body is prescribed (`Rotor`: a gyrostat).  Each is
+an opt-in `AbstractEffect` of `lierk.RigidBodyWithEffects`, compiled only
+where a problem holds it.
 
 Frames and orbit.  ``R`` maps body to space as everywhere in lierk; "space"
 is an inertial frame centred on the planet.  A circular orbit of radius ``a``
@@ -14,10 +16,20 @@ so the orbit normal is space ``z``.  Units are SI: torques N m, magnetic
 fields T, dipole moments A m^2, wheel momenta kg m^2/s.
 
 The equations are those of Basilisk's ``GravityGradientEffector``,
-``MtbEffector`` and ``reactionWheelStateEffector`` (balanced wheels), and of
-Hughes, *Spacecraft Attitude Dynamics* (gyrostats, gravity gradient) and
-Markley and Crassidis, *Fundamentals of Spacecraft Attitude Determination and
-Control* (B-dot).
+``MtbEffector`` and ``reactionWheelStateEffector`` (balanced wheels:
+`ReactionWheels`), and of Hughes, *Spacecraft Attitude Dynamics* (gyrostats:
+`Rotor`; gravity gradient) and Markley and Crassidis, *Fundamentals of
+Spacecraft Attitude Determination and Control* (B-dot).
+
+Wheels: `ReactionWheels` or `Rotor`.  A motor torque ``u`` on a wheel changes
+the wheel's *absolute* spin momentum, ``Js (Omega' + g . omega') = u``, so the
+body's reaction depends on how the body itself turns; `ReactionWheels`
+integrates the wheel speeds with the body, as flight software and Basilisk
+model driven wheels (and a wheel left alone keeps its absolute momentum).
+`Rotor` instead prescribes each wheel's momentum *relative to the body* as a
+function of time, whatever the body does: an ideal speed-controlled wheel
+(its ``torque=`` is the derivative of that prescribed momentum, not a motor
+torque).
 """
 
 from __future__ import annotations
@@ -34,7 +46,17 @@ from jax.typing import ArrayLike
 from .. import so3, validation
 from .effects import AbstractEffect, affine_flow
 
-__all__ = ["MU_EARTH", "R_EARTH", "B0_EARTH", "circular_orbit", "GravityGradient", "dipole_field", "MagneticTorque", "Rotor"]
+__all__ = [
+    "MU_EARTH",
+    "R_EARTH",
+    "B0_EARTH",
+    "circular_orbit",
+    "GravityGradient",
+    "dipole_field",
+    "MagneticTorque",
+    "Rotor",
+    "ReactionWheels",
+]
 
 MU_EARTH = 3.986004418e14  # m^3/s^2
 R_EARTH = 6.371e6  # m, mean radius
@@ -287,14 +309,14 @@ def _wheel_axes(axes) -> Array:
 
 
 class Rotor(AbstractEffect):
-    """Internal rotors (reaction or momentum wheels) that make the body a
-    gyrostat.
+    """Internal rotors whose momentum relative to the body is prescribed in
+    time: a gyrostat, or ideal speed-controlled wheels.
 
     The rotors' momentum ``h`` (kg m^2/s, body frame: each wheel's spin
-    momentum relative to the body along its axis) adds to the body's, and a
-    motor torque ``u`` on a wheel reacts on the body.  With the problem's
-    momentum ``m = I omega`` (``I`` the whole body's inertia, wheels
-    included, as for a balanced wheel in Basilisk),
+    momentum relative to the body along its axis) adds to the body's, and
+    whatever torque keeps it on its prescribed course reacts on the body.
+    With the problem's momentum ``m = I omega`` (``I`` the whole body's
+    inertia, wheels included, as for a balanced wheel in Basilisk),
 
         dm/dt = m x omega + h x omega - dh/dt.
 
@@ -304,24 +326,35 @@ class Rotor(AbstractEffect):
     Three ways to give ``h(t)``:
 
     - ``momentum`` ``(3,)`` (body frame) with no ``axes``: a constant rotor
-      (a momentum wheel at constant speed);
+      (a momentum wheel held at constant speed);
     - ``axes`` ``(k, 3)`` and ``momentum`` ``(k,)`` or a function
-      ``t -> (k,)`` (each wheel's momentum; its derivative is the motor
-      torque, by autodiff);
+      ``t -> (k,)`` (each wheel's relative momentum, by autodiff
+      differentiated for ``dh/dt``);
     - ``axes``, ``momentum`` ``(k,)`` at ``t = 0`` and ``torque`` ``(n, k)``
-      samples (N m) at ``times`` ``(n,)`` (s): motor torques linear in
-      between and held outside, whose integral gives ``h`` exactly.
+      samples (N m) at ``times`` ``(n,)`` (s), linear in between and held
+      outside: the rate ``dh/dt`` of the relative momentum, integrated
+      exactly to give ``h``.
 
-    The state stays the body momentum: the wheels' momenta are known in time
-    (a driven wheel's commanded profile), so none is integrated.  The term
-    ``h x omega`` reads the momentum; it is linear in it, so the splittings'
-    kick is exact (`lierk.problems.effects.affine_flow` of ``hat(h) I^{-1}``,
-    with the motor torque as a constant forcing over the kick).
+    ``torque=`` is *not* a motor torque on a free wheel.  It fixes how the
+    wheel's speed relative to the body changes, whatever the body does: a
+    speed-controlled wheel that follows a commanded profile.  A real motor
+    torque ``u`` changes the wheel's absolute momentum, ``Js (Omega' + g .
+    omega') = u``, and the relative speed then depends on the body's own
+    acceleration: for a spinning body despun by a wheel along its spin axis,
+    ``torque=`` makes the body slow down at ``u / I3`` instead of ``u / (I3 -
+    Js)``.  For motor torques, and for wheels left to spin freely (which keep
+    their absolute momentum, not their relative one), use `ReactionWheels`.
+
+    The state stays the body momentum: the wheels' momenta are known in time,
+    so none is integrated.  The term ``h x omega`` reads the momentum; it is
+    linear in it, so the splittings' kick is exact
+    (`lierk.problems.effects.affine_flow` of ``hat(h) I^{-1}``, with ``dh/dt``
+    as a constant forcing over the kick).
 
     Args:
         momentum: see above (kg m^2/s).
         axes: ``(k, 3)`` wheel spin axes (body frame, normalised here).
-        torque: ``(n, k)`` motor torque samples (N m), with ``times``.
+        torque: ``(n, k)`` samples of ``dh/dt`` (N m), with ``times``.
         times: ``(n,)`` strictly increasing sample times (s).
     """
 
@@ -362,7 +395,7 @@ class Rotor(AbstractEffect):
 
     @property
     def driven(self) -> bool:
-        """Whether the wheels' momenta change in time (a motor torque acts)."""
+        """Whether the wheels' prescribed momenta change in time."""
         return self.profile is not None or self.torques is not None
 
     @property
@@ -417,3 +450,196 @@ class Rotor(AbstractEffect):
 
     def conserved(self, inertia):
         return () if self.driven else ("|m + h|",)
+
+
+class ReactionWheels(AbstractEffect):
+    """Reaction wheels driven by motor torques, their speeds integrated with
+    the body: Basilisk's balanced wheels (``reactionWheelStateEffector``).
+
+    Wheel ``i`` spins about the body-fixed unit axis ``g_i`` with spin
+    inertia ``Js_i`` (kg m^2, about that axis) at ``Omega_i`` (rad/s)
+    relative to the body, driven by the motor torque ``u_i(t)`` (N m, on the
+    wheel; the body feels ``-u_i g_i``).  ``I`` is the problem's inertia:
+    the whole spacecraft's, wheels included (each wheel's inertia about the
+    body's centre of mass, its spin inertia about its axis too), as in
+    Basilisk.  With ``G = sum Js_i g_i g_i^T``, external torques ``tau`` (the
+    problem's other effects) and everything in the body frame,
+
+        (I - G) omega' = -omega x (I omega + sum Js_i Omega_i g_i) - sum u_i g_i + tau,
+        Js_i (Omega_i' + g_i . omega') = u_i.
+
+    A motor torque changes a wheel's absolute spin momentum
+    ``Js_i (Omega_i + g_i . omega)``; with ``u = 0`` a wheel keeps it (a free
+    wheel), not its speed relative to the body.  Spinning a body with
+    ``I = diag(I1, I1, I3)`` about a wheel's axis ``z`` and driving the wheel
+    with ``u``, the body's rate falls at ``u / (I3 - Js)`` while the wheel
+    speeds up at ``u / Js + u / (I3 - Js)``.
+
+    With this effect the problem's state ``y`` is ``(m, Omega)``: the body
+    momentum ``m = I omega`` ``(3,)`` (kg m^2/s; ``omega = I^-1 m`` as for
+    every body) and the wheels' speeds relative to the body ``Omega``
+    ``(k,)`` (rad/s), so a solution's ``y[1]`` are the wheel speeds and
+    ``problem.restart(R, y)`` carries them on.  The speeds given here are the
+    initial ones, read when the problem is built (so a sensitivity with
+    respect to them selects the state's, ``wrt=lambda p: p.y0[1]``);
+    `~lierk.RigidBodyWithEffects.with_omega0` keeps the relative speeds of
+    the state it starts from.  The spin inertias, axes and torques are read
+    at every stage, so a sweep or a sensitivity over them is exact.
+
+    The problem's invariants include the wheels: the total momentum
+    ``"|L|"``, ``|m + sum Js_i Omega_i g_i|``, is conserved whenever no
+    other effect acts, driven or not; the energy,
+
+        omega . I omega / 2 + sum Js_i Omega_i (g_i . omega) + sum Js_i Omega_i^2 / 2,
+
+    changes at ``sum u_i Omega_i`` (the motors' power) plus the external
+    torques' ``tau . omega``, so it is conserved when ``torque`` is None.
+
+    Every RKMK, Crouch-Grossman and adaptive solver takes it, with events,
+    dense output and sensitivities (the variational method too).  The
+    splittings refuse it: their drift is the exact torque-free flow of a
+    rigid body, which a body with wheels does not follow.  A body holds at
+    most one `ReactionWheels` (put every wheel in it).
+
+    Args:
+        axes: ``(k, 3)`` spin axes (body frame), normalised here.
+        spin_inertia: ``(k,)`` each wheel's spin inertia ``Js`` about its
+            axis (kg m^2), ``> 0``; ``I - G`` must stay positive definite.
+        speeds: ``(k,)`` speeds relative to the body at the start (rad/s).
+        torque: the motor torques (N m, on the wheels): None (free wheels),
+            a constant ``(k,)``, samples ``(n, k)`` at ``times`` (linear in
+            between and held at the end values outside), or a function
+            ``t -> (k,)`` of time (s) that JAX can trace.
+        times: ``(n,)`` strictly increasing sample times (s), only with
+            sampled torques.
+
+    Example:
+        >>> wheels = ReactionWheels([[0, 0, 1.0]], [0.159], [100 * 2 * np.pi / 60], torque=[0.2])
+        >>> body = lierk.RigidBodyWithEffects([2.0, 2.0, 2.159], [0, 0, 0.35], effects=(wheels,))
+        >>> sol = lierk.solve(body, lierk.RKMK4(), 5.0, dt=0.01)
+        >>> sol.y[1][-1]        # the wheel speed at 5 s (rad/s)
+    """
+
+    axes: Array
+    spin_inertia: Array
+    speeds: Array
+    times: Array | None
+    torques: Array | None
+    fn: Callable | None = eqx.field(static=True)
+    # Not a torque that the splittings could kick: they refuse the wheels
+    # outright (`RigidBodyWithEffects.kick`), and a Runge-Kutta-Nystrom
+    # splitting must not first send the user to another splitting.
+    reads_momentum: ClassVar[bool] = False
+
+    def __init__(self, axes, spin_inertia, speeds, torque=None, times=None):
+        self.axes = _wheel_axes(axes)
+        k = self.axes.shape[0]
+        self.spin_inertia = _per_wheel(spin_inertia, "spin_inertia", k, "kg m^2")
+        self.spin_inertia = validation.check(
+            self.spin_inertia, lambda x: (x > 0).all(), "spin_inertia must be > 0 for every wheel (kg m^2), got {value}"
+        )
+        self.speeds = _per_wheel(speeds, "speeds", k, "rad/s")
+        self.fn, self.times, self.torques = None, None, None
+        if torque is None:
+            if times is not None:
+                raise ValueError("times= go with sampled motor torques (torque= of shape (n, k))")
+            return
+        if callable(torque):
+            if times is not None:
+                raise ValueError("times apply to sampled torques; a torque function takes the time itself")
+            out = jax.eval_shape(torque, jax.ShapeDtypeStruct((), jnp.result_type(float)))
+            if getattr(out, "shape", None) != (k,):
+                raise ValueError(f"a motor torque function must return shape ({k},), one per wheel, for a scalar time, "
+                                 f"got {getattr(out, 'shape', out)}")
+            self.fn = torque
+            return
+        u = validation.asarray(torque, name="torque")
+        if times is None:
+            if u.shape != (k,):
+                raise ValueError(f"a constant motor torque must have shape ({k},), one per wheel (N m); samples "
+                                 f"(n, {k}) need times=; got shape {u.shape}")
+        else:
+            times = validation.asarray(times, name="times")
+            if times.ndim != 1 or times.shape[0] < 1 or u.shape != (times.shape[0], k):
+                raise ValueError(f"sampled motor torques must have shape (n, {k}), one row per time, at times (n,); "
+                                 f"got {u.shape} and {times.shape}")
+            times = validation.check(times, lambda v: (abs(v) < float("inf")).all(), "times must be finite, got {value}")
+            self.times = validation.check(
+                times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
+            )
+        self.torques = validation.check(u, lambda x: (abs(x) < float("inf")).all(), "torque must be finite, got {value}")
+
+    @property
+    def driven(self) -> bool:
+        """Whether a motor torque is given (None: free wheels)."""
+        return self.fn is not None or self.torques is not None
+
+    @property
+    def conservative(self) -> bool:  # type: ignore[override]
+        return not self.driven
+
+    @property
+    def depends_on_time(self) -> bool:  # type: ignore[override]
+        return self.fn is not None or self.times is not None
+
+    def motor_torque(self, t: Array) -> Array | None:
+        """The motor torques ``(k,)`` (N m) at time ``t`` (s), or None for
+        free wheels (then the problem adds no operation for them)."""
+        if self.fn is not None:
+            return jnp.asarray(self.fn(t))
+        if self.torques is None:
+            return None
+        if self.times is None:
+            return self.torques
+        return jax.vmap(lambda col: jnp.interp(t, self.times, col), in_axes=1)(self.torques)
+
+    def relative_momentum(self, speeds: Array) -> Array:
+        """``sum Js_i Omega_i g_i`` ``(..., 3)`` (kg m^2/s, body frame): the
+        wheels' momentum relative to the body at speeds ``Omega`` ``(..., k)``
+        (rad/s), e.g. a solution's ``y[1]``."""
+        return _wheel_sum(self.spin_inertia * speeds, self.axes)
+
+    def space_vectors(self):
+        return np.zeros((0, 3), self.axes.dtype)
+
+    def torque_from(self, t, v, m, omega):
+        raise ValueError(
+            "ReactionWheels add no torque of their own: a RigidBodyWithEffects integrates their speeds with the "
+            "body (the wheels change how every torque turns it); give the effect to RigidBodyWithEffects"
+        )
+
+    def affine_torque(self, t, R, inertia_inv):
+        return None
+
+
+def _wheel_sum(c: Array, axes: Array) -> Array:
+    """``sum_i c_i g_i`` ``(..., 3)`` of per-wheel amounts ``c`` ``(..., k)``
+    along the axes ``g_i`` (rows of ``axes`` ``(k, 3)``): unrolled products,
+    which fuse with a stage's arithmetic where a ``(k,) @ (k, 3)`` product is
+    a kernel of its own under vmap."""
+    out = c[..., 0, None] * axes[0]
+    for i in range(1, axes.shape[0]):
+        out = out + c[..., i, None] * axes[i]
+    return out
+
+
+def _along(axes: Array, v: Array) -> Array:
+    """``g_i . v`` ``(..., k)`` for each wheel axis (rows of ``axes``
+    ``(k, 3)``) and vectors ``v`` ``(..., 3)``."""
+    return v[..., 0, None] * axes[:, 0] + v[..., 1, None] * axes[:, 1] + v[..., 2, None] * axes[:, 2]
+
+
+def _spin_matrix(spin_inertia: Array, axes: Array) -> Array:
+    """``G = sum Js_i g_i g_i^T`` ``(3, 3)`` (kg m^2)."""
+    G = spin_inertia[0] * (axes[0][:, None] * axes[0][None, :])
+    for i in range(1, axes.shape[0]):
+        G = G + spin_inertia[i] * (axes[i][:, None] * axes[i][None, :])
+    return G
+
+
+def _per_wheel(x, name: str, k: int, unit: str):
+    """``(k,)`` finite numbers, one per wheel."""
+    a = validation.asarray(x, name=name)
+    if a.shape != (k,):
+        raise ValueError(f"{name} must have shape ({k},), one per wheel ({unit}), got shape {a.shape}")
+    return validation.check(a, lambda v: (abs(v) < float("inf")).all(), f"{name} must be finite ({unit}), got {{value}}")

@@ -44,6 +44,9 @@ class AbstractSolver(eqx.Module):
     stages: ClassVar[int] = 1
     adaptive: ClassVar[bool] = False
     error_order: ClassVar[int | None] = None
+    # Why this solver's steps have no interpolant (so no dense output and no
+    # events), or None: tools ask it before they add an event of their own.
+    no_interpolant: ClassVar[str | None] = None
 
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
@@ -65,11 +68,23 @@ class AbstractSolver(eqx.Module):
         node1 = interpolation.node(problem, t + h, st.R, st.y)
         return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
 
+    def dense_partial(self, problem) -> Any:
+        """The interpolant that replaces the coefficients of `dense_step`
+        when it is a shortened step of the solver
+        (`lierk.interpolation.PartialStep`, the splittings'); None here.
+        Read by the fixed-step loop only: no adaptive solver has one."""
+        return None
+
     def error_norm(self, error: tuple, norm) -> Array:
         """One scaled error norm from `Step.error`, with ``norm(e_u, e_y)``
         the controller's (RMS over the scaled components).  One estimate:
         its norm."""
         return norm(*error[0])
+
+    def for_derivatives(self) -> "AbstractSolver":
+        """This solver as a differentiated solve takes it: itself, unless a
+        form that compiles faster pays there (`lierk.AbstractRKMK`)."""
+        return self
 
     @property
     def name(self) -> str:

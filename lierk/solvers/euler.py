@@ -16,16 +16,17 @@ class ExplicitEuler(AbstractSolver):
     """
 
     order: ClassVar[int] = 1
+    no_interpolant: ClassVar[str | None] = (
+        "ExplicitEuler leaves SO(3), so its steps have no interpolant on the group: dense output and events "
+        "need a Lie-group solver (LieEuler, RKMK4, DOP853, ...)"
+    )
 
     def step(self, problem, t, h, R, y, fsal=None):
         omega, ydot = problem.at(problem.base(t, R, y), t, y)
         return Step(R + h * so3.compose(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None)
 
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
-        raise ValueError(
-            "ExplicitEuler leaves SO(3), so its steps have no interpolant on the group: dense output and events "
-            "need a Lie-group solver (LieEuler, RKMK4, DOP853, ...)"
-        )
+        raise ValueError(self.no_interpolant)
 
 
 class LieEuler(AbstractSolver):
