@@ -3,7 +3,8 @@ on the dense output of each step, and optionally the end of the solve there.
 
 An `Event` holds a scalar condition ``cond(t, R, y)``.  After every accepted
 step `lierk.solve` samples the condition on the step's interpolant
-(`lierk.interpolation`: ``R(t_n + theta h) = R_n exp(hat(u(theta)))``) at
+(`lierk.interpolation`: ``R(t_n + theta h) = R_n exp(hat(u(theta)))``, or
+for the splittings a shortened step of the method) at
 ``samples + 1`` equally spaced points, brackets each sign change between
 neighbouring samples, and finds the crossing time by the Illinois method
 (regula falsi that halves a stale end's value) on ``theta``, to a few
@@ -41,7 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .interpolation import evaluate_step
+from .interpolation import interpolate
 
 __all__ = ["Event", "EventRecord"]
 
@@ -256,7 +257,9 @@ class Stop(NamedTuple):
     y: Any
 
 
-def process(events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1: Any, active: Array) -> tuple[State, Stop]:
+def process(
+    events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1: Any, active: Array, partial: Any = None
+) -> tuple[State, Stop]:
     """The events of one step.
 
     Args:
@@ -266,12 +269,17 @@ def process(events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1:
             state and interpolant (`lierk.interpolation`).
         R1, y1: the state at the step's end.
         active: whether the step counts (accepted, and not past the end).
+        partial: the solver's `lierk.interpolation.PartialStep` (the
+            splittings'), which then replaces ``Fu`` and ``Fy``, or None.
 
     Returns:
         The state after the step (unchanged where not ``active``) and the
         `Stop` of a terminating event in it.
     """
-    t, h, R, y, Fu, Fy = step
+    t, h, R, y = step[:4]
+    # The interpolant rides with the step into the root finder, so that the
+    # event time's derivative sees the problem's arrays a PartialStep reads.
+    step = (*step, partial)
     dtype = R.dtype
     interior = {}
     found = []  # per event: (theta, valid, t*, R*, y*, g at the end)
@@ -280,7 +288,7 @@ def process(events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1:
         K = ev.samples
         if K not in interior:
             thetas = jnp.arange(1, K, dtype=dtype) / K
-            interior[K] = (thetas, jax.vmap(lambda th: evaluate_step(R, y, Fu, Fy, th))(thetas))
+            interior[K] = (thetas, jax.vmap(lambda th: _state(step, th))(thetas))
         thetas, (Rs, ys) = interior[K]
         gi = jax.vmap(lambda th, Ri, yi: jnp.asarray(ev.cond(t + th * h, Ri, yi), dtype))(thetas, Rs, ys)
         g_end = jnp.asarray(ev.cond(t + h, R1, y1), dtype)
@@ -291,8 +299,12 @@ def process(events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1:
         cross = up | down if ev.direction == 0 else up if ev.direction == 1 else down
         valid = active & cross
         nan = nan | (active & jnp.any(jnp.isnan(g)))
-        theta = _roots(ev.cond, step, (grid[:-1], grid[1:], glo, ghi, valid))
-        Rr, yr = jax.vmap(lambda th: evaluate_step(R, y, Fu, Fy, th))(theta)
+        # The states at each bracket's far end; the root finder carries them
+        # along, so the interpolant is not evaluated again at the roots (a
+        # splitting's is a step of the method: a large program, and a step's
+        # cost per bracket).
+        ends = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), (Rs, ys), (R1, y1))
+        theta, Rr, yr = _roots(ev.cond, step, (grid[:-1], grid[1:], glo, ghi, valid, ends))
         tr = t + theta * h
         if ev.where is not None:
             valid = valid & jax.vmap(ev.where)(tr, Rr, yr)
@@ -344,31 +356,42 @@ def process(events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1:
     return new, Stop(stop, jnp.where(stop, t_stop, t + h), stop_R, stop_y)
 
 
+def _state(step, theta):
+    """``(R, y)`` on the step's interpolant at ``theta`` (a scalar), ``step``
+    being ``(t, h, R, y, Fu, Fy, partial)``."""
+    return interpolate(step[:6], theta, step[6])
+
+
 def _g(cond, step, theta):
     """The condition along the step's interpolant at ``theta`` (a scalar)."""
-    t, h, R, y, Fu, Fy = step
-    Rt, yt = evaluate_step(R, y, Fu, Fy, theta)
+    t, h, R = step[:3]
+    Rt, yt = _state(step, theta)
     return jnp.asarray(cond(t + theta * h, Rt, yt), R.dtype)
 
 
 def _illinois(cond, step, bracket):
-    """Each bracketed crossing's ``theta``: the end of the final bracket on
-    the far side of the crossing (where the condition has changed sign), or
-    ``lo`` where not ``valid``."""
-    lo, hi, glo, ghi, valid = bracket
+    """Each bracketed crossing's ``(theta, R, y)``: ``theta`` the end of the
+    final bracket on the far side of the crossing (where the condition has
+    changed sign), or ``lo`` where not ``valid``; ``(R, y)`` the interpolant's
+    state at that far end (at the initial ``hi`` where not ``valid``)."""
+    lo, hi, glo, ghi, valid, ends = bracket
     tol = 4 * jnp.finfo(lo.dtype).eps
-    g = jax.vmap(lambda th: _g(cond, step, th))
+    t, h = step[:2]
+
+    def g(theta):
+        Rt, yt = jax.vmap(lambda th: _state(step, th))(theta)
+        return jax.vmap(lambda th, Ri, yi: jnp.asarray(cond(t + th * h, Ri, yi), lo.dtype))(theta, Rt, yt), (Rt, yt)
 
     def running(c):
-        a, b, ga, gb, _, it = c
+        a, b, ga, gb, _, it, _ = c
         return valid & (gb != 0) & (b - a > tol) & ~jnp.isnan(gb) & (it < _MAX_ITERATIONS)
 
     def body(c):
-        a, b, ga, gb, side, it = c
+        a, b, ga, gb, side, it, at_b = c
         run = running(c)
         c_ = a - ga * (b - a) / jnp.where(gb != ga, gb - ga, 1.0)
         c_ = jnp.where((c_ > a) & (c_ < b), c_, 0.5 * (a + b))
-        gc = g(c_)
+        gc, at_c = g(c_)
         move_a = gc * ga > 0  # same sign as the near end: the root is in (c, b]
         a2, ga2 = jnp.where(move_a, c_, a), jnp.where(move_a, gc, ga)
         b2, gb2 = jnp.where(move_a, b, c_), jnp.where(move_a, gb, gc)
@@ -377,11 +400,16 @@ def _illinois(cond, step, bracket):
         ga2 = jnp.where(~move_a & (side > 0), 0.5 * ga2, ga2)
         side2 = jnp.where(move_a, -1, 1)
         pick = lambda new, old: jnp.where(run, new, old)  # noqa: E731
-        return (pick(a2, a), pick(b2, b), pick(ga2, ga), pick(gb2, gb), pick(side2, side), it + run.astype(it.dtype))
+        moved_b = run & ~move_a
+        at_b2 = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(moved_b.reshape((-1,) + (1,) * (new.ndim - 1)), new, old), at_c, at_b
+        )
+        return (pick(a2, a), pick(b2, b), pick(ga2, ga), pick(gb2, gb), pick(side2, side), it + run.astype(it.dtype),
+                at_b2)
 
-    init = (lo, hi, glo, ghi, jnp.zeros(lo.shape, jnp.int32), jnp.zeros(lo.shape, jnp.int32))
-    _, b, _, _, _, _ = jax.lax.while_loop(lambda c: jnp.any(running(c)), body, init)
-    return jnp.where(valid, b, lo)
+    init = (lo, hi, glo, ghi, jnp.zeros(lo.shape, jnp.int32), jnp.zeros(lo.shape, jnp.int32), ends)
+    _, b, _, _, _, _, (Rb, yb) = jax.lax.while_loop(lambda c: jnp.any(running(c)), body, init)
+    return jnp.where(valid, b, lo), Rb, yb
 
 
 @eqx.filter_custom_jvp
@@ -391,10 +419,11 @@ def _roots(cond, step, bracket):
 
 @_roots.def_jvp
 def _roots_jvp(primals, tangents):
-    # The implicit function theorem at each root: d theta = -(dg/dp . dp) / (dg/dtheta).
+    # The implicit function theorem at each root: d theta = -(dg/dp . dp) / (dg/dtheta);
+    # the states there move with the root and with the interpolant.
     cond, step, bracket = primals
     t_cond, t_step, _ = tangents
-    theta = _roots(cond, step, bracket)
+    theta, Rr, yr = _roots(cond, step, bracket)
     valid = bracket[4]
     dyn, static = eqx.partition((cond, step), eqx.is_inexact_array)
     # (Symbolic zeros come as None: materialise them.)
@@ -416,4 +445,10 @@ def _roots_jvp(primals, tangents):
 
     slope, change = jax.vmap(rates)(theta)
     ok = valid & (slope != 0)
-    return theta, jnp.where(ok, -change / jnp.where(ok, slope, 1.0), 0.0)
+    d_theta = jnp.where(ok, -change / jnp.where(ok, slope, 1.0), 0.0)
+
+    def state(th, d):
+        return _state(eqx.combine(d, static)[1], th)
+
+    d_state = jax.vmap(lambda th, dth: jax.jvp(state, (th, dyn), (dth, t_dyn))[1])(theta, d_theta)
+    return (theta, Rr, yr), (d_theta, *d_state)

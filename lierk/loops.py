@@ -300,6 +300,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
     ev0 = event_lib.init(events, t0, R0, y0) if events else None
     stopped0 = ev0.nan if events else jnp.asarray(False)
     every = saveat.every
+    partial = solver.dense_partial(problem)
 
     def one(carry, _):
         (R, y), node, k, taken, ev, stopped, t_end = carry
@@ -310,7 +311,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         state = (st.R, st.y)
         t_end = jnp.where(live, time(k + 1), t_end)
         if events:
-            ev, stop = event_lib.process(events, ev, (t, h, R, y, Fu, Fy), st.R, st.y, live)
+            ev, stop = event_lib.process(events, ev, (t, h, R, y, Fu, Fy), st.R, st.y, live, partial)
             state = jax.tree_util.tree_map(lambda a, b: jnp.where(stop.stop, a, b), (stop.R, stop.y), state)
             t_end = jnp.where(stop.stop, stop.t, t_end)
             stopped = stopped | stop.stop | ev.nan
@@ -336,7 +337,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         carry, middle = _chunked(one, carry, n, every, time)
     state, _, _, taken, ev, stopped, t_end = carry
     if saveat.dense:
-        interpolation = DenseInterpolation(*records, t0=t0, t1=t_end, n=taken)
+        interpolation = DenseInterpolation(*records, t0=t0, t1=t_end, n=taken, partial=partial)
     unreached = 0
     fills = n_chunks and not rem  # the last chunk's end is the t1 row
     if middle is not None:

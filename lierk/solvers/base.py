@@ -63,7 +63,8 @@ class AbstractSolver(eqx.Module):
         `lierk.interpolation` and ``node`` the `dense_node` of the new point.
         Here a quintic Hermite interpolant from the ends of the step
         (`lierk.interpolation.hermite`); a tableau with a continuous extension
-        uses that instead (`lierk.AbstractRKMK`)."""
+        uses that instead (`lierk.AbstractRKMK`), and the splittings keep no
+        coefficients and take a shortened step (`dense_partial`)."""
         st = self.step(problem, t, h, R, y, fsal)
         node1 = interpolation.node(problem, t + h, st.R, st.y)
         return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
