@@ -43,6 +43,7 @@ import jax.tree_util as jtu
 from jax.flatten_util import ravel_pytree
 
 from .controller import Controller
+from .solvers.base import AbstractSolver
 
 __all__ = ["AbstractAdjoint", "ForwardSensitivity", "RecursiveCheckpointAdjoint", "ForwardMode", "DirectAdjoint"]
 
@@ -154,7 +155,7 @@ class ForwardSensitivity(AbstractAdjoint):
         # (DP54 on a symmetric body spinning about its axis: 1e10 off).  So a
         # differentiated adaptive solve takes those steps, value included;
         # the undifferentiated one keeps its own.
-        tangent = loop if fixed else _resolving(loop)
+        tangent = _for_derivatives(loop if fixed else _resolving(loop))
         loops = (
             functools.partial(loop, ForwardMode()),
             functools.partial(loop, self.fallback),
@@ -200,6 +201,18 @@ def _is_none(x) -> bool:
 def _sensitive(loops_args, *, limit, fallback, fixed):
     (primal, _, _), args = loops_args
     return primal(*args)
+
+
+def _for_derivatives(loop: Callable) -> Callable:
+    """``loop`` with its solver in the form differentiated solves take
+    (`lierk.AbstractSolver.for_derivatives`: the long RKMK tableaux loop over
+    their stages, so the derivative's program, the solve's steps with every
+    direction's tangents, compiles several times faster)."""
+
+    def derivative(*args):
+        return loop(*(a.for_derivatives() if isinstance(a, AbstractSolver) else a for a in args))
+
+    return derivative
 
 
 def _resolving(loop: Callable) -> Callable:

@@ -307,7 +307,11 @@ class Controller(AbstractStepController):
     @staticmethod
     def _modes(problem, t, R, y, angle):
         """`largest_step`'s ``modes`` at the state ``(R, y)``, time ``t``."""
-        frequency, decay = problem.modes(t, R, y)
+        # A bound on the step is a decision, never differentiated: cut the
+        # state's tangents before the linearisation, not after, so that a
+        # differentiated solve does not trace (and compile) the derivative of
+        # the body's linearisation in every direction, only to drop it.
+        frequency, decay = problem.modes(*jax.lax.stop_gradient((t, R, y)))
         return frequency, angle, decay
 
     def _initial_step(self, problem, q: int, t0, t1, f0, modes=None):

@@ -9,8 +9,9 @@ are read from.  ``jacobian_R = R hat(J)`` gives ``dR(t1)/dp`` entry by entry.
 
 The Jacobian is the derivative of the solve that was run (its steps and, for
 adaptive solvers, its step-size decisions held fixed), by forward mode
-(`jax.jacfwd`, the default: one pass carries every input direction; adaptive
-solves run it through `ForwardMode` unless ``adjoint=`` says otherwise) or
+(`jax.jacfwd`, the default: one pass carries every input direction, through
+the solve's adjoint, `ForwardSensitivity` unless ``adjoint=`` says
+otherwise, as a user's own `jax.jacfwd` of `solve` does) or
 reverse mode (`jax.jacrev`: with the default `ForwardSensitivity` the solve
 carries the derivatives and each output reads them; with a reverse adjoint
 such as `RecursiveCheckpointAdjoint`, one backward pass per output, six of
@@ -39,13 +40,12 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import so3
-from .adjoint import ForwardMode
+from . import so3, validation
 from .controller import Controller
 from .problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from .solution import RESULTS, SaveAt, raise_if_failed
 from .global_error import TOLERANCE_RATIO, finer
-from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, solve
+from .solve import DEFAULT_ADAPTIVE_MAX_STEPS, num_steps, solve
 from .solvers import AbstractSplitting
 from .solvers.base import AbstractSolver
 
@@ -60,7 +60,8 @@ class Sensitivity(eqx.Module):
     Attributes:
         R: ``(3, 3)`` attitude at ``t1`` (body -> space).
         y: the problem's extra state at ``t1`` (the body momentum ``m``,
-            kg m^2/s, for `RigidBodyWithEffects`), or None.
+            kg m^2/s, for `RigidBodyWithEffects`; with `ReactionWheels` the
+            pair ``(m, Omega)``), or None.
         jacobian: the attitude's Jacobian in the algebra, a pytree like ``p``
             whose leaves have shape ``(3,) + leaf.shape``: ``jacobian[i, ...]``
             is the body-frame rotation vector component ``i`` (rad) per unit
@@ -194,15 +195,17 @@ def sensitivity(
     Args:
         problem: e.g. `FreeRigidBody`.
         solver: any lierk solver.
-        t1: final time (s).
+        t1: final time (s).  Numbers (``t1``, and ``t0``, ``dt``, ``rtol``,
+            ``atol`` among the solve options) are traced: new values reuse the
+            compiled program, except that a fixed-step solve without
+            ``max_steps=`` compiles one program per step count.
         wrt: the input: ``"omega0"`` (body angular velocity, rad/s, ``(3,)``),
             ``"R0"`` (a body-frame turn ``R0 exp(hat(p))`` of the initial
             attitude, ``(3,)`` rad, with ``omega0`` held fixed), ``"inertia"``
             (the ``(3, 3)`` tensor, kg m^2, every entry on its own, with
             ``omega0`` held fixed), or a function selecting array fields of the
             problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``.
-        mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs; adaptive
-            solvers get ``adjoint=ForwardMode()`` unless another is given) or
+        mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs) or
             ``"reverse"`` (`jax.jacrev`: with the default adjoint,
             `ForwardSensitivity`, the same forward pass for a few inputs, and
             twelve reverse passes, R's nine and y's three, for many).
@@ -249,13 +252,46 @@ def sensitivity(
     if not isinstance(estimate_error, bool):
         raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
     method = sensitivity_method(problem, solver, wrt, mode, method)
+    t1, solve_options = _numbers_traced(problem, t1, solve_options)
     fixed = solve_options.get("dt") is not None
     if not fixed and method == "derivative":
         solve_options = _resolving_modes(solve_options)
-        if mode == "forward" and solve_options.get("adjoint") is None:
-            solve_options = {**solve_options, "adjoint": ForwardMode()}
     _input(problem, wrt)  # bad input raises here, before tracing
-    return _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options)
+    # A derivative's program holds the solve's steps with every direction's
+    # tangents: the long tableaux loop over their stages there, which
+    # compiles several times faster (`lierk.AbstractRKMK`'s ``compact``).
+    return _sensitivity(problem, solver.for_derivatives(), t1, wrt, mode, method, estimate_error, throw, solve_options)
+
+
+# The options that are numbers: traced, so that a new value reuses the program.
+_NUMBERS = ("t0", "dt", "rtol", "atol", "dt0")
+
+
+def _numbers_traced(problem, t1, options: dict) -> tuple[Any, dict]:
+    """``t1`` and the numeric ``options`` (Python or NumPy numbers) as NumPy
+    arrays in the problem's dtype, which the program traces: a new ``t1`` or
+    ``rtol`` runs the compiled program again instead of compiling another.
+    A fixed-step solve without ``max_steps`` gets its step count here, from
+    the known values (it sizes the program's loop, so a new count is a new
+    program; traced values need ``max_steps=`` as in `solve`)."""
+    dtype = problem.R0.dtype
+
+    def number(x):
+        if isinstance(x, bool) or not isinstance(x, (int, float, np.number, np.ndarray)):
+            return x  # JAX arrays (traced or not) and bad values go on as given
+        return np.asarray(x, dtype) if np.issubdtype(np.asarray(x).dtype, np.number) else x
+
+    options = {k: (number(v) if k in _NUMBERS and v is not None else v) for k, v in options.items()}
+    t1 = number(t1)
+    dt = options.get("dt")
+    if dt is not None and options.get("max_steps") is None:
+        t0 = options.get("t0", 0.0)
+        if not validation.is_traced(t0, t1, dt):
+            try:
+                options["max_steps"] = max(1, num_steps(t0, t1, dt))
+            except (TypeError, ValueError, OverflowError, ZeroDivisionError):
+                pass  # `solve` names the bad value
+    return t1, options
 
 
 def sensitivity_method(problem, solver, wrt="omega0", mode: str = "forward", method: str = "auto") -> str:
@@ -301,8 +337,8 @@ def _variational(problem, wrt: str):
     """The body with its variational equations along the input's unit
     directions: ``omega0`` moves the momentum by ``I e_j``, ``R0`` turns the
     attitude by ``e_j`` (rad, body frame)."""
-    eye = jnp.eye(3, dtype=problem.y0.dtype)
-    zero = jnp.zeros((3, 3), problem.y0.dtype)
+    eye = jnp.eye(3, dtype=problem.R0.dtype)
+    zero = jnp.zeros((3, 3), problem.R0.dtype)
     if wrt == "omega0":
         return Variational(problem, zero, jnp.swapaxes(problem.inertia, 0, 1))
     return Variational(problem, eye, zero)
@@ -319,8 +355,9 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
     def run(options):
         if method == "variational":
             sol = solve(_variational(problem, wrt), solver, t1, saveat=SaveAt(t1=True), throw=False, **options)
-            m, xi, dm = (x[-1] for x in sol.y)
-            return xi.T, dm.T, sol.R[-1], m, sol
+            # The body's state and its derivative are pairs with reaction wheels.
+            m, xi, dm = jax.tree_util.tree_map(lambda x: x[-1], sol.y)
+            return xi.T, jax.tree_util.tree_map(lambda d: d.T, dm), sol.R[-1], m, sol
 
         def final(p):
             sol = solve(rebuild(p), solver, t1, saveat=SaveAt(t1=True), throw=False, **options)

@@ -17,9 +17,12 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from .. import so3
@@ -33,7 +36,12 @@ def _stage_sums(h, rows, ks):
     product: it makes XLA materialise the stage values once instead of
     re-deriving them inside every later stage's fused kernel (which made long
     tableaux several times slower per stage), and one product serves all the
-    rows (the step and both error estimates of DOP853)."""
+    rows (the step and both error estimates of DOP853).  ``ks``: a list of
+    flat stage slopes, or their stack ``(s, n)`` (`AbstractRKMK`'s stage
+    loop)."""
+    if not isinstance(ks, list):
+        coeffs = jnp.asarray([list(r) + [0.0] * (ks.shape[0] - len(r)) for r in rows], ks.dtype)
+        return list(h * (coeffs @ ks))
     idx = [j for j in range(len(ks)) if any(r[j] != 0.0 for r in rows)]
     if len(idx) == 1:
         return [(h * r[idx[0]]) * ks[idx[0]] for r in rows]
@@ -47,13 +55,39 @@ def _add(y, dy):
 
 
 class AbstractRKMK(AbstractSolver):
-    """RKMK stepping for ``self.tableau``; subclasses fix the tableau."""
+    """RKMK stepping for ``self.tableau``; subclasses fix the tableau.
+
+    Attributes:
+        compact: how the stages are written into the compiled program.
+            ``False``: one after another (unrolled), the fastest to run;
+            ``True``: a loop over the stages (`jax.lax.fori_loop`), whose
+            program holds one stage, so it traces and compiles several times
+            faster for the long tableaux (DOP853: 12 stages) and runs slower
+            (about 2x for one body on CPU; a Jacobian, whose stages carry its
+            tangents, about 1.1x).  ``None`` (default): unrolled, except where
+            a solve is differentiated (`lierk.ForwardSensitivity`'s
+            derivative, `lierk.sensitivity`), which takes the loop for
+            tableaux of more than four stages.  Static: each setting is its
+            own program.
+    """
 
     tableau: eqx.AbstractClassVar[ButcherTableau]
+    compact: bool | None = eqx.field(default=None, static=True, kw_only=True)
     # How much of dexpinv the stages apply: None = the exact closed form; an int
     # keeps the series up to ad_u^k (see `so3.dexpinv`).  The report's "RK4"
     # applies none of it (0), which is why it is only order 2.
     dexpinv_terms: ClassVar[int | None] = None
+
+    def __check_init__(self):
+        if self.compact not in (None, True, False):
+            raise ValueError(f"compact must be True, False or None (automatic), got {self.compact!r}")
+
+    def for_derivatives(self) -> "AbstractRKMK":
+        """The solver a differentiated solve takes: with ``compact=None``, the
+        stage loop for tableaux of more than four stages (see ``compact``)."""
+        if self.compact is None and self.tableau.stages > 4:
+            return dataclasses.replace(self, compact=True)
+        return self
 
     @property
     def order(self) -> int:  # type: ignore[override]
@@ -74,7 +108,10 @@ class AbstractRKMK(AbstractSolver):
     def _stages(self, problem, t, h, R, y, fsal, c, a):
         """The stage slopes for nodes ``c`` and rows ``a``: ``(ks, unravel,
         (omega, ydot))``, each ``ks[i]`` the flat ``(k_i, ydot_i)`` of one
-        stage and ``(omega, ydot)`` the last stage's field."""
+        stage (a list, or their stack ``(s, n)`` when ``compact``) and
+        ``(omega, ydot)`` the last stage's field."""
+        if self.compact:
+            return self._stage_loop(problem, t, h, R, y, fsal, c, a)
         base = problem.base(t, R, y)
         # Each stage's algebra slope and y slope are kept as one flat vector,
         # so every stage sum (for u and y together) is a single small matrix
@@ -100,6 +137,33 @@ class AbstractRKMK(AbstractSolver):
             ks.append(flat)
         return ks, unravel, (omega, ydot)
 
+    def _stage_loop(self, problem, t, h, R, y, fsal, c, a):
+        """`_stages` as a loop over the stages: the program holds one stage
+        evaluation whatever the tableau, and the slopes live in one array
+        ``(s, n)`` that each stage reads through its row of ``a`` (zero-padded,
+        so every row is a product with all ``s`` slopes)."""
+        base = problem.base(t, R, y)
+        omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
+        # omega and the algebra slope k share a shape, so one unravel serves both.
+        k0, unravel = ravel_pytree((omega, ydot))
+        s = len(c)
+        rows = np.zeros((s, s))
+        for i in range(1, s):
+            rows[i, :i] = a[i]
+        rows, nodes = jnp.asarray(rows, k0.dtype), jnp.asarray(c, k0.dtype)
+
+        def stage(i, carry):
+            ks, _ = carry
+            u, dy = unravel(h * (rows[i] @ ks))
+            coefficients = so3.exp_coefficients(so3._sq(u))
+            omega, ydot = problem.local(base, t + nodes[i] * h, u, _add(y, dy), coefficients)
+            k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
+            return ks.at[i].set(ravel_pytree((k, ydot))[0]), ravel_pytree((omega, ydot))[0]
+
+        ks = jnp.zeros((s,) + k0.shape, k0.dtype).at[0].set(k0)
+        ks, last = jax.lax.fori_loop(1, s, stage, (ks, k0))
+        return ks, unravel, unravel(last)
+
     def _step(self, problem, t, h, R, y, fsal):
         tab = self.tableau
         ks, unravel, last = self._stages(problem, t, h, R, y, fsal, tab.c, tab.a)
@@ -121,6 +185,7 @@ class AbstractRKMK(AbstractSolver):
         if not tab.dense:
             return super().dense_step(problem, t, h, R, y, fsal, node)
         st, ks, unravel = self._step(problem, t, h, R, y, fsal)
+        ks = list(ks)
         # The extension's extra stages continue the same RKMK stages (the
         # ODE for u at R_n), after the tableau's own.
         s = tab.stages

@@ -1,0 +1,326 @@
+"""Time to first result: a fresh process's first solve and first Jacobian, lierk beside diffrax.
+
+Every cell runs in a process of its own with JAX's persistent cache off, so
+each first call pays the whole cost once, as a user's new script does:
+
+- ``solve``: ``jax.jit`` of a function that builds the problem and returns
+  ``R(T)``, called once; split into tracing and lowering
+  (``jax.jit(f).lower``), XLA's compilation (``.compile()``) and the first
+  run;
+- ``jacfwd``: the same for ``jax.jit(jax.jacfwd(f))``, the Jacobian of
+  ``R(T)`` with respect to ``omega0`` (diffrax adaptive solves with
+  ``adjoint=ForwardMode()``, which forward mode needs there);
+- ``sensitivity``: ``lierk.sensitivity(problem, solver, T, ...)`` called from
+  Python (its own program; default method, with its error estimate), lierk
+  only;
+- ``steady``: the compiled ``jit(vmap(f))`` over a batch of 64 bodies, median
+  wall time of repeated calls (compile excluded).
+
+The optimized program's size is the number of instructions in XLA's optimized
+HLO (``compiled.as_text()``).  lierk's solvers are measured as a user gets
+them (RKMK stages unrolled, the default for a forward solve; a differentiated
+solve loops over the stages of the long tableaux, `lierk.AbstractRKMK`) and,
+for ``solve`` and ``steady``, also with ``compact=True`` (the stage loop in
+the forward solve too).
+
+Problems (float64, T = 1 s; fixed steps: 100; adaptive: rtol = atol = 1e-8):
+
+- ``free``: a free body, I = (2, 3, 4) kg m^2, omega0 = (1, 0.3, 20) rad/s;
+- ``top``: a heavy top about its pivot, the same inertia, centre of mass at
+  (0.1, 0, 0.5) m, 1 kg, g = 9.81 m/s^2;
+- ``spacecraft``: I = (10, 14, 6) kg m^2 on a circular orbit (n = 0.0011
+  rad/s): gravity gradient, a constant rotor (0, 0.3, 0) kg m^2/s and B-dot
+  (1e7 A m^2 s/T) in Earth's dipole field tilted 1.1 rad, omega0 = (0.05,
+  -0.03, 0.04) rad/s, T = 60 s.
+
+Solvers and their peers: RKMK4 (fixed) against Tsit5 at the same constant
+step, RKMK(DOP853) (fixed) against Dopri8 (constant step), DP54 against Dopri5
+and DOP853 against Dopri8 (adaptive, ``PIDController(rtol, atol)``); diffrax
+integrates the 12-component system (``peers.rigid_body_field``).
+
+Targets (issue 39): first solve at most 1.5x diffrax's; first Jacobian at
+most 2x diffrax's first ``jit(jacfwd)``.
+
+Run: ``python benchmarks/first_result.py [--quick] [--repeats N] [--out DIR]``
+(``--quick``: the heavy top with DOP853, one repeat); writes
+first_result.{json,md}.  ``--one CELL`` runs one cell in this process and
+prints its JSON (what the runs above call).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+HERE = Path(__file__).resolve().parent
+
+BODIES = ("free", "top", "spacecraft")
+# name: (fixed, diffrax peer)
+SOLVERS = {"RKMK4": (True, "Tsit5"), "RKMK(DOP853)": (True, "Dopri8"), "DP54": (False, "Dopri5"), "DOP853": (False, "Dopri8")}
+WORKS = ("solve", "jacfwd", "sensitivity", "steady")
+STEPS, RTOL, BATCH = 100, 1e-8, 64
+QUICK = (("top", "DOP853"),)
+
+
+def _setup(body: str):
+    """``(inertia, omega0, T, lierk effects factory, peer torque)`` of a problem."""
+    import numpy as np
+
+    if body in ("free", "top"):
+        inertia, omega0, T = (2.0, 3.0, 4.0), (1.0, 0.3, 20.0), 1.0
+    else:
+        inertia, omega0, T = (10.0, 14.0, 6.0), (0.05, -0.03, 0.04), 60.0
+    chi, mass, g = np.array([0.1, 0.0, 0.5]), 1.0, 9.81
+    n, rotor, bdot, tilt = 0.0011, np.array([0.0, 0.3, 0.0]), 1e7, 1.1
+
+    def effects():
+        import lierk
+
+        if body == "free":
+            return ()
+        if body == "top":
+            return (lierk.Gravity(chi, mass, g),)
+        return (
+            lierk.GravityGradient(np.asarray(inertia), mean_motion=n),
+            lierk.Rotor(rotor),
+            lierk.MagneticTorque(lierk.dipole_field(n, tilt=tilt), bdot_gain=bdot),
+        )
+
+    def torque(xp, t, R, w):
+        if body == "top":
+            return mass * g * xp.cross(R[2], xp.asarray(chi))
+        u = xp.stack([xp.cos(n * t), xp.sin(n * t), 0.0 * t])  # unit position, orbit in space x-y
+        ub = R.T @ u
+        tau = 3 * n**2 * xp.cross(ub, xp.asarray(inertia) * ub)
+        a = (3.986004418e14 / n**2) ** (1 / 3)
+        d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+        B = R.T @ (3.12e-5 * (6.371e6 / a) ** 3 * (3 * (xp.asarray(d) @ u) * u - xp.asarray(d)))
+        return tau + xp.cross(xp.asarray(rotor), w) + bdot * xp.cross(xp.cross(w, B), B)
+
+    return np.asarray(inertia), np.asarray(omega0), T, effects, (None if body == "free" else torque)
+
+
+def _function(body: str, solver_name: str, peer: str, compact: bool):
+    """``(f(w, s) -> R(T), s)``: the solve as a function of omega0 and its
+    setting ``s`` (``dt`` or ``rtol = atol``, traced)."""
+    import jax.numpy as jnp
+
+    inertia, _, T, effects, torque = _setup(body)
+    fixed, dx_solver = SOLVERS[solver_name]
+    s = jnp.asarray(T / STEPS if fixed else RTOL)
+    if peer == "lierk":
+        import lierk
+
+        solver = {"RKMK4": lierk.RKMK4, "DP54": lierk.DP54, "DOP853": lierk.DOP853}.get(solver_name)
+        solver = lierk.RKMK(lierk.tableaux.DOP853, compact=compact) if solver is None else (
+            solver(compact=compact) if compact else solver())
+
+        def f(w, s):
+            problem = lierk.RigidBodyWithEffects(inertia, w, effects=effects())
+            kw = dict(dt=s, max_steps=STEPS) if fixed else dict(rtol=s, atol=s)
+            return lierk.solve(problem, solver, T, throw=False, **kw).R[-1]
+
+        return f, s, solver
+    import peers
+
+    field = peers.rigid_body_field(inertia, torque)
+
+    def f(w, s, forward_mode=False):
+        y0 = peers.initial_state(inertia, w)
+        kw = dict(dt=s, max_steps=STEPS + 1) if fixed else dict(rtol=s)
+        return peers.diffrax_solve(field, dx_solver, T, y0, forward_mode=forward_mode, **kw)[0]
+
+    return f, s, None
+
+
+def _size(compiled) -> int:
+    """Instructions in the optimized HLO (every line that defines a value)."""
+    return sum(1 for line in compiled.as_text().splitlines() if " = " in line and not line.lstrip().startswith("//"))
+
+
+def run_cell(cell: dict) -> dict:
+    """Run one cell in this process: seconds for each part of the first call,
+    program size, or the steady-state median."""
+    t_start = time.perf_counter()
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    jax.config.update("jax_enable_compilation_cache", False)
+    import jax.numpy as jnp
+    import numpy as np
+
+    if cell["peer"] == "lierk":
+        import lierk  # noqa: F401
+    else:
+        import diffrax  # noqa: F401
+    imported = time.perf_counter() - t_start
+    body, solver_name, work, peer, compact = cell["body"], cell["solver"], cell["work"], cell["peer"], cell["compact"]
+    _, omega0, T, effects, _ = _setup(body)
+    w0 = jnp.asarray(omega0)
+    f, s, solver = _function(body, solver_name, peer, compact)
+    fixed = SOLVERS[solver_name][0]
+    out = {"import": imported}
+    if work == "sensitivity":
+        import lierk
+
+        inertia = _setup(body)[0]
+        kw = dict(dt=T / STEPS, max_steps=STEPS) if fixed else dict(rtol=RTOL, atol=RTOL)
+        t = time.perf_counter()
+        sens = lierk.sensitivity(lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, T, throw=False, **kw)
+        jax.block_until_ready(sens.jacobian)
+        out.update(first=time.perf_counter() - t, method=lierk.sensitivity_method(
+            lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, method="derivative"))
+        return out
+    if work == "steady":
+        rng = np.random.default_rng(0)
+        W = jnp.asarray(omega0 * (1 + 0.05 * rng.standard_normal((BATCH, 3))))
+        g = jax.jit(jax.vmap(f, in_axes=(0, None)))
+        jax.block_until_ready(g(W, s))
+        times = []
+        while len(times) < 5 or (sum(times) < 1.0 and len(times) < 51):
+            t = time.perf_counter()
+            jax.block_until_ready(g(W, s))
+            times.append(time.perf_counter() - t)
+        out["steady"] = float(np.median(times))
+        return out
+    if work == "jacfwd":
+        g = jax.jacfwd(f) if peer == "lierk" else jax.jacfwd(lambda w, s: f(w, s, forward_mode=not fixed))
+    else:
+        g = f
+    t0 = time.perf_counter()
+    lowered = jax.jit(g).lower(w0, s)
+    t1 = time.perf_counter()
+    compiled = lowered.compile()
+    t2 = time.perf_counter()
+    jax.block_until_ready(compiled(w0, s))
+    t3 = time.perf_counter()
+    out.update(trace=t1 - t0, compile=t2 - t1, run=t3 - t2, first=t3 - t0, size=_size(compiled))
+    return out
+
+
+def _fresh(cell: dict) -> dict:
+    """`run_cell` in a fresh process."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}
+    p = subprocess.run([sys.executable, __file__, "--one", json.dumps(cell)], env=env, capture_output=True, text=True)
+    if p.returncode != 0:
+        raise RuntimeError(f"{cell} failed:\n{p.stderr[-3000:]}")
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def cells(quick: bool):
+    pairs = QUICK if quick else [(b, s) for b in BODIES for s in SOLVERS]
+    for body, solver in pairs:
+        for work in WORKS:
+            yield dict(body=body, solver=solver, work=work, peer="lierk", compact=None)
+            if work in ("solve", "steady"):
+                yield dict(body=body, solver=solver, work=work, peer="lierk", compact=True)
+            if work != "sensitivity":
+                yield dict(body=body, solver=solver, work=work, peer="diffrax", compact=None)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true", help="the heavy top with DOP853, one repeat, into a temp dir")
+    parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
+    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
+    parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.one:
+        print(json.dumps(run_cell(json.loads(args.one))))
+        return
+    repeats = args.repeats or (1 if args.quick else 3)
+    out = Path(args.out) if args.out else (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
+    sys.path.insert(0, str(HERE))
+    import common
+
+    meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
+            "rtol": RTOL, "batch": BATCH}
+    rows = []
+    for cell in cells(args.quick):
+        runs = [_fresh(cell) for _ in range(repeats)]
+        row = dict(cell, **{k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "method"})
+        if "method" in runs[0]:
+            row["method"] = runs[0]["method"]
+        rows.append(row)
+        value = row.get("first", row.get("steady"))
+        print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
+              f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
+    meta["machine"]["load_average_at_end"] = os.getloadavg()
+    common.write_results(out, "first_result", {"meta": meta, "rows": rows}, markdown(meta, rows))
+
+
+def _find(rows, **kw):
+    return next((r for r in rows if all(r.get(k) == v for k, v in kw.items())), None)
+
+
+def markdown(meta, rows) -> list[str]:
+    m = meta["machine"]
+    lines = [
+        "# Time to first result: lierk beside diffrax",
+        "",
+        f"{m['cpu_count']} cores ({m['cpu']}); jax {m['jax']}, lierk {m['lierk']}, commit {meta['commit']}.  Every cell in a "
+        f"fresh process without the persistent cache, median of {meta['repeats']}; float64; {meta['steps']} fixed steps or "
+        f"rtol = atol = {meta['rtol']:g}.  First call = trace (and lower) + XLA compile + first run, seconds; size: "
+        f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "
+        f"average at start {tuple(round(x, 1) for x in m['load_average_at_start'])}, at end "
+        f"{tuple(round(x, 1) for x in m['load_average_at_end'])}.",
+        "",
+        "## First solve and first Jacobian",
+        "",
+        "| problem | solver | work | lierk (trace + compile + run) | size | diffrax | size | lierk / diffrax | target |",
+        "|---|---|---|---|---:|---|---:|---:|---|",
+    ]
+    for body in BODIES:
+        for solver, (_, peer) in SOLVERS.items():
+            for work, target in (("solve", 1.5), ("jacfwd", 2.0)):
+                a = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None)
+                b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
+                if a is None or b is None:
+                    continue
+                ratio = a["first"] / b["first"]
+                lines.append(
+                    f"| {body} | {solver} vs {peer} | {work} | {a['first']:.2f} ({a['trace']:.2f} + {a['compile']:.2f} + "
+                    f"{a['run']:.2f}) | {a['size']} | {b['first']:.2f} ({b['trace']:.2f} + {b['compile']:.2f} + {b['run']:.2f}) "
+                    f"| {b['size']} | {ratio:.2f} | {'met' if ratio <= target else 'missed'} (<= {target}) |"
+                )
+                if work == "solve":
+                    c = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=True)
+                    if c is not None:
+                        r = c["first"] / b["first"]
+                        lines.append(
+                            f"| {body} | {solver} `compact=True` | solve | {c['first']:.2f} ({c['trace']:.2f} + "
+                            f"{c['compile']:.2f} + {c['run']:.2f}) | {c['size']} | | | {r:.2f} | "
+                            f"{'met' if r <= target else 'missed'} (<= {target}) |"
+                        )
+                if work == "jacfwd":
+                    s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
+                    if s is not None:
+                        r = s["first"] / b["first"]
+                        lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
+                                     f"| {s['first']:.2f} | | | | {r:.2f} | {'met' if r <= target else 'missed'} (<= {target}) |")
+    lines += ["", "## Steady state (after compilation)", "",
+              f"| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
+              "|---|---|---:|---:|---:|---:|---:|"]
+    for body in BODIES:
+        for solver, (_, peer) in SOLVERS.items():
+            a = _find(rows, body=body, solver=solver, work="steady", peer="lierk", compact=None)
+            c = _find(rows, body=body, solver=solver, work="steady", peer="lierk", compact=True)
+            b = _find(rows, body=body, solver=solver, work="steady", peer="diffrax")
+            if a is None or b is None:
+                continue
+            lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['steady']:.2f} | "
+                         f"{1e3 * c['steady']:.2f} | {1e3 * b['steady']:.2f} | {a['steady'] / b['steady']:.2f} | "
+                         f"{c['steady'] / b['steady']:.2f} |")
+    return lines
+
+
+if __name__ == "__main__":
+    main()
