@@ -127,6 +127,17 @@ def _jacobian_algebra(R: Array, dR: Array) -> Array:
     return jnp.moveaxis(so3.vee(A), -1, 0)
 
 
+def _check_input(problem: AbstractProblem, wrt) -> None:
+    """`_input`'s refusals, without computing the input's value (a named
+    input of a rigid body needs nothing computed to be accepted)."""
+    if callable(wrt) and not isinstance(wrt, str):
+        _input(problem, wrt)  # the selector must run to be checked
+    elif wrt not in _INPUTS:
+        raise ValueError(f"wrt must be one of {_INPUTS} or a function selecting fields of the problem, got {wrt!r}")
+    elif not isinstance(problem, AbstractRigidBody):
+        raise ValueError(f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}")
+
+
 def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], AbstractProblem]]:
     """``(p0, rebuild)``: the input's value and the problem as a function of it."""
     if callable(wrt) and not isinstance(wrt, str):
@@ -147,10 +158,7 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
                 f"cannot be perturbed); select a field, or use one of {_INPUTS}"
             ) from None
         return p0, lambda p: eqx.tree_at(wrt, problem, p)
-    if wrt not in _INPUTS:
-        raise ValueError(f"wrt must be one of {_INPUTS} or a function selecting fields of the problem, got {wrt!r}")
-    if not isinstance(problem, AbstractRigidBody):
-        raise ValueError(f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}")
+    _check_input(problem, wrt)
     omega0 = problem.omega0
     if wrt == "omega0":
         return omega0, problem.with_omega0
@@ -256,7 +264,7 @@ def sensitivity(
     fixed = solve_options.get("dt") is not None
     if not fixed and method == "derivative":
         solve_options = _resolving_modes(solve_options)
-    _input(problem, wrt)  # bad input raises here, before tracing
+    _check_input(problem, wrt)  # bad input raises here, before tracing
     # A derivative's program holds the solve's steps with every direction's
     # tangents: the long tableaux loop over their stages there, which
     # compiles several times faster (`lierk.AbstractRKMK`'s ``compact``).

@@ -227,13 +227,21 @@ class Solution(eqx.Module):
 
 
 def raise_if_failed(sol: Solution, throw: bool) -> Solution:
-    """With ``throw``, turn a failed result into a run-time error naming it
-    (the event codes only when the solve had events)."""
+    """With ``throw``, turn a failed result into an error naming it (the
+    event codes only when the solve had events): a `RuntimeError` at once
+    when the result is known (read on the host, nothing compiled), a
+    run-time check (`eqx.error_if`) when it is traced."""
     if not throw:
         return sol
-    for code, message in RESULTS.messages.items():
-        if code in RESULTS.finished or (code == RESULTS.event_condition_nan and sol.events is None):
-            continue
+    failures = [(code, message) for code, message in RESULTS.messages.items()
+                if code not in RESULTS.finished and not (code == RESULTS.event_condition_nan and sol.events is None)]
+    if not isinstance(sol.result, jax.core.Tracer):
+        result = np.asarray(sol.result)
+        for code, message in failures:
+            if np.any(result == code):
+                raise RuntimeError(f"lierk.solve failed: {message}")
+        return sol
+    for code, message in failures:
         sol = eqx.error_if(sol, jnp.any(sol.result == code), f"lierk.solve failed: {message}")
     return sol
 

@@ -77,3 +77,46 @@ def test_seconds_count_nested_phases_once():
     c = Compilations(names=["jit(f)"], spans=[(0.0, 1.0), (0.5, 0.75), (2.0, 2.5), (0.9, 1.2)])
     assert c.count == 1
     assert c.seconds == pytest.approx(1.7)
+
+
+def _compiles(calls) -> list[int]:
+    """The programs compiled by each call of ``calls``, after a fresh start."""
+    jax.clear_caches()
+    counts = []
+    for call in calls:
+        with counting() as seen:
+            jax.block_until_ready(call())
+        counts.append(seen.count)
+    return counts
+
+
+def _body(inertia, omega0):
+    return lierk.RigidBodyWithEffects(inertia, omega0, effects=(lierk.Gravity([0.0, 0.1, 0.4], 1.0),))
+
+
+def test_new_numbers_reuse_the_compiled_program():
+    # Python floats (t0, t1, dt, rtol, atol, target_error, inertia, omega0)
+    # are traced at the API boundary: one program per structure.  Before,
+    # lierk.sensitivity compiled again for every new t1, and an eager solve
+    # compiled each array operation around its loop (61 programs).
+    I1, I2 = [2.0, 3.0, 4.0], [2.5, 3.5, 4.1]
+    w1, w2 = [0.3, -0.2, 5.0], [0.2, 0.1, 4.0]
+    fixed = [lambda t0=t0, t1=t1, dt=dt, I=I, w=w: lierk.solve(_body(I, w), lierk.RKMK4(), t1, t0=t0, dt=dt, max_steps=64).R
+             for t0, t1, dt, I, w in ((0.0, 0.5, 0.01, I1, w1), (0.1, 0.4, 0.02, I2, w2))]
+    assert _compiles(fixed) == [2, 0]  # the solve and the body's inverse inertia (one program each)
+    adaptive = [lambda t1=t1, r=r, a=a, w=w: lierk.solve(_body(I1, w), lierk.DP54(), t1, rtol=r, atol=a, estimate_error=True).R
+                for t1, r, a, w in ((0.5, 1e-6, 1e-8, w1), (0.7, 1e-7, 1e-9, w2))]
+    assert _compiles(adaptive) == [2, 0]
+    target = [lambda t1=t1, e=e: lierk.solve(_body(I1, w1), lierk.DP54(), t1, target_error=e).R for t1, e in ((0.3, 1e-5), (0.4, 1e-6))]
+    assert _compiles(target) == [2, 0]
+    event = lierk.Event(lambda t, R, y: R[2, 2] - 0.5)
+    events = [lambda t1=t1: lierk.solve(_body(I1, w1), lierk.DP54(), t1, rtol=1e-6, event=event).R for t1 in (0.3, 0.6)]
+    assert _compiles(events) == [2, 0]
+    sens = [lambda t1=t1, r=r: lierk.sensitivity(_body(I1, w1), lierk.DP54(), t1, rtol=r, estimate_error=False).jacobian
+            for t1, r in ((0.3, 1e-6), (0.5, 1e-7))]
+    assert _compiles(sens) == [2, 0]
+    # A fixed-step count without max_steps sizes the loop: a new count is a
+    # new program, the same count is not.
+    steps = [lambda t1=t1: lierk.sensitivity(_body(I1, w1), lierk.RKMK4(), t1, dt=0.01, estimate_error=False).jacobian
+             for t1 in (0.3, 0.3 + 1e-12, 0.5)]
+    assert _compiles(steps) == [2, 0, 1]
