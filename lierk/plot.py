@@ -2,8 +2,9 @@
 
 Every function builds a `matplotlib.figure.Figure` directly (no pyplot), so
 nothing is ever shown, no global figure list grows, and the caller's backend
-is left alone; in a notebook ``display(fig)`` shows it.  Figures use
-constrained layout so labels are never clipped.
+is left alone; in a notebook ``display(fig)`` shows it.  The figures of a
+solve have fixed layouts with room for their labels (none is clipped:
+tests/test_plot.py); the sweep's, with colour bars, constrained layout.
 
 Data flow: `Solution` (and, where needed, the problem or the body's parts)
 -> figure.  Only the valid saved entries are drawn (``Solution.n_saved``), so
@@ -40,8 +41,16 @@ def _to_euler(R, convention: str) -> np.ndarray:
 _to_euler_program = jax.jit(so3.to_euler, static_argnums=1)
 
 
-def _figure(figsize, title: str | None) -> Figure:
-    fig = Figure(figsize=figsize, layout="constrained")
+def _figure(figsize, title: str | None, margins: dict | None = None) -> Figure:
+    """A figure of ``figsize`` (inches) with its subplots placed by
+    ``margins`` (`Figure.subplots_adjust`'s fractions, for the labels each
+    figure draws), or by constrained layout without them.  The figures of a
+    solve have fixed layouts: constrained layout measured every label and
+    drew each figure twice, most of the time ``lierk simulate`` spent on its
+    three figures; tests/test_plot.py checks that no text is clipped."""
+    fig = Figure(figsize=figsize, layout=None if margins is not None else "constrained")
+    if margins is not None:
+        fig.subplots_adjust(**margins)
     if title:
         fig.suptitle(title)
     return fig
@@ -70,7 +79,7 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None,
     marked with vertical lines; ``flips``: times of flips, the same as
     ``events={"flip": flips}``."""
     ts, R, _ = trajectory(sol)
-    fig = _figure(figsize, title)
+    fig = _figure(figsize, title, dict(left=0.09, right=0.98, bottom=0.08, top=0.88 if title else 0.94, wspace=0.1, hspace=0.3))
     axs = fig.subplots(3, 3, sharex=True, sharey=True)
     colours = ["tab:red", "tab:blue", "tab:green"]
     for i in range(3):
@@ -113,7 +122,7 @@ def euler_angles(
     unit = "deg" if degrees else "rad"
     if degrees:
         angles = np.degrees(angles)
-    fig = _figure(figsize, title)
+    fig = _figure(figsize, title, dict(left=0.14, right=0.97, bottom=0.08, top=0.92 if title else 0.97, hspace=0.12))
     axs = fig.subplots(3, 1, sharex=True)
     names = {
         "zyx": [r"$\phi$ (about space $z$)", r"$\theta$ (about $y$)", r"$\psi$ (about body $x$)"],
@@ -152,7 +161,10 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5), q
     kept = {k: v for k, v in quantities.items() if k in conserved}
     other = {k: v for k, v in quantities.items() if k not in conserved}
     eps = float(np.finfo(R.dtype).eps)
-    fig = _figure(figsize if not (kept and other) else (figsize[0], figsize[1] * 1.5), title)
+    tall = bool(kept and other)
+    fig = _figure(figsize if not tall else (figsize[0], figsize[1] * 1.5), title,
+                  dict(left=0.13, right=0.66, bottom=0.12 if not tall else 0.08, top=(0.86 if not tall else 0.9) if title else 0.95,
+                       hspace=0.1))
     if not quantities:
         ax = fig.subplots()
         ax.text(0.5, 0.5, "this problem declares no invariants", ha="center", va="center", transform=ax.transAxes)

@@ -41,7 +41,41 @@ def test_components_plot_every_entry_against_time(flip, tmp_path):
     path = tmp_path / "c.png"
     fig.savefig(path, dpi=100)
     img = matplotlib.image.imread(path)
-    assert img.shape[:2] == (700, 900)  # figsize (9, 7) at 100 dpi, constrained layout keeps it
+    assert img.shape[:2] == (700, 900)  # figsize (9, 7) at 100 dpi
+
+
+@pytest.mark.parametrize("name", ["components", "euler_angles", "invariants", "invariants_two_panels"])
+def test_no_label_of_a_solves_figure_is_clipped(flip, name):
+    # The figures of a solve have fixed layouts (constrained layout drew each
+    # twice and was most of `lierk simulate`'s figure time): every text, a
+    # long title, the panels' labels, tick labels and the legends outside
+    # the axes, must lie inside the figure.
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.text import Text
+
+    problem, sol = flip
+    title = "a title as long as a scene's own: T-handle, spin about x"
+    if name == "components":
+        fig = plot.components(sol, title, events={"flip": [0.5, 2.0], "tilt": [1.0]})
+    elif name == "euler_angles":
+        fig = plot.euler_angles(sol, title, degrees=True, convention="zxz")
+    elif name == "invariants":
+        fig = plot.invariants(sol, problem, title)
+    else:
+        # A heavy top: energy conserved, |L| not, so two panels.
+        top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.3, 0.0, 5.0], effects=(lierk.Gravity([0.0, 0.0, 0.5], 1.0),))
+        fig = plot.invariants(lierk.solve(top, lierk.RKMK4(), 1.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=True)),
+                              top, title)
+        assert len(fig.axes) == 2
+    renderer = FigureCanvasAgg(fig).get_renderer()
+    fig.draw(renderer)
+    assert sum(1 for t in fig.findobj(Text) if t.get_visible() and t.get_text().strip()) > 10
+    # Everything drawn (titles, labels, tick labels, legends outside the
+    # axes), in inches, inside the figure.
+    drawn = fig.get_tightbbox(renderer)
+    width, height = fig.get_size_inches()
+    tol = 0.01
+    assert drawn.x0 >= -tol and drawn.y0 >= -tol and drawn.x1 <= width + tol and drawn.y1 <= height + tol, (drawn, width, height)
 
 
 @pytest.mark.parametrize("degrees", [False, True])
