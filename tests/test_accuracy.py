@@ -300,25 +300,27 @@ def test_estimates_see_errors_of_steps_set_by_the_turn_bound():
     assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (float(sol.error_estimate[-1]), err)
 
 
-def test_target_error_out_of_max_steps_stops_and_keeps_the_last_finished_round():
-    """Adaptive rounds that run out of max_steps stop: tighter tolerances only
-    take more steps.  Before: the rounds tightened 100x each time, five in
-    vain, and returned the unfinished solve with ``stats["rtol"]`` 9e-17."""
-    # The first round already runs out: max_steps_reached, at its own setting.
+def test_target_error_out_of_max_steps_stops_and_keeps_the_last_finished_solve():
+    """Adaptive solves that run out of max_steps, or would, end the search:
+    tighter tolerances only take more steps.  Before: the rounds tightened
+    100x each time, five in vain, and returned the unfinished solve with
+    ``stats["rtol"]`` 9e-17."""
+    # The first solve already runs out: max_steps_reached, at its own setting.
     b = lierk.FreeRigidBody(TEE, [1.0, 0.05, 0.3])
     sol = lierk.solve(b, lierk.DP54(), 10.0, target_error=1e-10, max_steps=150, throw=False)
     assert int(sol.result) == lierk.RESULTS.max_steps_reached
-    assert int(sol.stats["num_solves"]) == 2 and float(sol.stats["rtol"]) == pytest.approx(5e-12)
-    # The second round runs out (a T-handle near its intermediate axis for
-    # 200 s; the first takes ~1700 steps): the first round's solution comes
-    # back, not reached, with an estimate that is its error.
+    assert int(sol.stats["num_solves"]) == 1 and float(sol.stats["rtol"]) == pytest.approx(5e-12)
+    # A T-handle near its intermediate axis for 200 s: the first solve (rtol
+    # 5e-10, ~1700 steps) finishes; its confirming solve would take ~3000
+    # steps, so a looser one that fits tells its error: not reached, with an
+    # estimate that is an upper bound near the error.
     w = np.array([1.0, 0.00628651, -0.00660524])
     b = lierk.FreeRigidBody(TEE, w)
     sol = lierk.solve(b, lierk.DP54(), 200.0, target_error=1e-8, max_steps=3000, throw=False)
     err = np.linalg.norm(np.asarray(sol.R[-1]) - np.asarray(lierk.exact.free_rigid_body(TEE, w, 200.0)[0]))
     assert int(sol.result) == lierk.RESULTS.target_error_not_reached
-    assert int(sol.stats["num_solves"]) == 4 and float(sol.stats["rtol"]) == pytest.approx(5e-10)
-    assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (float(sol.error_estimate[-1]), err)
+    assert int(sol.stats["num_solves"]) == 2 and float(sol.stats["rtol"]) == pytest.approx(5e-10)
+    assert 1.0 < float(sol.error_estimate[-1]) / err < 3.0, (float(sol.error_estimate[-1]), err)
 
 
 @pytest.mark.parametrize("bad", [0.0, -1e-6, float("nan"), float("inf")])
@@ -408,3 +410,195 @@ def test_float32_error_estimate_below_the_local_error_floor():
             sol = lierk.solve(lierk.FreeRigidBody(I32, w32), solver, 10.0, rtol=tol, atol=tol, estimate_error=True)
             err = np.linalg.norm(np.asarray(sol.R[-1], float) - ref)
             assert 0.5 < float(sol.error_estimate[-1]) / err < 2.0, (solver.name, tol, err)
+
+
+# --------------------------------------------------------------------------
+# target_error: a success is within the target
+
+# Random bodies on which target_error claimed success above the target when
+# it returned the finer solution of a pair with gap/(K - 1) (error/target
+# then in the comments): (principal moments, omega0, t1, target).
+_MISSED = {
+    "DOP853": [
+        ([2.4056648399877476, 53.19857474460555, 13.453201351354885],
+         [33.30938772448865, -8.884355169719584, -7.725668935606718], 2.0, 1e-4),  # 37x
+        ([40.15699046024184, 70.31699770378613, 3.4061247072129412],
+         [-1.0973345624043482, 0.1303855879716061, 0.1539579506114999], 50.0, 1e-3),  # 8.0x
+        ([1.9839376736554735, 88.15716746874516, 60.23807868567418],
+         [-3.172368992120628, 25.304807479009455, 2.6823381846753493], 2.0, 1e-5),  # 1.4x
+    ],
+    "DP54": [
+        ([48.705849754569776, 7.050387236303322, 91.07043626260179],
+         [151.60852135242547, 60.725888574042756, 108.54814181390017], 0.2, 1e-3),  # 2.7x
+        ([14.34405130286774, 2.4448912473577886, 11.273129532463715],
+         [2.3170115988681803, 6.736978919108383, 2.616899133699039], 10.0, 1e-5),  # 1.4x
+    ],
+    "RKF45": [
+        ([11.59634017998046, 42.31440034907315, 98.63262377189076],
+         [111.99080419886756, 12.986835296982985, 72.99752903474428], 0.2, 1e-3),  # 1.2x
+    ],
+    "RKMK4": [],
+}
+
+
+_exact_at = jax.jit(jax.vmap(lambda I, w, t: lierk.exact.free_rigid_body(I, w, t)[0]))
+
+
+def _random_target_cases(n, seed):
+    """``n`` bodies with principal moments within 1:100 of each other (most
+    break the triangle inequality: fast internal dynamics), |omega0| from 1
+    to 300 rad/s, t1 up to 50 s but at most 200 rad of turn (keeps the test
+    fast), and a target from 1e-3 to 1e-6 each."""
+    rng = np.random.default_rng(seed)
+    inertia = 10.0 ** rng.uniform(0, 2, (n, 3))
+    d = rng.normal(size=(n, 3))
+    w = d / np.linalg.norm(d, axis=1, keepdims=True) * 10.0 ** rng.uniform(0, 2.5, (n, 1))
+    t1 = np.minimum(rng.choice([0.2, 2.0, 10.0, 50.0], n), 200 / np.linalg.norm(w, axis=1))
+    return inertia, w, t1, 10.0 ** -rng.integers(3, 7, n).astype(float)
+
+
+@pytest.mark.parametrize("solver", [lierk.DOP853(), lierk.DP54(), lierk.RKF45(), lierk.RKMK4()], ids=lambda s: s.name)
+def test_target_error_success_means_the_error_is_within_the_target(solver):
+    """Random bodies and targets, saving at t1/3, 2t1/3 and t1; and the
+    bodies above, where success was claimed above the target (up to 37x)
+    when the finer solution of a pair came back with gap/(K - 1) (saved at
+    t1 only, as they were found).  Every success is within the target at
+    every saved time, and its estimate is not below the error."""
+    # 24 members for every solver: one program for the references.
+    missed = _MISSED[solver.name]
+    inertia, w, t1, eps = _random_target_cases(24 - len(missed), seed=11)
+    fractions = np.tile([1 / 3, 2 / 3, 1.0], (len(t1), 1))
+    for I_, w_, t_, e_ in missed:
+        inertia, w = np.vstack([inertia, I_]), np.vstack([w, w_])
+        t1, eps, fractions = np.append(t1, t_), np.append(eps, e_), np.vstack([fractions, [1.0, 1.0, 1.0]])
+    ts = t1[:, None] * fractions
+
+    @jax.jit
+    @jax.vmap
+    def run(inertia, w, ts, eps):
+        sol = lierk.solve(lierk.FreeRigidBody(inertia, w), solver, ts[-1], saveat=lierk.SaveAt(ts=ts), target_error=eps,
+                          throw=False)
+        return sol.R, sol.result, sol.error_estimate, sol.stats["num_solves"]
+
+    R, code, est, solves = (np.asarray(x) for x in run(inertia, w, ts, eps))
+    err = frob(R, _exact_at(inertia, w, ts))
+    ok = code == lierk.RESULTS.successful
+    assert set(code) <= {lierk.RESULTS.successful, lierk.RESULTS.target_error_not_reached, lierk.RESULTS.max_steps_reached}
+    assert ok.mean() >= 0.75, code
+    ratio = err / eps[:, None]
+    assert np.all(ratio[ok] <= 1.0), (np.sort(ratio[ok].max(1))[-3:], np.flatnonzero(ok & (ratio.max(1) > 1)))
+    # The estimate is an upper bound where the error matters (above a tenth
+    # of the target), and not a wild one.
+    big = ok[:, None] & (err > eps[:, None] / 10)
+    assert np.all(est[big] >= err[big]), np.sort(est[big] / err[big])[:3]
+    assert np.median(est[big] / err[big]) < 3, np.median(est[big] / err[big])
+    assert np.all((solves >= 2) | ~ok) and solves.max() <= 8
+
+
+@pytest.mark.parametrize(
+    "inertia, w, t1, solver, eps, before",
+    [
+        ([1.0, 10.0, 100.0], [-1.441, -4.724, -0.098], 2.0, lierk.DOP853(), 1e-4, 8.2),
+        ([1.0, 2.0, 3.0], [40.0, 1.0, 30.0], 3.0, lierk.DP54(), 1e-5, 1.93),
+        ([0.8002913002619765, 2.561976972060909, 2.9762860170939742],
+         [-733.8086303827467, -265.50334849960643, 611.394593275093], 0.2, lierk.DOP853(), 1e-3, 5.9),
+    ],
+    ids=["DOP853-1:10:100", "DP54-box", "DOP853-fast-spin"],
+)
+def test_target_error_misses_found_by_the_adversarial_pass(inertia, w, t1, solver, eps, before):
+    """Each returned success ``before`` times over the target, with an
+    estimate below it (DOP853 on the 1:10:100 body errs 7.0e-4, 8.2e-4 and
+    2.8e-5 at rtol 5e-5, 5e-6 and 5e-7: 10x tighter is not 10x better)."""
+    sol = lierk.solve(lierk.FreeRigidBody(inertia, w), solver, t1, target_error=eps, throw=False)
+    err = np.linalg.norm(np.asarray(sol.R[-1]) - np.asarray(lierk.exact.free_rigid_body(np.asarray(inertia), np.asarray(w), t1)[0]))
+    est = float(sol.error_estimate[-1])
+    assert int(sol.result) == lierk.RESULTS.successful
+    assert err <= eps and est >= err, (err, est)
+    assert 2 <= int(sol.stats["num_solves"]) <= 4
+
+
+def _float32_case(inertia, w, solver, t1, eps):
+    return lierk.solve(lierk.FreeRigidBody(inertia, w), solver, jnp.float32(t1), target_error=eps, throw=False)
+
+
+def test_float32_target_error_verdicts_do_not_depend_on_vmap():
+    """float32 fast spins, 50 to 800 rad/s for 0.2 s, alone and under vmap.
+    Before: the search settled on rtol 4.8e-8, which a direct solve refuses
+    (below float32 rounding), where both solves of a pair took the same
+    steps: success with an estimate of 0 and an error of 2.6e-4 at target
+    1e-6 under vmap (20 to 425x over on other members), not reached alone.
+    A success is within the target alone and under vmap; no returned
+    tolerance is below what a direct float32 solve accepts; a verdict can
+    differ only where rounding (the solves differ in the last bits under
+    vmap, and a fast spin amplifies that to 1e-5) leaves the estimate near
+    the target."""
+    rng = np.random.default_rng(7)
+    inertia = np.vstack([[[0.8293631672859192, 2.236222982406616, 2.8047595024108887],
+                          [1.4523614645004272, 3.204958915710449, 3.6469008922576904]], rng.uniform(0.5, 4.0, (6, 3))])
+    d = rng.normal(size=(6, 3))
+    w = np.vstack([[[52.97450637817383, -243.86846923828125, -778.5183715820312],
+                    [-142.72744750976562, -349.6810607910156, -666.4229125976562]],
+                   d / np.linalg.norm(d, axis=1, keepdims=True) * 10 ** rng.uniform(1.7, 2.9, (6, 1))])
+    inertia, w = inertia.astype(np.float32), w.astype(np.float32)
+    ref = _exact_at(inertia.astype(float), w.astype(float), np.full(len(w), 0.2))
+    solver = lierk.DOP853()
+
+    def one(inertia, w, eps):
+        sol = _float32_case(inertia, w, solver, 0.2, eps)
+        return sol.R[-1], sol.result, sol.error_estimate[-1], sol.stats["rtol"]
+
+    batched, alone = jax.jit(jax.vmap(one, in_axes=(0, 0, None))), jax.jit(one)
+    for eps in (1e-3, 1e-4, 1e-6):
+        e = jnp.float32(eps)
+        runs = [[np.asarray(x) for x in batched(inertia, w, e)]]
+        runs.append([np.stack(x) for x in zip(*[[np.asarray(y) for y in alone(inertia[i], w[i], e)] for i in range(len(w))])])
+        for R, code, est, rtol in runs:
+            assert R.dtype == np.float32
+            err = frob(R.astype(float), ref)
+            ok = code == lierk.RESULTS.successful
+            assert np.all(err[ok] <= eps), (eps, err[ok] / eps)
+            assert np.all(rtol >= np.finfo(np.float32).eps / 2), rtol
+            assert np.all(est[ok] <= eps)
+        (_, c1, e1, _), (_, c2, e2, _) = runs
+        clear = (np.minimum(e1, e2) > 2 * eps) | (np.maximum(e1, e2) < eps / 2)
+        assert np.all((c1 == c2) | ~clear), (eps, c1, c2, e1, e2)
+        if eps == 1e-6:
+            # Below what float32 can show on these spins: not reached either way.
+            assert np.all(c1 == lierk.RESULTS.target_error_not_reached) and np.all(c2 == c1), (c1, c2)
+        else:
+            assert np.sum(c1 == lierk.RESULTS.successful) >= 2, c1
+
+
+def test_target_error_on_a_heavy_top_against_scipy():
+    """A heavy top spun at 50 rad/s, upright, with a small nutation, against
+    SciPy's DOP853 at 1e-13.  Before: RKF45 returned success 1.07x over the
+    target at 1e-3 (t1 = 5 s), RKMK4 1.04x over at 3e-4 (t1 = 0.5 s)."""
+    from scipy.integrate import solve_ivp
+
+    I, chi, g = np.array([5.0, 5.0, 1.0]), np.array([0.0, 0.0, 1.0]), 20.0
+    w0 = np.array([0.0, 0.3, 50.0])
+    t1s = np.array([0.5, 5.0])
+
+    def f(t, x):
+        R, m = x[:9].reshape(3, 3), x[9:]
+        w = m / I
+        return np.concatenate([(R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(),
+                               np.cross(m, w) + g * np.cross(R[2], chi)])
+
+    ref = solve_ivp(f, (0, 5.0), np.concatenate([np.eye(3).ravel(), I * w0]), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=t1s)
+    ref = ref.y[:9].T.reshape(-1, 3, 3)
+    eps = np.array([1e-3, 3e-4, 1e-4, 1e-5, 1e-6])
+    for solver in (lierk.RKF45(), lierk.DOP853(), lierk.RKMK4()):
+        @jax.jit
+        @jax.vmap
+        def run(t1, eps):
+            top = lierk.RigidBodyWithEffects(I, w0, effects=(lierk.Gravity(chi, 1.0, g),))
+            sol = lierk.solve(top, solver, t1, target_error=eps, throw=False)
+            return sol.R[-1], sol.result, sol.error_estimate[-1]
+
+        R, code, est = (np.asarray(x).reshape(2, len(eps), *np.shape(x)[1:]) for x in run(np.repeat(t1s, len(eps)), np.tile(eps, 2)))
+        err = frob(R, ref[:, None])
+        ok = code == lierk.RESULTS.successful
+        assert ok.mean() >= 0.8, (solver.name, code)
+        assert np.all(err[ok] <= np.broadcast_to(eps, err.shape)[ok]), (solver.name, err / eps)
+        assert np.all(est[ok] >= err[ok]), (solver.name, est / err)

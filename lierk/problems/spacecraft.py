@@ -517,7 +517,8 @@ class ReactionWheels(AbstractEffect):
         >>> wheels = ReactionWheels([[0, 0, 1.0]], [0.159], [100 * 2 * np.pi / 60], torque=[0.2])
         >>> body = lierk.RigidBodyWithEffects([2.0, 2.0, 2.159], [0, 0, 0.35], effects=(wheels,))
         >>> sol = lierk.solve(body, lierk.RKMK4(), 5.0, dt=0.01)
-        >>> sol.y[1][-1]        # the wheel speed at 5 s (rad/s)
+        >>> m, wheel_speeds = sol.y
+        >>> wheel_speeds[-1]    # relative to the body at 5 s (rad/s)
     """
 
     axes: Array
