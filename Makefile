@@ -40,9 +40,10 @@ demo: $(STAMP)
 # another on 2 cores, 11.7 min two at a time);
 # each module's output is kept in .test-logs/ and shown whole if it fails.
 test: $(STAMP)
-	@mkdir -p .test-logs && rm -f .test-logs/*.log
+	@mkdir -p .test-logs && rm -f .test-logs/*.log .test-logs/compilations.tsv
 	@ls -S tests/test_*.py | xargs -P 2 -I{} sh -c 'log=.test-logs/$$(basename {} .py).log; \
-	  if $(BIN)/python -m pytest -q {} > $$log 2>&1; then echo "== {}: $$(tail -n 1 $$log)"; \
+	  if $(BIN)/python -m pytest -q --durations=10 {} > $$log 2>&1; then \
+	  echo "== {}: $$(tail -n 1 $$log | tr -d =) | $$(grep -h "^compilations:" $$log | cut -d: -f3-)"; \
 	  else echo "== {} FAILED:"; cat $$log; exit 1; fi'
 
 bench: $(BENCH_STAMP)

@@ -8,8 +8,9 @@ each first call pays the whole cost once, as a user's new script does:
   (``jax.jit(f).lower``), XLA's compilation (``.compile()``) and the first
   run;
 - ``jacfwd``: the same for ``jax.jit(jax.jacfwd(f))``, the Jacobian of
-  ``R(T)`` with respect to ``omega0`` (diffrax adaptive solves with
-  ``adjoint=ForwardMode()``, which forward mode needs there);
+  ``R(T)`` with respect to ``omega0`` (diffrax with
+  ``adjoint=ForwardMode()``, which `jax.jacfwd` needs: its default adjoint
+  is a ``custom_vjp``, fixed steps included);
 - ``sensitivity``: ``lierk.sensitivity(problem, solver, T, ...)`` called from
   Python (its own program; default method, with its error estimate), lierk
   only;
@@ -192,7 +193,7 @@ def run_cell(cell: dict) -> dict:
         out["steady"] = float(np.median(times))
         return out
     if work == "jacfwd":
-        g = jax.jacfwd(f) if peer == "lierk" else jax.jacfwd(lambda w, s: f(w, s, forward_mode=not fixed))
+        g = jax.jacfwd(f) if peer == "lierk" else jax.jacfwd(lambda w, s: f(w, s, forward_mode=True))
     else:
         g = f
     t0 = time.perf_counter()

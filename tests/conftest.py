@@ -28,12 +28,50 @@ import gc  # noqa: E402
 import pytest  # noqa: E402
 
 
+import json  # noqa: E402
+import time  # noqa: E402
+
+import lierk.compilations  # noqa: E402
+
+# Programs each module may build (compiled, or loaded from the persistent
+# cache: the count does not depend on the cache), with headroom; compile time
+# is reported beside it, never asserted (machines are shared).  A module over
+# its budget fails: a test that stopped sharing programs, or a change that
+# made a solve build more of them, shows up here.  Regenerate the file with
+# ``python tests/compile_budget.py`` after a deliberate change.
+_BUDGET = json.loads((Path(__file__).parent / "compile_budget.json").read_text())
+_SEEN: list[tuple[str, int, float, float]] = []
+
+
 @pytest.fixture(autouse=True, scope="module")
-def _free_compiled_programs():
-    """Drop every compiled program after each test module.  The suite compiles
-    hundreds of solves (the splittings' elliptic-function drift is a large
-    program); kept for the whole session they grew the process past 5 GB at a
-    fifth of the suite, and a full run was killed mid-compile."""
-    yield
+def _free_compiled_programs(request):
+    """Count the module's compilations against its budget, then drop every
+    compiled program.  The suite compiles hundreds of solves (the splittings'
+    elliptic-function drift is a large program); kept for the whole session
+    they grew the process past 5 GB at a fifth of the suite, and a full run
+    was killed mid-compile."""
+    name = Path(str(request.path)).stem
+    start = time.perf_counter()
+    with lierk.compilations.counting() as seen:
+        yield
+    _SEEN.append((name, seen.count, seen.seconds, time.perf_counter() - start))
     jax.clear_caches()
     gc.collect()
+    budget = _BUDGET.get(name)
+    if budget is not None and seen.count > budget:
+        pytest.fail(f"{name} built {seen.count} programs, over its budget of {budget} (tests/compile_budget.json)")
+
+
+def pytest_terminal_summary(terminalreporter):
+    """One line per module: programs built (and the budget), compile seconds
+    and wall seconds; also appended to ``.test-logs/compilations.tsv`` when
+    that folder exists (``make test``)."""
+    log = Path(__file__).resolve().parent.parent / ".test-logs"
+    for name, count, seconds, wall in _SEEN:
+        budget = _BUDGET.get(name, "none")
+        terminalreporter.write_line(
+            f"compilations: {name}: {count} programs (budget {budget}), {seconds:.1f} s of {wall:.1f} s compiling"
+        )
+        if log.is_dir():
+            with open(log / "compilations.tsv", "a") as f:
+                f.write(f"{name}\t{count}\t{seconds:.2f}\t{wall:.2f}\n")
