@@ -39,6 +39,7 @@ import re
 import shutil
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from pathlib import Path
@@ -176,12 +177,26 @@ def simulate(args) -> int:
                    what=f"simulating {scene.saved_count()} saved points")
     except ValueError as e:
         raise CLIError(_one_line(e)) from None
+    # matplotlib's import (about 0.5 s of Python) runs beside the solve,
+    # whose XLA compilation and run release the GIL.
+    preload = threading.Thread(target=_import_plotting, daemon=True)
+    preload.start()
     sim = run(scene, n_pieces=args.chunks or N_PIECES, progress=not args.quiet)
+    preload.join()
     with _staged_output(args.out) as tmp:
         names = _write_simulation(sim, tmp, args)
     print(sim.summary())
     _wrote(args.out / name for name in names)
     return 0
+
+
+def _import_plotting() -> None:
+    """Import what `_write_simulation` draws with (errors surface there)."""
+    with contextlib.suppress(Exception):
+        import matplotlib.backends.backend_agg  # noqa: F401
+        import matplotlib.ticker  # noqa: F401
+
+        from . import plot  # noqa: F401
 
 
 def _write_simulation(sim, tmp: Path, args) -> list[str]:
