@@ -262,6 +262,17 @@ def _find(rows, **kw):
     return next((r for r in rows if all(r.get(k) == v for k, v in kw.items())), None)
 
 
+def _first(cell) -> str:
+    """A first call as ``total (trace + compile + run)``, seconds."""
+    return f"{cell['first']:.2f} ({cell['trace']:.2f} + {cell['compile']:.2f} + {cell['run']:.2f})"
+
+
+def _verdict(cell, peer, target: float) -> str:
+    """``ratio | met (<= target)``: ``cell``'s first call over ``peer``'s."""
+    r = cell["first"] / peer["first"]
+    return f"{r:.2f} | {'met' if r <= target else 'missed'} (<= {target})"
+
+
 def markdown(meta, rows) -> list[str]:
     m = meta["machine"]
     lines = [
@@ -286,27 +297,18 @@ def markdown(meta, rows) -> list[str]:
                 b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
                 if a is None or b is None:
                     continue
-                ratio = a["first"] / b["first"]
-                lines.append(
-                    f"| {body} | {solver} vs {peer} | {work} | {a['first']:.2f} ({a['trace']:.2f} + {a['compile']:.2f} + "
-                    f"{a['run']:.2f}) | {a['size']} | {b['first']:.2f} ({b['trace']:.2f} + {b['compile']:.2f} + {b['run']:.2f}) "
-                    f"| {b['size']} | {ratio:.2f} | {'met' if ratio <= target else 'missed'} (<= {target}) |"
-                )
+                lines.append(f"| {body} | {solver} vs {peer} | {work} | {_first(a)} | {a['size']} | {_first(b)} | {b['size']} "
+                             f"| {_verdict(a, b, target)} |")
                 if work == "solve":
                     c = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=True)
                     if c is not None:
-                        r = c["first"] / b["first"]
-                        lines.append(
-                            f"| {body} | {solver} `compact=True` | solve | {c['first']:.2f} ({c['trace']:.2f} + "
-                            f"{c['compile']:.2f} + {c['run']:.2f}) | {c['size']} | | | {r:.2f} | "
-                            f"{'met' if r <= target else 'missed'} (<= {target}) |"
-                        )
+                        lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
+                                     f"{_verdict(c, b, target)} |")
                 if work == "jacfwd":
                     s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
                     if s is not None:
-                        r = s["first"] / b["first"]
                         lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
-                                     f"| {s['first']:.2f} | | | | {r:.2f} | {'met' if r <= target else 'missed'} (<= {target}) |")
+                                     f"| {s['first']:.2f} | | | | {_verdict(s, b, target)} |")
     lines += ["", "## Steady state (after compilation)", "",
               f"| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
               "|---|---|---:|---:|---:|---:|---:|"]
