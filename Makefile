@@ -31,7 +31,7 @@ $(DOCS_STAMP): $(STAMP)
 
 demo: $(STAMP)
 	$(BIN)/lierk simulate examples/tee_handle_a.toml --out out/
-	$(BIN)/python -m lierk.demo --out out/report_cases
+	$(BIN)/python -m lierk.app.demo --out out/report_cases
 
 # One process per test module: a single process compiling the whole suite's
 # programs (thousands of XLA executables) was killed mid-run by the native

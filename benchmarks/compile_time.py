@@ -81,7 +81,7 @@ def _program(name: str, peer: str):
 
     if peer == "lierk":
         import lierk
-        from lierk.accuracy import method
+        from lierk.app.accuracy import method
 
         solver = method(lierk_solver).solver
         effects = (lierk.Gravity(chi, MASS, G),) if body == "top" else ()

@@ -18,7 +18,7 @@ Programs, one jitted vmapped program per setting on one device:
 - lierk (`lierk.RigidBodyWithEffects` with `lierk.Gravity`): adaptive DOP853
   and DP54 over ``rtol = atol``, fixed-step RKMK4 over dt, each with
   ``event=lierk.conditions.tilt(theta_c, terminate=True, direction=1)``: the
-  crossing found on the step's interpolant on SO(3) (`lierk.event`); the
+  crossing found on the step's interpolant on SO(3) (`lierk._event`); the
   event time is ``sol.ts[-1]``.
 - diffrax Dopri8 and Tsit5, ``PIDController(rtol, atol)``, on the 12-component
   ODE (``m' = m x omega + M g (Gamma x chi)``, ``R' = R hat(omega)``), with

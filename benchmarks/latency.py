@@ -2,7 +2,7 @@
 compilation and run, cold and warm.
 
 Each command runs in a fresh process (this script with ``--one``, which
-calls ``lierk.cli.main`` as the console script does), with its own
+calls ``lierk.app.cli.main`` as the console script does), with its own
 compilation cache directory (``LIERK_CACHE_DIR``; JAX's own cache settings
 removed), in three states:
 
@@ -13,9 +13,9 @@ removed), in three states:
 The process reports its split, and the parent measures the whole:
 
 - start: the interpreter starting, up to the first line of the script;
-- import: ``import lierk.cli`` and ``import lierk`` (jax, equinox, ...);
+- import: ``import lierk.app.cli`` and ``import lierk`` (jax, equinox, ...);
 - compile: the wall time spent tracing, lowering and compiling (or loading
-  from the cache) every program, `lierk.compilations.counting`;
+  from the cache) every program, `lierk.app.compilations.counting`;
 - run: the rest of the command (parsing the scene, the solves, diagnostics,
   figures, files).
 
@@ -68,19 +68,19 @@ def one(argv: list[str]) -> dict:
     from contextlib import redirect_stderr, redirect_stdout
 
     begin = time.perf_counter()
-    import lierk.cli
+    import lierk.app.cli
     import lierk  # noqa: F401  (the package: what a command imports before it runs)
 
     imported = time.perf_counter()
     import jax
 
-    from lierk.compilations import counting
+    from lierk.app.compilations import counting
 
     hits = []
     jax.monitoring.register_event_listener(lambda event, **_: hits.append(event) if event.endswith("/cache_hits") else None)
     out, err = io.StringIO(), io.StringIO()
     with counting() as c, redirect_stdout(out), redirect_stderr(err):
-        code = lierk.cli.main([*argv, "--quiet"])
+        code = lierk.app.cli.main([*argv, "--quiet"])
     done = time.perf_counter()
     if code != 0:
         raise RuntimeError(f"lierk {' '.join(argv)} exited with {code}: {err.getvalue()[-2000:]}")

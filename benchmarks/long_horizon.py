@@ -239,7 +239,7 @@ def _rot_x(angle: float) -> np.ndarray:
 
 def top_problems():
     """``[(key, title, problem, description)]``: the symmetric and the asymmetric top."""
-    sym = lierk.scene.load(EXAMPLES / "heavy_top.toml").problem
+    sym = lierk.app.scene.load(EXAMPLES / "heavy_top.toml").problem
     asym = lierk.RigidBodyWithEffects(
         np.diag([0.6, 0.8, 0.3]),
         [0.5, -0.3, 30.0],
@@ -367,7 +367,7 @@ def run_heavy_top(out: Path):
             )
             for k in casimirs:
                 r[k] = _windows(t, np.abs(inv[k] - inv0[k]) / inv0["|L|"], TOP_FIT_FROM)
-            if isinstance(solver, lierk.solvers.splitting.AbstractSplitting):
+            if isinstance(solver, lierk.AbstractSplitting):
                 r["rounding"] = rounding_walk(problem, solver.scheme, sol.R[:n_saved], sol.y[:n_saved], dt, r["steps"])
             r["meets_criterion"] = bool(r["energy"]["ratio"] <= RATIO_LIMIT and r["energy"]["max"] < ENERGY_LIMIT)
             rows.append(r)

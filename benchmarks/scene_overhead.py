@@ -23,9 +23,9 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import lierk  # noqa: E402
-from lierk import scene as scene_mod  # noqa: E402
+from lierk.app import scene as scene_mod  # noqa: E402
 from lierk import RigidBodyWithEffects
-from lierk.problems.effects import Damping  # noqa: E402
+from lierk import Damping  # noqa: E402
 
 HERE = pathlib.Path(__file__).resolve().parent
 EXAMPLE = HERE.parent / "examples" / "tee_handle_a.toml"

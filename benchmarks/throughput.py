@@ -12,7 +12,7 @@ The CPU is split into ``--devices`` XLA host devices (default: one per core),
 which the script must set through ``XLA_FLAGS`` before jax is imported; the
 library itself never does this.  A batch that divides evenly among the devices
 is sharded over them (`NamedSharding` over the batch axis, as
-`lierk.batch.sweep` does); batch 1000 is also timed on a single device for
+`lierk.sweep` does); batch 1000 is also timed on a single device for
 comparison.  Fewer steps are used for large batches to bound the run time.
 
 Run: ``python benchmarks/throughput.py [--quick] [--devices N]``; writes

@@ -3,7 +3,7 @@
 Five families of scenes, each a batch of bodies (256; ``--quick``: 8) with
 initial conditions drawn from a fixed seed, in float64 and SI units (kg m^2,
 kg, m, m/s^2, N m, N m s, rad/s, s).  Inertias are about the point the body
-turns about: the pivot for the tops (`lierk.effects.Gravity`'s convention),
+turns about: the pivot for the tops (`lierk.SHIM_effects.Gravity`'s convention),
 the centre of mass for the satellite.  ``R`` maps body -> space, space z up.
 
 - ``lagrange_fast``: the Simo-Wong heavy symmetric top, I = diag(5, 5, 1),
@@ -158,7 +158,7 @@ class Family:
     tau_b: tuple = (0.0, 0.0, 0.0)  # body-frame torque (N m)
     tau_s: tuple = (0.0, 0.0, 0.0)  # space-frame torque (N m)
     speed: tuple | None = None
-    # spacecraft (lierk.problems.spacecraft): circular orbit rate (rad/s) for
+    # spacecraft (lierk._problems.spacecraft): circular orbit rate (rad/s) for
     # the gravity gradient and the dipole field, a constant rotor momentum
     # (kg m^2/s, body frame), the B-dot gain (A m^2 s/T) and the field's tilt
     orbit_n: float = 0.0

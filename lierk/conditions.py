@@ -11,7 +11,7 @@ differentiable with respect to them.  Angles are in radians, axes are
 directions in space (z up).
 
 Example:
-    >>> top = lierk.scene.load("examples/heavy_top.toml").problem
+    >>> top = lierk.app.scene.load("examples/heavy_top.toml").problem
     >>> sol = lierk.solve(top, lierk.DOP853(), 5.0, rtol=1e-10,
     ...                   event=lierk.conditions.tilt(0.5, axis=[0, 0, 1], terminate=True))
     >>> sol.ts[-1]          # when the top's axis first leans 0.5 rad from the vertical
@@ -29,10 +29,10 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import validation
-from .event import Event
-from .problems import AbstractRigidBody
-from .solvers.base import field_at
+from . import _validation as validation
+from ._event import Event
+from ._problems import AbstractRigidBody
+from ._solvers.base import field_at
 
 __all__ = ["flip", "tilt", "pointing", "tilt_extremum", "energy_drift", "momentum_drift"]
 
@@ -184,7 +184,7 @@ def tilt_extremum(problem, axis: ArrayLike = (0.0, 0.0, 1.0), *, terminate: bool
     """The turning points of a body axis's tilt from the vertical (a top's
     nutation): where ``d tilt/dt = 0``.  ``direction=1`` keeps the largest
     tilts (the axis lowest), ``-1`` the smallest.  A top released at rest in
-    its nutation starts at a turning point, which does not count (`lierk.event`)."""
+    its nutation starts at a turning point, which does not count (`lierk._event`)."""
     dtype = problem.R0.dtype
     # At a largest tilt cos(tilt) stops falling: its rate rises through zero.
     return Event(TiltRate(problem, _unit(axis, "axis", dtype)), terminate=terminate, direction=direction,

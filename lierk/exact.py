@@ -43,7 +43,7 @@ integral has no pole.  All elliptic functions and integrals are evaluated by
 (no cancellation near the separatrix).
 
 Inputs are validated as `lierk.FreeRigidBody` validates them
-(`lierk.validation.rigid_body_inputs`): the inertia is ``(3, 3)`` symmetric
+(`lierk._validation.rigid_body_inputs`): the inertia is ``(3, 3)`` symmetric
 positive definite or ``(3,)`` principal moments, ``omega0`` is a finite
 ``(3,)`` vector and ``R0`` a rotation matrix.  Concrete values raise
 `ValueError` naming the value; traced values (under ``jit``/``vmap``/``grad``)
@@ -77,7 +77,7 @@ from jax.typing import ArrayLike
 
 from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
-from lierk.validation import is_traced, rigid_body_inputs
+from lierk._validation import is_traced, rigid_body_inputs
 
 __all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "flip_times", "sphere", "principal_frame"]
 

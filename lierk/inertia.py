@@ -20,8 +20,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .validation import as_jax, is_traced
-from .validation import check_inertia as tensor
+from ._validation import as_jax, is_traced
+from ._validation import check_inertia as tensor
 
 __all__ = [
     "tensor",
@@ -177,7 +177,7 @@ class MeshInertia(NamedTuple):
         principal_moments: ``(3,)`` kg m^2, ascending.
         principal_axes: ``(3, 3)`` rotation whose columns are the principal
             axes in the mesh frame: ``inertia = Q diag(moments) Q^T``.
-        mesh: the `lierk.mesh.TriangleMesh` (m), for drawing.
+        mesh: the `lierk._mesh.TriangleMesh` (m), for drawing.
     """
 
     mass: float
@@ -194,12 +194,12 @@ def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
     Args:
         mesh: a file path (STL or OBJ; other formats if ``trimesh`` is
             installed), a ``(vertices (V, 3), faces (F, 3))`` pair, or a
-            `lierk.mesh.TriangleMesh`.
+            `lierk._mesh.TriangleMesh`.
         density: kg/m^3.
         scale: file units to metres (``1e-3`` for a CAD file in mm); not
             applied to a `TriangleMesh`.
 
-    Exact for the polyhedron (`lierk.mesh.mass_properties`).  A mesh that is
+    Exact for the polyhedron (`lierk._mesh.mass_properties`).  A mesh that is
     not watertight, is inconsistently oriented or encloses no volume raises a
     ValueError saying which.
 
@@ -207,7 +207,7 @@ def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
         >>> props = lierk.inertia.from_mesh("bracket.stl", density=2700.0, scale=1e-3)
         >>> body = lierk.FreeRigidBody(props.inertia, [0.0, 1.0, 0.1])
     """
-    from . import mesh as _mesh
+    from . import _mesh
 
     if isinstance(mesh, _mesh.TriangleMesh):
         m = mesh

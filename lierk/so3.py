@@ -30,7 +30,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import validation
+from . import _validation as validation
 
 __all__ = [
     "hat",

@@ -55,13 +55,13 @@ class ButcherTableau:
         tolerance_calibration: adaptive steps hold the embedded estimate to
             ``tol * tolerance_calibration``, a measured constant that makes the
             global attitude error of the pair come out near ``tol`` (see
-            `lierk.controller`).
+            `lierk._controller`).
         dense_c: nodes of the extra stages of a continuous extension (dense
             output), evaluated after the step; ``()`` for none.
         dense_a: their rows of ``a``; row ``i`` has ``stages + i`` entries
             (it may use every stage, the extra ones before it included).
         dense_b: ``(d, stages + len(dense_c))`` weights of the continuous
-            extension in the nested basis of `lierk.interpolation`: with
+            extension in the nested basis of `lierk._interpolation`: with
             ``F_j = h sum_i dense_b[j][i] k_i``, the solution at ``t + theta h``
             is ``y + theta (F_0 + (1 - theta)(F_1 + theta (F_2 + ...)))``.
             Empty without a continuous extension.
@@ -164,7 +164,7 @@ def blend_estimates(err, err3, sqrt=np.sqrt):
     (norms, NumPy or JAX; ``sqrt`` of the same kind) blended so that the
     result behaves like O(h^8) (Hairer, Norsett, Wanner I, II.10):
     ``err^2 / sqrt(err^2 + 0.01 err3^2)``.  Where both are 0 this divides
-    0 by 0; `lierk.solvers.rkmk.AbstractRKMK.error_norm` guards it."""
+    0 by 0; `lierk._solvers.rkmk.AbstractRKMK.error_norm` guards it."""
     return err * err / sqrt(err * err + 0.01 * err3 * err3)
 
 

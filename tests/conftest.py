@@ -31,7 +31,7 @@ import pytest  # noqa: E402
 import json  # noqa: E402
 import time  # noqa: E402
 
-import lierk.compilations  # noqa: E402
+import lierk.app.compilations  # noqa: E402
 
 # Programs each module may build (compiled, or loaded from the persistent
 # cache: the count does not depend on the cache), with headroom; compile time
@@ -52,7 +52,7 @@ def _free_compiled_programs(request):
     was killed mid-compile."""
     name = Path(str(request.path)).stem
     start = time.perf_counter()
-    with lierk.compilations.counting() as seen:
+    with lierk.app.compilations.counting() as seen:
         yield
     _SEEN.append((name, seen.count, seen.seconds, time.perf_counter() - start))
     jax.clear_caches()

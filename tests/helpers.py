@@ -105,7 +105,7 @@ def write(tmp_path, text, name="scene.toml"):
 
 def run_inprocess(argv, capsys):
     """``lierk ARGV`` in this process: (exit status, stdout, stderr)."""
-    from lierk import cli
+    from lierk.app import cli
 
     try:
         code = cli.main([str(a) for a in argv])

@@ -1,4 +1,4 @@
-"""``lierk accuracy`` and `lierk.accuracy`: the errors it reports are the
+"""``lierk accuracy`` and `lierk.app.accuracy`: the errors it reports are the
 errors against the exact solution, its per-decade table picks runs that
 really reach each decade, and mistakes end in one line."""
 
@@ -16,10 +16,10 @@ from PIL import Image
 from helpers import run_inprocess, write
 
 import lierk
-import lierk.accuracy as A
+import lierk.app.accuracy as A
 import lierk.exact
-import lierk.scene
-from lierk import cli
+import lierk.app.scene
+from lierk.app import cli
 
 TINY_SCENE = """
 name = "tiny"
@@ -58,10 +58,10 @@ def _exact_error(scene, row, ts):
     p = scene.problem
     if row["setting"] == "dt":
         m = round((ts[1] - ts[0]) / row["value"])
-        sol = lierk.solve(p, lierk.scene.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
+        sol = lierk.solve(p, lierk.app.scene.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
                           saveat=lierk.SaveAt(t0=True, steps=m))
     else:
-        sol = lierk.solve(p, lierk.scene.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
+        sol = lierk.solve(p, lierk.app.scene.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
                           saveat=lierk.SaveAt(ts=np.asarray(ts)), max_steps=2**17)
     np.testing.assert_allclose(sol.ts, ts, rtol=0, atol=1e-12)
     R_exact = np.asarray(lierk.exact.free_rigid_body(p.inertia, p.omega0, np.asarray(ts), p.R0)[0])
@@ -82,7 +82,7 @@ def tiny_run(tmp_path_factory):
     with redirect_stdout(so), redirect_stderr(se):
         code = cli.main(["accuracy", str(scene_path), "--out", str(out), "--solvers", "RKMK4,DOP853",
                          "--max-settings", "3"])
-    return code, so.getvalue(), se.getvalue(), out, lierk.scene.load(scene_path)
+    return code, so.getvalue(), se.getvalue(), out, lierk.app.scene.load(scene_path)
 
 
 def test_accuracy_writes_png_and_json(tiny_run):
@@ -247,7 +247,7 @@ def test_numerical_reference_is_cross_checked_with_effects():
     import jax
 
     with jax.enable_x64(True):
-        scene = lierk.scene.from_dict(__import__("tomllib").loads(DAMPED_SCENE))
+        scene = lierk.app.scene.from_dict(__import__("tomllib").loads(DAMPED_SCENE))
         assert scene.problem.effects != ()
         rep = A.work_precision(scene, solvers=["RKMK4"], settings={"RKMK4": [0.03, 0.015]})
         assert rep.reference.startswith("DOP853, rtol = atol = 1e-13") and rep.check.startswith("DP54")
@@ -285,7 +285,7 @@ t1 = 0.2
 
 
 def _scene(text):
-    return lierk.scene.from_dict(__import__("tomllib").loads(text))
+    return lierk.app.scene.from_dict(__import__("tomllib").loads(text))
 
 
 def test_every_applicable_solver_runs_by_default():

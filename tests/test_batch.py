@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 import lierk
-from lierk import batch
-from lierk.batch import sweep, sweep_chunks
+from lierk import _batch as batch
+from lierk import sweep, sweep_chunks
 
 from helpers import TEE
 

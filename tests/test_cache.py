@@ -1,10 +1,10 @@
-"""The persistent compilation cache (`lierk.cache`) and the command line's use of it.
+"""The persistent compilation cache (`lierk.app.cache`) and the command line's use of it.
 
 Claims: a second run of a command loads every program from the cache and
 compiles none, with bit-identical results; corrupted entries are compiled
 again, never loaded, and the run's results are unchanged; a cache directory
 that cannot be written costs one warning line and nothing else; the
-directory is keyed by a machine fingerprint; `lierk.cache.using_cache`
+directory is keyed by a machine fingerprint; `lierk.app.cache.using_cache`
 (what each command runs in) turns JAX's cache off or on for one block,
 counts what it did, and puts the settings back after it.
 """
@@ -63,7 +63,7 @@ def counts(stderr):
 
 
 def entries(root):
-    return [p for p in (root / lierk.cache.machine_fingerprint()).iterdir() if p.is_file() and not p.name.startswith(".")]
+    return [p for p in (root / lierk.app.cache.machine_fingerprint()).iterdir() if p.is_file() and not p.name.startswith(".")]
 
 
 def test_a_second_run_compiles_nothing_and_corrupted_entries_are_compiled_again(tmp_path):
@@ -103,23 +103,23 @@ def test_an_unwritable_cache_is_one_warning_and_a_normal_run(tmp_path):
 
 
 def test_the_directory_is_keyed_by_the_machine(tmp_path):
-    fp = lierk.cache.machine_fingerprint()
-    assert re.fullmatch(r"[0-9a-f]{16}", fp) and fp == lierk.cache.machine_fingerprint()
-    path = lierk.compilation_cache_dir(tmp_path)
+    fp = lierk.app.cache.machine_fingerprint()
+    assert re.fullmatch(r"[0-9a-f]{16}", fp) and fp == lierk.app.cache.machine_fingerprint()
+    path = lierk.app.cache.compilation_cache_dir(tmp_path)
     assert path == tmp_path / fp and path.is_dir() and not list(path.iterdir())  # the write probe is gone
     plain = tmp_path / "plain"
     plain.write_text("")
     with pytest.warns(UserWarning, match="compilation cache off"):
-        assert lierk.compilation_cache_dir(plain) is None
+        assert lierk.app.cache.compilation_cache_dir(plain) is None
 
 
 def test_no_cache_turns_jax_s_cache_off_for_the_block_only(monkeypatch):
     before = jax.config.jax_enable_compilation_cache
-    with lierk.cache.using_cache(False) as use:
+    with lierk.app.cache.using_cache(False) as use:
         assert jax.config.jax_enable_compilation_cache is False
     assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
     monkeypatch.setenv("LIERK_NO_CACHE", "1")
-    with lierk.cache.using_cache() as use:
+    with lierk.app.cache.using_cache() as use:
         assert jax.config.jax_enable_compilation_cache is False
     assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
 
@@ -142,7 +142,7 @@ def test_using_cache_counts_what_the_cache_did_and_passes_other_warnings_on(keep
     entry = "Error reading persistent compilation cache entry for 'jit_f': ValueError: bad"
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
-        with lierk.cache.using_cache() as use:
+        with lierk.app.cache.using_cache() as use:
             jax.jit(lambda x: 3.0 * x + 1.0)(np.arange(7.0)).block_until_ready()
             for _ in range(2):  # every one counts, not only the first from this line
                 warnings.warn(entry)
@@ -164,12 +164,12 @@ def test_programs_jax_cannot_keep_are_counted_apart(keep_every_program):
     # program and does not save it.  Inside `checked_on_host` it has none.
     import equinox as eqx
 
-    from lierk import validation
+    from lierk import _validation as validation
 
     def f(x):
         return validation.check(x, lambda v: v > 0, "x must be > 0, got {value}") * 2.0
 
-    with lierk.cache.using_cache() as use:
+    with lierk.app.cache.using_cache() as use:
         eqx.filter_jit(f)(np.float64(1.5 + np.random.default_rng().random()))
         with validation.checked_on_host():
             eqx.filter_jit(lambda x: f(x) + 1.0)(np.float64(2.5))
@@ -183,8 +183,8 @@ def test_using_cache_without_a_directory_keeps_every_program_in_lierk_s(monkeypa
     before = {name: getattr(jax.config, name) for name in names}
     jax.config.update("jax_compilation_cache_dir", None)
     try:
-        with lierk.cache.using_cache() as use:
-            assert jax.config.jax_compilation_cache_dir == use.path == str(tmp_path / lierk.cache.machine_fingerprint())
+        with lierk.app.cache.using_cache() as use:
+            assert jax.config.jax_compilation_cache_dir == use.path == str(tmp_path / lierk.app.cache.machine_fingerprint())
             assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
         assert jax.config.jax_compilation_cache_dir is None
     finally:
@@ -194,8 +194,8 @@ def test_using_cache_without_a_directory_keeps_every_program_in_lierk_s(monkeypa
 
 def test_default_root_follows_the_environment(monkeypatch, tmp_path):
     monkeypatch.setenv("LIERK_CACHE_DIR", str(tmp_path / "mine"))
-    assert lierk.cache.default_cache_root() == tmp_path / "mine"
+    assert lierk.app.cache.default_cache_root() == tmp_path / "mine"
     monkeypatch.delenv("LIERK_CACHE_DIR")
     monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "xdg"))
     if sys.platform.startswith("linux"):
-        assert lierk.cache.default_cache_root() == tmp_path / "xdg" / "lierk"
+        assert lierk.app.cache.default_cache_root() == tmp_path / "xdg" / "lierk"

@@ -17,9 +17,9 @@ from helpers import run_inprocess, write
 
 import lierk
 import lierk.exact
-import lierk.scene
+import lierk.app.scene
 from lierk import _progress as cli_progress
-from lierk import cli, plot
+from lierk.app import cli, plot
 
 TEE_SCENE = """
 name = "tee test"
@@ -204,8 +204,8 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
 
 def test_out_that_is_a_file_fails_before_anything_runs(tmp_path, capsys, monkeypatch):
     # It used to be found only when writing, after the whole integration.
-    monkeypatch.setattr(lierk.scene.Scene, "solve", lambda *a, **k: pytest.fail("integrated before checking --out"))
-    monkeypatch.setattr(lierk.scene, "load", lambda *a, **k: pytest.fail("loaded before checking --out"))
+    monkeypatch.setattr(lierk.app.scene.Scene, "solve", lambda *a, **k: pytest.fail("integrated before checking --out"))
+    monkeypatch.setattr(lierk.app.scene, "load", lambda *a, **k: pytest.fail("loaded before checking --out"))
     target = write(tmp_path, "old contents", "results")
     code, out, err = run_inprocess(["simulate", write(tmp_path, TEE_SCENE), "--out", target], capsys)
     assert code == 2 and err == f"lierk simulate: error: --out {target} exists and is not a directory\n"
@@ -243,7 +243,7 @@ def test_unexpected_exceptions_are_one_line(tmp_path, capsys, monkeypatch):
     def bug(*args, **kwargs):
         raise ZeroDivisionError("float division by zero")
 
-    monkeypatch.setattr(lierk.scene.Scene, "solve", bug)
+    monkeypatch.setattr(lierk.app.scene.Scene, "solve", bug)
     code, out, err = run_inprocess(["simulate", write(tmp_path, TEE_SCENE), "--out", tmp_path / "out"], capsys)
     assert code == 1
     assert err.splitlines() == [
@@ -332,7 +332,7 @@ def test_common_options_before_or_after_the_command(tmp_path, before):
 def test_devices_before_the_command_takes_effect(tmp_path):
     scene = write(tmp_path, TEE_SCENE)
     code = (
-        "import sys; from lierk import cli; "
+        "import sys; from lierk.app import cli; "
         f"status = cli.main(['--devices', '2', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, "
         "'--t1', '0.02', '--no-gif', '--quiet']); "
         "import jax; print('devices', jax.device_count()); sys.exit(status)"
@@ -360,7 +360,7 @@ def test_simulate_matches_a_direct_solve(tmp_path):
     assert code == 0, stderr
     assert "compiled in" in stderr and "t: 100% 0.5/0.5 s" in stderr and "Traceback" not in stderr  # progress, not quiet
 
-    scene = lierk.scene.load(scene_path)
+    scene = lierk.app.scene.load(scene_path)
     import dataclasses
 
     direct = dataclasses.replace(scene, t1=0.5).solve()
@@ -395,7 +395,7 @@ def test_simulate_with_state_and_adaptive_steps(tmp_path, capsys, text, atol):
     code, stdout, stderr = run_inprocess(argv, capsys)
     assert code == 0, stderr
     assert stderr == ""  # --quiet
-    scene = lierk.scene.load(scene_path)
+    scene = lierk.app.scene.load(scene_path)
     direct = scene.solve()
     (npz,) = out.glob("*.npz")
     data = _npz(npz)
@@ -457,7 +457,7 @@ def test_simulate_target_error_scene_with_chunks_is_one_solve(tmp_path, capsys):
     code, stdout, stderr = run_inprocess(["simulate", scene_path, "--out", out, "--chunks", "4", "--no-gif"], capsys)
     assert code == 0, stderr
     assert "100%" in stderr
-    direct = lierk.scene.load(scene_path).solve()
+    direct = lierk.app.scene.load(scene_path).solve()
     data = _npz(out / "small_target.npz")
     np.testing.assert_array_equal(data["ts"], direct.ts)
     np.testing.assert_allclose(data["R"], direct.R, rtol=0, atol=1e-15)

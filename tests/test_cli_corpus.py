@@ -11,8 +11,8 @@ from __future__ import annotations
 
 import pytest
 
-import lierk.scene
-from lierk import cli
+import lierk.app.scene
+from lierk.app import cli
 
 
 def scene(
@@ -199,10 +199,10 @@ IDS = [c[0] for c in CORPUS]
 
 def test_corpus_is_large_and_the_valid_base_loads():
     assert len(CORPUS) >= 60 and len(set(IDS)) == len(IDS)
-    import lierk.scene
+    import lierk.app.scene
 
-    lierk.scene.from_dict(__import__("tomllib").loads(VALID))
-    lierk.scene.from_dict(__import__("tomllib").loads(scene(run=ADAPTIVE, effects=DAMPING)))
+    lierk.app.scene.from_dict(__import__("tomllib").loads(VALID))
+    lierk.app.scene.from_dict(__import__("tomllib").loads(scene(run=ADAPTIVE, effects=DAMPING)))
 
 
 @pytest.fixture
@@ -214,7 +214,7 @@ def no_integration(monkeypatch):
         calls.append(args)
         raise AssertionError("a malformed scene was integrated")
 
-    monkeypatch.setattr(lierk.scene.Scene, "solve", integrate)
+    monkeypatch.setattr(lierk.app.scene.Scene, "solve", integrate)
     return calls
 
 

@@ -1,4 +1,4 @@
-"""How many programs XLA builds for a command (`lierk.compilations`).
+"""How many programs XLA builds for a command (`lierk.app.compilations`).
 
 Every eager ``jax.numpy`` operation on the host path (validation, scene
 parsing, diagnostics, figures) is a compilation of its own, tens of
@@ -15,9 +15,9 @@ import jax
 import pytest
 
 import lierk
-from lierk import cli
-from lierk.compilations import Compilations, counting
-from lierk.simulation import simulate
+from lierk.app import cli
+from lierk.app.compilations import Compilations, counting
+from lierk.app.simulation import simulate
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
 
@@ -59,13 +59,13 @@ def test_simulate_compiles_a_handful_of_programs(scene, most, tmp_path):
 def test_every_program_of_a_simulation_can_be_kept_in_the_cache(run, tmp_path):
     # A run-time check on a traced value is a host callback, and JAX keeps
     # no program with one: the solve compiled again in every process.
-    scene = lierk.scene.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
+    scene = lierk.app.scene.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
                                    "run": {**run, "t1": 0.5}})
     before = jax.config.jax_persistent_cache_min_compile_time_secs
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.clear_caches()
     try:
-        with lierk.cache.using_cache() as use:
+        with lierk.app.cache.using_cache() as use:
             simulate(scene, n_pieces=2)
     finally:
         jax.config.update("jax_persistent_cache_min_compile_time_secs", before)

@@ -379,15 +379,15 @@ def test_solves_without_dense_output_or_events_never_reach_their_code(monkeypatc
     def broken(*args, **kwargs):
         raise AssertionError("reached")
 
-    import lierk.event
-    import lierk.solvers.base
-    import lierk.solvers.rkmk
+    import lierk._event
+    import lierk._solvers.base
+    import lierk._solvers.rkmk
 
-    for cls in (lierk.solvers.base.AbstractSolver, lierk.solvers.rkmk.AbstractRKMK):
+    for cls in (lierk.AbstractSolver, lierk.AbstractRKMK):
         monkeypatch.setattr(cls, "dense_step", broken)
         monkeypatch.setattr(cls, "dense_node", broken)
     for name in ("init", "process", "records"):
-        monkeypatch.setattr(lierk.event, name, broken)
+        monkeypatch.setattr(lierk._event, name, broken)
     jax.clear_caches()  # trace anew, not from a solve an earlier test compiled
     w = jnp.asarray(OMEGA)
     jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1).R)(w)
@@ -415,7 +415,7 @@ def test_dop853_continuous_extension_is_scipys():
         K.append(f(C[i] * h, y0 + h * sum(A[i][j] * K[j] for j in range(i))))
     F = h * np.asarray(T.dense_b) @ np.asarray(K)
     for theta in (0.1, 0.37, 0.5, 0.9, 1.0):
-        ours = y0 + lierk.interpolation.nested(F, theta)
+        ours = y0 + lierk._interpolation.nested(F, theta)
         np.testing.assert_allclose(ours, ref.sol(theta * h), rtol=0, atol=2e-15)
 
 

@@ -1,4 +1,4 @@
-"""`lierk.diagnostics`: the quantities a report of a solve shows, in one program."""
+"""`lierk.app.diagnostics`: the quantities a report of a solve shows, in one program."""
 
 from __future__ import annotations
 
@@ -6,7 +6,7 @@ import numpy as np
 from helpers import TEE
 
 import lierk
-from lierk.diagnostics import diagnostics
+from lierk.app.diagnostics import diagnostics
 
 
 def test_diagnostics_agree_with_the_quantities_one_by_one():

@@ -1,4 +1,4 @@
-"""`lierk.distributed.initialize` and sweeps across processes.
+"""`lierk.app.distributed.initialize` and sweeps across processes.
 
 Two processes on 127.0.0.1 with CPU collectives (gloo) must give the result of
 one process with two host devices to the last bit: the same rows run at the
@@ -15,7 +15,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from lierk.distributed import initialize
+from lierk.app.distributed import initialize
 
 try:  # jaxlib's gloo bindings (private): the CPU collectives a CPU multi-process run needs
     from jax._src.lib import _jax
@@ -99,7 +99,7 @@ def _run(code: str, *args, env=None, timeout=120):
 _START = textwrap.dedent(
     """
     import sys, time
-    from lierk.distributed import initialize
+    from lierk.app.distributed import initialize
     t = time.monotonic()
     try:
         initialize(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), initialization_timeout=2)
@@ -135,12 +135,12 @@ def test_taken_coordinator_port_is_a_clear_error():
 _SWEEP = textwrap.dedent(
     """
     import sys
-    import lierk.distributed
+    import lierk.app.distributed
     mode, out = sys.argv[1], sys.argv[2]
     if mode == "args":
-        multi = lierk.distributed.initialize(sys.argv[3], 2, int(sys.argv[4]), initialization_timeout=60)
+        multi = lierk.app.distributed.initialize(sys.argv[3], 2, int(sys.argv[4]), initialization_timeout=60)
     else:  # "env": a SLURM launch, or one process (XLA_FLAGS gives it two devices)
-        multi = lierk.distributed.initialize(initialization_timeout=60)
+        multi = lierk.app.distributed.initialize(initialization_timeout=60)
     import jax, numpy as np
     jax.config.update("jax_enable_x64", True)
     import lierk

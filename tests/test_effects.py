@@ -13,7 +13,7 @@ from scipy.integrate import solve_ivp
 
 import lierk
 from lierk import RigidBodyWithEffects
-from lierk.problems.effects import BodyTorque, Damping, Gravity, SpaceTorque
+from lierk import BodyTorque, Damping, Gravity, SpaceTorque
 
 # Simo & Wong's heavy symmetric top: J = diag(5, 5, 1) about the pivot,
 # M g l = 20, fast spin about the symmetry axis, slightly tilted.

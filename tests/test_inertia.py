@@ -1,4 +1,4 @@
-"""Claims of lierk.inertia (shapes, composites, validation) and lierk.problems.kinematics
+"""Claims of lierk.inertia (shapes, composites, validation) and lierk._problems.kinematics
 (angular momentum, kinetic energy, body angular velocity)."""
 
 from __future__ import annotations
@@ -12,7 +12,7 @@ from scipy.spatial.transform import Rotation
 
 import lierk
 from lierk import inertia, so3
-from lierk.problems import kinematics as body
+import lierk as body  # angular_momentum, kinetic_energy, body_angular_velocity
 
 from helpers import TEE
 

@@ -8,7 +8,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import lierk
-import lierk.mesh
+import lierk._mesh
 
 
 def box_mesh(lx, ly, lz):
@@ -133,8 +133,8 @@ def test_a_mesh_scene_is_the_mesh_body_and_its_animation_draws_it(tmp_path):
 
     from PIL import Image
 
-    import lierk.plot
-    import lierk.scene
+    import lierk.app.plot
+    import lierk.app.scene
 
     v, f = box_mesh(300.0, 200.0, 100.0)
     (tmp_path / "parts").mkdir()
@@ -153,16 +153,16 @@ dt = 0.01
 t1 = 1.0
 """
     (tmp_path / "box.toml").write_text(text)
-    scene = lierk.scene.load(tmp_path / "box.toml")
+    scene = lierk.app.scene.load(tmp_path / "box.toml")
     box = np.asarray(lierk.inertia.box(2700.0 * 0.3 * 0.2 * 0.1, 0.3, 0.2, 0.1))
     np.testing.assert_allclose(scene.problem.inertia, box, rtol=1e-6, atol=1e-12)
     np.testing.assert_allclose(scene.center_of_mass, [0.05, 0.0, 0.0], atol=1e-9)
     with pytest.raises(ValueError, match="body.file 'missing.stl'"):
-        lierk.scene.from_dict(tomllib.loads(text.replace("parts/box.stl", "missing.stl")), directory=tmp_path)
+        lierk.app.scene.from_dict(tomllib.loads(text.replace("parts/box.stl", "missing.stl")), directory=tmp_path)
     sol = lierk.solve(scene.problem, lierk.RKMK4(), 1.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=10))
     with warnings.catch_warnings():
         warnings.simplefilter("error")  # "cannot draw a part" would be a warning
-        gif = lierk.plot.animate(sol, scene.body_parts, tmp_path / "box.gif", frames=3, origin=scene.fixed_point)
+        gif = lierk.app.plot.animate(sol, scene.body_parts, tmp_path / "box.gif", frames=3, origin=scene.fixed_point)
     im = Image.open(gif)
     frames = []
     for k in range(im.n_frames):

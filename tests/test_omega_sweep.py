@@ -1,4 +1,4 @@
-"""`lierk.omega_sweep`: the sweep behind ``lierk sweep``, called from Python."""
+"""`lierk.app.omega_sweep`: the sweep behind ``lierk sweep``, called from Python."""
 
 from __future__ import annotations
 
@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 import lierk
-from lierk import scene as S
+from lierk.app import scene as S
 from lierk import so3
-from lierk.omega_sweep import omega_grid, open_sweep_store, sweep_method, sweep_omega0
+from lierk.app.omega_sweep import omega_grid, open_sweep_store, sweep_method, sweep_omega0
 
 TEE = [9.82271303e-05, 7.22671030e-05, 1.57865031e-04]
 
@@ -79,7 +79,7 @@ def test_bad_sweeps_are_refused():
 
 
 def test_summary_gives_the_ranges_lierk_sweep_prints():
-    from lierk.omega_sweep import OmegaSweep
+    from lierk.app.omega_sweep import OmegaSweep
 
     axes = (np.array([1.0]), np.array([0.0, 0.1]), np.array([0.2, 0.3]))
     failed = np.array([[False, False], [True, False]])

@@ -7,10 +7,11 @@ import pytest
 from PIL import Image
 
 import lierk
-from lierk import plot, so3
+from lierk import so3
+from lierk.app import plot
 from lierk import RigidBodyWithEffects
-from lierk.problems.effects import Damping
-from lierk.diagnostics import diagnostics
+from lierk import Damping
+from lierk.app.diagnostics import diagnostics
 
 from helpers import OMEGA_GENERIC, TEE
 
@@ -209,7 +210,7 @@ def test_animation_draws_a_body_known_only_by_its_inertia(flip, tmp_path):
 
 
 def test_demo_writes_one_grid_per_case_and_the_flip_interval(tmp_path, capsys):
-    from lierk import demo
+    from lierk.app import demo
 
     paths = demo.run(tmp_path, t1=1.0)
     assert sorted(paths) == ["a", "b", "c"]

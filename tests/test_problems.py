@@ -12,8 +12,8 @@ import pytest
 from helpers import OMEGA_GENERIC, TEE
 
 import lierk
-import lierk.accuracy
-import lierk.scene
+import lierk.app.accuracy
+import lierk.app.scene
 
 W = np.array([0.3, 1.0, 0.2])
 
@@ -80,22 +80,9 @@ def test_splittings_refuse_a_problem_that_is_not_a_rigid_body():
 def test_accuracy_uses_the_closed_form_for_the_reports_spatial_body():
     """It asked for `effects == ()`, which the spatial body did not have, and
     paid for a numerical reference (DOP853 checked by DP54)."""
-    scene = lierk.scene.from_dict({"body": {"kind": "tensor", "inertia": TEE.diagonal().tolist()}, "initial": {"omega": W.tolist()},
+    scene = lierk.app.scene.from_dict({"body": {"kind": "tensor", "inertia": TEE.diagonal().tolist()}, "initial": {"omega": W.tolist()},
                                    "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1}})
     spatial = dataclasses.replace(scene, problem=lierk.SpatialFreeRigidBody(TEE, W))
-    report = lierk.accuracy.work_precision(spatial, ["RKMK4"], {"RKMK4": [0.05]}, n_times=3, repeats=1)
+    report = lierk.app.accuracy.work_precision(spatial, ["RKMK4"], {"RKMK4": [0.05]}, n_times=3, repeats=1)
     assert report.reference.startswith("lierk.exact") and report.check is None
     assert report.rows[0].ok and report.rows[0].error < 1e-3
-
-
-def test_old_module_paths_still_import():
-    import lierk.body
-    import lierk.effects
-    import lierk.fields
-    import lierk.rigid_body
-
-    assert lierk.fields.AbstractProblem is lierk.AbstractProblem
-    assert lierk.fields.SpatialFreeRigidBody is lierk.SpatialFreeRigidBody
-    assert lierk.rigid_body.FreeRigidBody is lierk.FreeRigidBody
-    assert lierk.effects.Gravity is lierk.Gravity
-    assert lierk.body.kinetic_energy is lierk.problems.kinematics.kinetic_energy

@@ -21,7 +21,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import lierk
-import lierk.scene
+import lierk.app.scene
 
 SETTINGS = settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 T = 2.0
@@ -138,7 +138,7 @@ def _scene(v):
 @SETTINGS
 @given(scene_values)
 def test_valid_scenes_solve(v):
-    sol = lierk.scene.from_dict(_scene(v)).solve(throw=False)
+    sol = lierk.app.scene.from_dict(_scene(v)).solve(throw=False)
     _never_nan_with_success(sol.R[-1], sol.result)
 
 
@@ -155,4 +155,4 @@ def test_invalid_scenes_name_the_key(v, where, bad):
         bad = [1.0, 2.0]  # wrong length
     d[table][key] = bad
     with pytest.raises(ValueError, match=f"{table}.{key}|{key}"):
-        lierk.scene.from_dict(d)
+        lierk.app.scene.from_dict(d)

@@ -15,9 +15,9 @@ import pytest
 from helpers import reference_R
 
 import lierk
-from lierk import scene as S
+from lierk.app import scene as S
 from lierk import RigidBodyWithEffects
-from lierk.problems.effects import Damping, Gravity
+from lierk import Damping, Gravity
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])

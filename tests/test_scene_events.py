@@ -13,8 +13,8 @@ import pytest
 
 import lierk
 from helpers import run_inprocess, write
-from lierk import plot
-from lierk import scene as S
+from lierk.app import plot
+from lierk.app import scene as S
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 # The example heavy top nutates between tilts of 0.300 and 0.514 rad with

@@ -268,7 +268,7 @@ def test_derivatives_at_rest_in_a_turning_field_resolve_its_turn():
     of 0 (found by an adversarial pass).  The rate at which time turns the
     effects' linearisation now bounds a differentiated solve's steps."""
     T, tol = 10.0, 1e-9
-    field = lierk.dipole_field(1.0, radius=lierk.problems.spacecraft.R_EARTH, tilt=np.pi / 2, B0=1.0)
+    field = lierk.dipole_field(1.0, radius=lierk._problems.spacecraft.R_EARTH, tilt=np.pi / 2, B0=1.0)
     # (A nearly symmetric satellite at rest under the gravity gradient was
     # 2.7% off the same way; the same rate resolves it.)
     bodies = {

@@ -1,4 +1,4 @@
-"""`lierk.simulation`: what ``lierk simulate`` saves and prints, from Python."""
+"""`lierk.app.simulation`: what ``lierk simulate`` saves and prints, from Python."""
 
 from __future__ import annotations
 
@@ -11,9 +11,9 @@ import numpy as np
 import pytest
 
 import lierk
-from lierk import scene as S
-from lierk.diagnostics import diagnostics
-from lierk.simulation import Simulation, simulate
+from lierk.app import scene as S
+from lierk.app.diagnostics import diagnostics
+from lierk.app.simulation import Simulation, simulate
 
 RUN = {"solver": "RKMK4", "t1": 0.5, "dt": 0.01, "save_every": 5}
 

@@ -352,10 +352,7 @@ def test_chosen_setting_names_the_setting_target_error_chose():
 
 
 def test_solver_registry_names_every_solver_and_refuses_unknown_names():
-    from lierk.solvers import SOLVERS, solver_class
-
-    for name, cls in SOLVERS.items():
-        assert solver_class(name.lower()) is cls and cls().name == name
+    for name, cls in lierk.SOLVERS.items():
+        assert lierk.solver_class(name.lower()) is cls and cls().name == name
     with pytest.raises(ValueError, match=r"unknown solver 'RK5'; choose from: ExplicitEuler, .*DOP853"):
-        solver_class("RK5")
-    assert lierk.scene.SOLVERS is SOLVERS  # the old path, for one release
+        lierk.solver_class("RK5")

@@ -26,7 +26,7 @@ def _final_R_for_steps(solver, inertia, omega0, t1, Ns):
     return final_attitudes(lierk.FreeRigidBody(inertia, omega0), solver, t1, t1 / np.asarray(Ns, dtype=float))
 
 
-class _RK4FirstCommutator(lierk.solvers.AbstractRKMK):
+class _RK4FirstCommutator(lierk.AbstractRKMK):
     tableau: ClassVar = lierk.tableaux.RK4
     dexpinv_terms: ClassVar = 1
 

@@ -51,9 +51,9 @@ def gg_torque(t, R, m, w):
 
 def field_np(t, tilt=1.2):
     u = np.array([np.cos(N_ORBIT * t), np.sin(N_ORBIT * t), 0.0])
-    a = (lierk.problems.spacecraft.MU_EARTH / N_ORBIT**2) ** (1 / 3)
+    a = (lierk._problems.spacecraft.MU_EARTH / N_ORBIT**2) ** (1 / 3)
     d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
-    return lierk.problems.spacecraft.B0_EARTH * (lierk.problems.spacecraft.R_EARTH / a) ** 3 * (3 * (d @ u) * u - d)
+    return lierk._problems.spacecraft.B0_EARTH * (lierk._problems.spacecraft.R_EARTH / a) ** 3 * (3 * (d @ u) * u - d)
 
 
 DIPOLE = np.array([0.5, -1.0, 2.0])  # A m^2
@@ -288,7 +288,7 @@ mean_motion = 0.0011
 tilt = 1.2
 bdot_gain = 1e7
 """
-    scene = lierk.scene.from_dict(__import__("tomllib").loads(SCENE.format(effects=effects)), "sat")
+    scene = lierk.app.scene.from_dict(__import__("tomllib").loads(SCENE.format(effects=effects)), "sat")
     I = np.asarray(lierk.inertia.box(50.0, 0.6, 0.5, 0.8))
     R0 = np.asarray(lierk.so3.from_mrp(jnp.asarray([0.1, -0.2, 0.05])))
     np.testing.assert_allclose(scene.problem.R0, R0, atol=1e-15)
@@ -315,11 +315,11 @@ bdot_gain = 1e7
 )
 def test_bad_scene_effects_are_refused_by_name(effects, match):
     with pytest.raises(ValueError, match=match):
-        lierk.scene.from_dict(__import__("tomllib").loads(SCENE.format(effects=effects)), "sat")
+        lierk.app.scene.from_dict(__import__("tomllib").loads(SCENE.format(effects=effects)), "sat")
 
 
 def test_the_example_satellite_detumbles():
-    scene = lierk.scene.load(Path(__file__).resolve().parent.parent / "examples" / "satellite.toml")
+    scene = lierk.app.scene.load(Path(__file__).resolve().parent.parent / "examples" / "satellite.toml")
     sol = lierk.solve(scene.problem, lierk.DOP853(), scene.t1, rtol=1e-6, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, scene.t1, 7)))
     E = np.asarray(sol.invariants(scene.problem)["energy"])
     assert E[-1] < 1e-2 * E[0]

@@ -292,7 +292,7 @@ def test_problems_without_a_drift_are_refused():
 
 
 def test_effect_reading_momentum_without_a_kick_is_refused():
-    class Drag(lierk.problems.effects.AbstractEffect):
+    class Drag(lierk.AbstractEffect):
         def torque(self, t, R, m, omega):
             return -0.1 * omega * jnp.linalg.norm(omega)
 
@@ -410,7 +410,7 @@ dt = 0.05
 
 
 def test_scene_timed_torque(tmp_path):
-    scene = lierk.scene.load(write(tmp_path, SCENE))
+    scene = lierk.app.scene.load(write(tmp_path, SCENE))
     (effect,) = scene.problem.effects
     assert isinstance(effect, lierk.TimedTorque) and effect.frame == "body"
     assert isinstance(scene.solver, lierk.BlanesMoan4)
@@ -419,15 +419,15 @@ def test_scene_timed_torque(tmp_path):
     assert abs(float(sol.y[-1, 2]) - (I3 * 0.7 + IMPULSE)) < 1e-12
     bad = SCENE.replace("[0, 0, 0]]", "]").replace("torque = [[0, 0, 0], [0, 0, 0.4], [0, 0, 0.4], ]", "torque = [[0, 0, 0]]")
     with pytest.raises(ValueError, match="one \\[x, y, z\\] per time"):
-        lierk.scene.load(write(tmp_path, bad, "bad.toml"))
+        lierk.app.scene.load(write(tmp_path, bad, "bad.toml"))
 
 
 def test_scene_gravity_mass_must_match_the_body(tmp_path):
     text = SCENE.split("[[effects]]")[0] + '[[effects]]\nkind = "gravity"\npivot = [0, 0, -0.05]\nmass = 3.0\n[run]\nsolver = "RKMK4"\nt1 = 1.0\ndt = 0.01\n'
     with pytest.raises(ValueError, match=r"effects\[0\].mass = 3 kg differs from the body's mass 2 kg"):
-        lierk.scene.load(write(tmp_path, text))
+        lierk.app.scene.load(write(tmp_path, text))
     same = text.replace("mass = 3.0\n[run]", "mass = 2.0\n[run]")
-    assert lierk.scene.load(write(tmp_path, same, "same.toml")).problem.effects[0].mass == 2.0
+    assert lierk.app.scene.load(write(tmp_path, same, "same.toml")).problem.effects[0].mass == 2.0
 
 
 # ------------------------------------------- derivatives at rest and in steady spin

@@ -1,4 +1,4 @@
-"""Resumable sweeps: `lierk.store.ChunkStore` and ``lierk sweep --out DIR``.
+"""Resumable sweeps: `lierk.app.store.ChunkStore` and ``lierk sweep --out DIR``.
 
 A killed run never leaves a chunk that reads back as complete, a resumed run
 gives the uninterrupted result bit for bit, and a directory holding another
@@ -11,7 +11,7 @@ import pytest
 
 from helpers import run_inprocess, write
 
-from lierk import store as S
+from lierk.app import store as S
 
 SCENE = """
 name = "tee"

@@ -287,7 +287,7 @@ def test_example_heavy_top_comments_are_exact():
     )
     match = re.search(pattern, re.sub(r"\s+", " ", header))
     assert match, "the header comment no longer states the top's motion in the checked form"
-    scene = lierk.scene.load(EXAMPLE)
+    scene = lierk.app.scene.load(EXAMPLE)
     p = scene.problem
     (gravity,) = p.effects
     q = lg.lagrange_top(

@@ -1,4 +1,4 @@
-"""A body's inputs in `lierk.validation`: the range its state must fit in
+"""A body's inputs in `lierk._validation`: the range its state must fit in
 (refused now when concrete, at run time when traced), and the warning about
 an inertia no rigid body has, given once per body."""
 
@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 
 import lierk
-from lierk import validation
+from lierk import _validation as validation
 
 W = np.array([1.0, 0.05, 0.3])
 IMPOSSIBLE = np.array([0.5, 0.6, 1.5])  # 1.5 > 0.5 + 0.6

@@ -375,7 +375,7 @@ def one_wheel(**kw):
          r"effects\[1\].spin_inertia: .* I - G positive definite"),
         (lambda: lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], effects=(one_wheel(), one_wheel())),
          r"effects\[1\]: a body takes one ReactionWheels"),
-        (lambda: lierk.problems.Variational(pyramid(), np.zeros((3, 3)), (np.zeros((3, 3)), np.zeros((3, 2)))),
+        (lambda: lierk._problems.Variational(pyramid(), np.zeros((3, 3)), (np.zeros((3, 3)), np.zeros((3, 2)))),
          r"dOmega0 must have shape \(3, 4\)"),
     ],
 )
@@ -427,7 +427,7 @@ torque = [[0.0, 0.0, 0.0, 0.0], [0.02, -0.01, 0.005, 0.0], [0.0, 0.01, -0.02, 0.
 
 
 def test_scene_reaction_wheels_are_the_library_effect():
-    scene = lierk.scene.from_dict(tomllib.loads(SCENE.format(wheels=WHEELS)), "sat")
+    scene = lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=WHEELS)), "sat")
     direct = lierk.RigidBodyWithEffects(I_BODY, OMEGA0, effects=(lierk.Damping(0.3), lierk.ReactionWheels(
         AXES, JS4, SPEEDS4, torque=U_SAMPLES, times=T_SAMPLES)))
     a, b = scene.solve(), lierk.solve(direct, lierk.DP54(), 5.0, rtol=1e-9, saveat=scene.saveat())
@@ -435,16 +435,16 @@ def test_scene_reaction_wheels_are_the_library_effect():
     np.testing.assert_allclose(np.asarray(a.R), np.asarray(b.R), atol=1e-14)
     # A constant motor torque, and wheels at rest by default.
     constant = "axes = [[0.0, 0.0, 1.0]]\nspin_inertia = [0.1]\ntorque = [0.01]"
-    wheels = lierk.scene.from_dict(tomllib.loads(SCENE.format(wheels=constant)), "sat").problem.wheels
+    wheels = lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=constant)), "sat").problem.wheels
     assert np.asarray(wheels.torques).tolist() == [0.01] and np.asarray(wheels.speeds).tolist() == [0.0]
 
 
 def test_simulate_saves_the_wheel_speeds_and_the_whole_spacecrafts_momentum():
     # `lierk simulate` of a wheel scene: the record used to hand the pair
     # state to numpy.savez (uneven shapes), and L left the wheels out.
-    from lierk.simulation import simulate
+    from lierk.app.simulation import simulate
 
-    sim = simulate(lierk.scene.from_dict(tomllib.loads(SCENE.format(wheels=WHEELS)), "sat"))
+    sim = simulate(lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=WHEELS)), "sat"))
     rec = sim.record()
     m, speeds = (np.asarray(x) for x in sim.solution.y)
     np.testing.assert_array_equal(rec["wheel_speeds"], speeds[: len(rec["ts"])])
@@ -473,4 +473,4 @@ Z = "axes = [[0.0, 0.0, 1.0]]\nspin_inertia = [0.1]\n"  # one wheel about body z
 )
 def test_bad_scene_wheels_are_refused_by_key_path(wheels, match):
     with pytest.raises(ValueError, match=match):
-        lierk.scene.from_dict(tomllib.loads(SCENE.format(wheels=wheels)), "sat")
+        lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=wheels)), "sat")

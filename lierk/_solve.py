@@ -1,0 +1,393 @@
+"""`solve`: validate the call, then dispatch to a loop (`lierk._loops`) and,
+when asked, to a global-error estimate (`lierk._global_error`)."""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Sequence
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+from . import _validation as validation
+from . import _global_error as global_error
+from ._adjoint import AbstractAdjoint, ForwardSensitivity
+from ._controller import Controller
+from ._event import Event, events_tuple, with_closures_converted
+from ._problems import AbstractProblem
+from ._loops import num_steps, solve_adaptive, solve_fixed
+from ._solution import RESULTS, SaveAt, Solution, raise_if_failed
+from ._solvers.base import AbstractSolver
+
+__all__ = ["solve", "num_steps"]
+
+DEFAULT_ADAPTIVE_MAX_STEPS = 4096
+
+
+def solve(
+    problem: AbstractProblem,
+    solver: AbstractSolver,
+    t1: ArrayLike,
+    *,
+    t0: ArrayLike = 0.0,
+    dt: ArrayLike | None = None,
+    saveat: SaveAt | None = None,
+    max_steps: int | None = None,
+    rtol: ArrayLike | None = None,
+    atol: ArrayLike | None = None,
+    dt0: ArrayLike | None = None,
+    controller: Controller | None = None,
+    throw: bool = True,
+    adjoint: AbstractAdjoint | None = None,
+    estimate_error: bool = False,
+    target_error: ArrayLike | None = None,
+    event: Event | Sequence[Event] | None = None,
+) -> Solution:
+    """Integrate ``problem`` from ``t0`` to ``t1`` (s) with ``solver``.
+
+    Fixed steps (``dt=``): ``ceil((t1 - t0)/dt)`` steps through `lax.scan`, the
+    last one shortened to end exactly at ``t1``.  When ``t0``, ``t1`` or ``dt``
+    is traced (for example a swept ``dt`` under `vmap`), the step count
+    cannot be read and ``max_steps`` (a Python int) must give it; steps past
+    ``t1`` are exact no-ops, and falling short of ``t1`` is reported as
+    `RESULTS.max_steps_reached`.
+
+    Adaptive steps (``rtol=``/``atol=`` or ``controller=``, with an embedded
+    pair such as `RKF45`, `DP54` or `DOP853`): a while loop with the error
+    measured in the Lie algebra (see `lierk._controller`).  ``max_steps``
+    (default 4096) bounds accepted plus rejected steps.  ``dt0`` is the first
+    step; by default it is chosen automatically (Hairer-Norsett-Wanner).
+    ``rtol``/``atol`` are local tolerances: the global error is within 1 to
+    10x of them on near-axis bodies over 10 s (the calibration), but up to
+    ~1e4x on fast bodies or long horizons
+    (``benchmarks/results/tolerance_scope.md``); ``target_error`` asks for a
+    global error.  Below 50 eps the local error test is floored.
+
+    Global error (``estimate_error=True``): a second solve at a finer setting
+    (``2 dt/3``, or ``dt/2`` when saving every odd k-th step; tolerances
+    divided by 10) fills `Solution.error_estimate` with
+    ``||R - R_fine|| K/(K-1)`` at each saved time, where ``K`` is the expected
+    accuracy ratio (``(dt/dt_fine)^order``, or 10).  This is Richardson's
+    estimate: it needs only that the finer solve is the more accurate one, so
+    it holds near the intermediate axis, with effects, and in float32.  It
+    costs about 2.5x a fixed-step solve (3x with an odd save interval) and
+    2.2 to 2.6x an adaptive one (``benchmarks/results/error_estimate.md``).
+    It is not differentiated.
+
+    Accuracy on request (``target_error=eps``, instead of ``dt``/``rtol``):
+    chooses the step (fixed-step solvers) or the tolerances (adaptive) per
+    batch member, with traced settings so nothing recompiles.  It solves at
+    ever finer settings, one at a time, and returns a solution with twice
+    its distance to a finer, confirming solve as `Solution.error_estimate`
+    (tolerances 100x tighter for DOP853, 18x for DP54 and RKF45; 2/3 of the
+    step for fixed steps): an upper bound on the error whenever the
+    confirming solve is at least twice as accurate, and never below 30 eps
+    per radian the body has turned (rounding that every solve shares).
+    Success (result 0) means that estimate is at most ``eps`` at every saved
+    time; no success above ``eps`` was found on random bodies with inertia
+    ratios up to 1:100 and spins up to 1000 rad/s, heavy tops,
+    ``SaveAt(ts=...)`` and float32 (``tests/test_accuracy.py``), and the
+    error is then typically eps/30 to eps/2.  It takes 2 solves for most
+    members, 3 or 4 for some (at most 8); under vmap the batch runs as many
+    as its hardest member.  ``stats["num_solves"]`` counts every solve,
+    ``stats["dt"]``/``stats["rtol"]`` give the setting of the solution
+    returned, and the other stats are that solve's.  Adaptive tolerances
+    stay where the local error test is not floored (in float32, rtol at
+    least 9e-6 for DOP853, 4.5e-5 for DP54, 9e-5 for RKF45).  A target that
+    cannot be met (below rounding, or needing more than ``max_steps``,
+    default 100000 per solve) ends with `RESULTS.target_error_not_reached`
+    and the last solution a finer solve checked, with its estimate (inf if
+    none did; if the first solve runs out of ``max_steps``,
+    `RESULTS.max_steps_reached`).  Not differentiable: to differentiate,
+    solve again at the chosen setting.
+
+    Dense output (``saveat=SaveAt(dense=True)``): every step's interpolant
+    on SO(3) is kept, and `Solution.evaluate` gives the state at any time
+    (`lierk._interpolation`; memory O(steps)).
+
+    Events (``event=lierk.Event(cond, ...)``, or a sequence): the zero
+    crossings of ``cond(t, R, y)`` are found on each step's interpolant, to
+    the solver's accuracy, and come back in `Solution.events`; a terminating
+    event ends the solve at its time (`lierk._event`).
+
+    Args:
+        problem: e.g. `FreeRigidBody`.
+        solver: e.g. `RKMK4()` or `DP54()`.
+        t1: final time (s), ``>= t0``.
+        t0: initial time (s).
+        dt: fixed step size (s), ``> 0``.
+        saveat: what to return; default `SaveAt(t1=True)`.
+        max_steps: static bound on the number of steps.
+        rtol: relative tolerance of the default `Controller`.  Dimensionless:
+            the attitude in radians, the momentum relative to its size.
+        atol: absolute tolerance (defaults to ``rtol``); the momentum's is
+            scaled by the problem's reference momentum.
+        dt0: initial step of an adaptive solve (s).
+        controller: full control of step-size selection.
+        throw: raise on failure (default).  With ``throw=False`` the partial
+            `Solution` comes back with its `Solution.result` code, per batch
+            member under `vmap`.
+        adjoint: how the solve is differentiated (`lierk._adjoint`); default
+            `ForwardSensitivity()`: forward and reverse mode at the cost of
+            the Jacobian in the differentiated inputs.
+        estimate_error: fill `Solution.error_estimate`.
+        target_error: the attitude error wanted at every saved time
+            (Frobenius norm, dimensionless), ``> 0``.
+        event: a `lierk.Event` or a sequence of them.  `Solution.events` is
+            then an `EventRecord` (a tuple of them for a sequence).
+
+    Returns:
+        A `Solution`.
+
+    Raises:
+        ValueError: bad structure or values known while tracing.  Traced
+            values that are bad raise at run time (`eqx.error_if`).
+    """
+    saveat = _check_call(problem, solver, saveat, max_steps, estimate_error)
+    events = _check_events(event, saveat, estimate_error, target_error)
+    dtype = problem.R0.dtype
+    # The arguments are checked here, on the host where their values are
+    # known (NumPy: nothing is compiled for it), and the solve itself, with
+    # everything it computes from them, is one compiled program (`_program`):
+    # a first call compiles that program and nothing else, where each array
+    # operation around the loop used to be a small compilation of its own
+    # (61 for a heavy top), and a new value of any number reruns it.
+    t0, t1 = _check_times(t0, t1, dtype)
+    if events:
+        events = with_closures_converted(events, t0, problem.R0, problem.y0)
+    saveat = _check_save_times(saveat, t0, t1, dtype)
+    eps = n = None
+    if target_error is not None:
+        given = [n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None]
+        if given:
+            raise ValueError(f"target_error= chooses the step or the tolerances itself, so {', '.join(given)} cannot be given too")
+        if saveat.steps is not False:
+            raise ValueError("target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used")
+        eps = validation.check(
+            validation.check_scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
+        )
+        n = max_steps or global_error.DEFAULT_TARGET_MAX_STEPS
+    elif dt is not None:
+        given = [n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None]
+        if given:
+            raise ValueError(f"dt= asks for fixed steps, so {', '.join(given)} would be ignored; pass one or the other")
+        dt, n = _check_fixed(dt, t0, t1, saveat, max_steps, dtype)
+        adjoint = _check_adjoint(adjoint)
+    else:
+        controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
+        n = max_steps or DEFAULT_ADAPTIVE_MAX_STEPS
+    checked = not validation.is_traced(t0, t1, dt, dt0, eps, saveat, controller)
+    try:
+        sol = _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked)
+    except TypeError as e:
+        if dt is not None or eps is not None or "custom_vjp" not in str(e):
+            raise
+        raise ValueError(
+            f"forward-mode autodiff (jax.jvp, jax.jacfwd) cannot go through an adaptive solve with "
+            f"{type(adjoint).__name__}, which supports reverse mode only: leave adjoint= out "
+            "(lierk.ForwardSensitivity(), both modes), or pass adjoint=lierk.ForwardMode() (forward only)"
+        ) from None
+    if isinstance(event, Event):
+        sol = eqx.tree_at(lambda s: s.events, sol, sol.events[0])
+    return raise_if_failed(sol, throw)
+
+
+@eqx.filter_jit
+def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked):
+    """The solve `solve` has checked: ``eps`` (``target_error``), ``dt``
+    (fixed steps, ``n`` of them) or ``controller`` (adaptive, at most ``n``
+    attempts) says which.  ``checked``: the values were known and checked on
+    the host, so the program adds no run-time checks of its own (a run-time
+    check is a host callback, which the persistent cache cannot keep)."""
+    with validation.checked_on_host() if checked else contextlib.nullcontext():
+        if eps is not None:
+            sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
+        elif dt is not None:
+            sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events)
+            if estimate_error:
+                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
+        else:
+            sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events)
+            if estimate_error:
+                sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, n, controller, adjoint)
+        return _flag_drift(problem, sol)
+
+
+def _check_events(event, saveat: SaveAt, estimate_error: bool, target_error) -> tuple[Event, ...]:
+    """``event=`` as a tuple of `Event` (empty for None), refused where it
+    cannot be honoured."""
+    if saveat.dense and (estimate_error or target_error is not None):
+        raise ValueError(
+            "SaveAt(dense=True) cannot be combined with estimate_error=True or target_error= (yet): the error "
+            "estimate covers the saved times only; solve with dense output at the chosen setting instead"
+        )
+    if event is None:
+        return ()
+    events = events_tuple(event)
+    if estimate_error or target_error is not None:
+        raise ValueError(
+            "event= cannot be combined with estimate_error=True or target_error= (yet): a finer solve would stop "
+            "at another time; solve with the event at the chosen setting instead"
+        )
+    return events
+
+
+def _check_call(problem, solver, saveat, max_steps, estimate_error) -> SaveAt:
+    """The structural arguments; returns the `SaveAt` (default: t1)."""
+    if not isinstance(problem, AbstractProblem):
+        raise ValueError(f"problem must be a lierk problem such as FreeRigidBody, got {type(problem).__name__}")
+    if not isinstance(solver, AbstractSolver):
+        raise ValueError(f"solver must be a lierk solver such as RKMK4(), got {solver!r}")
+    saveat = SaveAt(t1=True) if saveat is None else saveat
+    if not isinstance(saveat, SaveAt):
+        raise ValueError(f"saveat must be a lierk.SaveAt, got {saveat!r}")
+    if saveat.dense and not (saveat.t0 or saveat.t1 or saveat.steps or saveat.ts is not None):
+        # Dense output alone saves the final state too.
+        saveat = SaveAt(t1=True, dense=True)
+    # (A bool is an int to Python: max_steps=True would run one step.)
+    if max_steps is not None and not (
+        isinstance(max_steps, (int, np.integer)) and not isinstance(max_steps, bool) and max_steps >= 1
+    ):
+        raise ValueError(f"max_steps must be a positive Python int, got {max_steps!r}")
+    if not isinstance(estimate_error, bool):
+        raise ValueError(f"estimate_error must be True or False, got {estimate_error!r}")
+    return saveat
+
+
+def _check_times(t0, t1, dtype) -> tuple[Array, Array]:
+    """``t0`` and ``t1`` (s) as scalars of the problem's dtype, ``t1 >= t0``."""
+    t0_given, t1_given = t0, t1
+    t0 = validation.check_scalar(t0, "t0", dtype)
+    t1 = validation.check_scalar(t1, "t1", dtype)
+    if not validation.is_traced(t0_given, t1_given) and float(t1_given) > float(t0_given) and float(t1) <= float(t0):
+        raise ValueError(
+            f"t1 = {float(t1_given)!r} rounds to t0 = {float(t0)!r} in {np.dtype(dtype).name}: the interval is below "
+            "the resolution of the time axis; shift t0 towards 0 or use float64"
+        )
+    t1 = validation.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}")
+    return t0, t1
+
+
+def _check_save_times(saveat: SaveAt, t0, t1, dtype) -> SaveAt:
+    if saveat.ts is None:
+        return saveat
+    ts = validation.asarray(saveat.ts, dtype, "SaveAt(ts=...)")
+    if np.shape(ts)[0] == 0:
+        raise ValueError("SaveAt(ts=...) is empty: give at least one time, or save t0/t1 instead")
+    ts = validation.check(
+        ts,
+        lambda x: (x >= t0).all() & (x <= t1).all() & (x[1:] >= x[:-1]).all(),
+        "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1], got {value}",
+    )
+    # The solve must use the checked array, or a traced check is dead code.
+    return eqx.tree_at(lambda s: s.ts, saveat, jnp.asarray(ts))
+
+
+def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, int]:
+    """The step ``dt`` (s) and the static step count of a fixed-step solve."""
+    if saveat.ts is not None:
+        raise ValueError("SaveAt(ts=...) needs an adaptive solve; with fixed steps use SaveAt(steps=k)")
+    dt = validation.check_scalar(dt, "dt", dtype)
+    dt = validation.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
+    if not validation.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
+        # The step itself would still be integrated exactly dt long, but
+        # the times t0 + k dt, which time-dependent effects read and the
+        # solution reports, could not move forward.
+        raise ValueError(
+            f"dt = {float(dt)!r} is below the resolution of {np.dtype(dt.dtype).name} times near "
+            f"t = {float(max(abs(t0), abs(t1)))!r} (one ulp is about {float(np.spacing(max(abs(t0), abs(t1))))!r}): "
+            "measure time from a closer origin (t0 = 0) or use float64"
+        )
+    n = num_steps(t0, t1, dt, max_steps)
+    if saveat.steps and not (saveat.t0 or saveat.t1) and n // saveat.every == 0:
+        raise ValueError(
+            f"SaveAt(steps={saveat.steps}) saves nothing: this run takes {n} steps; "
+            "save t1 too (SaveAt(steps=..., t1=True)) or save more often"
+        )
+    return dt, n
+
+
+def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint, estimate_error, dtype):
+    """``(controller, adjoint, dt0)`` of an adaptive solve."""
+    if not solver.adaptive:
+        raise ValueError(
+            f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=, or target_error=. "
+            "Adaptive solvers: RKF45(), DP54(), DOP853()."
+        )
+    if controller is None:
+        if rtol is None:
+            raise ValueError(
+                f"adaptive {solver.name} needs rtol= (and atol=), or controller=, or target_error=; or pass dt= for fixed steps"
+            )
+        controller = Controller.from_tolerances(rtol, atol)
+    elif rtol is not None or atol is not None:
+        raise ValueError("pass tolerances either as rtol=/atol= or inside controller=, not both")
+    elif not isinstance(controller, Controller):
+        raise ValueError(f"controller must be a lierk.Controller, got {controller!r}")
+    if saveat.steps is not False and saveat.steps is not True:
+        raise ValueError(f"adaptive solves save every accepted step (SaveAt(steps=True)), not every {saveat.steps}-th")
+    if saveat.steps and saveat.ts is not None:
+        raise ValueError("SaveAt(steps=True) and SaveAt(ts=...) cannot be combined in one adaptive solve")
+    if saveat.steps and estimate_error:
+        raise ValueError(
+            "estimate_error=True compares with a finer solve at the same saved times, and adaptive "
+            "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
+        )
+    eps = float(np.finfo(dtype).eps)
+    # In NumPy: inside a trace even a sum of concrete arrays is a tracer (a
+    # Controller built outside `jit` and closed over inside it).
+    total = None if validation.is_traced(controller.rtol, controller.atol) else (
+        float(np.asarray(controller.rtol)) + float(np.asarray(controller.atol))
+    )
+    if total is not None and total < eps:
+        raise ValueError(
+            f"rtol + atol = {total:g} is below the rounding of "
+            f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
+        )
+    adjoint = _check_adjoint(adjoint)
+    if dt0 is not None:
+        dt0 = validation.check(validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
+    return controller, adjoint, dt0
+
+
+def _check_adjoint(adjoint) -> AbstractAdjoint:
+    adjoint = ForwardSensitivity() if adjoint is None else adjoint
+    if not isinstance(adjoint, AbstractAdjoint):
+        raise ValueError(f"adjoint must be a lierk._adjoint object such as lierk.ForwardSensitivity(), got {adjoint!r}")
+    return adjoint
+
+
+# The loops as `AbstractAdjoint.run` calls them: the adjoint first (the
+# fixed-step scan has no use for it).
+def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n, events):
+    return solve_fixed(problem, solver, t0, t1, dt, saveat, n, events)
+
+
+def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events):
+    return solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, events=events)
+
+
+# A conserved quantity that moves by more than this (relative to its scale)
+# marks a run as under-resolved or unstable: RESULTS.invariant_drift.
+_DRIFT_LIMIT = 0.1
+
+
+def _flag_drift(problem, sol: Solution) -> Solution:
+    keys = problem.conserved()
+    if not keys:
+        return sol
+    q0 = problem.invariants(problem.R0, problem.y0)
+    q = problem.invariants(sol.R, sol.y)
+    scales = problem.invariant_scales()
+    worst = jnp.zeros((), sol.R.dtype)
+    for k in keys:
+        d = jnp.abs(q[k] - q0[k]) / jnp.where(scales[k] > 0, scales[k], 1.0)
+        # Padding rows are NaN; a non-finite run has its own code.
+        worst = jnp.maximum(worst, jnp.max(jnp.where(jnp.isfinite(d), d, 0.0)))
+    finished = sol.result == RESULTS.successful if sol.events is None else sol.ok
+    drifted = finished & (worst > _DRIFT_LIMIT)
+    result = jnp.where(drifted, RESULTS.invariant_drift, sol.result).astype(sol.result.dtype)
+    return eqx.tree_at(lambda s: s.result, sol, result)

@@ -1,0 +1,419 @@
+"""Input validation, one module for every layer: the problems, the effects,
+`lierk.exact`, the controller and `solve` (none of which import each other
+for it).
+
+A value known while tracing (a NumPy array or Python number) is checked in
+Python and raises `ValueError` at once, naming the value.  A traced value
+cannot be inspected, so the same condition becomes a run-time check with
+`eqx.error_if`, which raises when the compiled program runs.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import contextvars
+import math
+import warnings
+import weakref
+from typing import Callable
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jax.typing import ArrayLike
+
+
+def asarray(x, dtype=None, name: str = "value"):
+    """``x`` as a NumPy array when its value is known now, so that `check` can
+    raise while tracing; as a JAX array when it is traced.  (Inside `jax.jit`,
+    even ``jnp.asarray(0.1)`` is a tracer, so NumPy is the only way to keep a
+    constant inspectable.)  Integers become the default float type and half
+    precision becomes float32; booleans, complex numbers and strings raise
+    `ValueError` naming ``name`` (a complex value would lose its imaginary
+    part without a word)."""
+    if is_traced(x):
+        x = jnp.asarray(x)
+    else:
+        try:
+            x = np.asarray(x)
+        except (TypeError, ValueError) as e:
+            raise ValueError(f"{name} must be real numbers, got {x!r} ({e})") from None
+    if x.dtype.kind not in "iuf":
+        raise ValueError(f"{name} must be real numbers, got {_show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}")
+    if dtype is None and (x.dtype.kind != "f" or x.dtype.itemsize < 4):
+        dtype = jnp.result_type(float) if x.dtype.kind != "f" else np.float32
+    if is_traced(x):
+        return x if dtype is None else x.astype(dtype)
+    return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
+
+
+def as_jax(x, dtype=None):
+    """``x`` as a JAX array (in ``dtype`` if given): a traced value cast as
+    it is, a concrete one converted by NumPy and put on the device.  Unlike
+    ``jnp.asarray``, which compiles a small program per shape and dtype, this
+    compiles nothing on concrete values (host paths: validation, problems
+    built from a scene)."""
+    if is_traced(x):
+        x = jnp.asarray(x)
+        return x if dtype is None else x.astype(dtype)
+    if isinstance(x, jax.Array) and (dtype is None or x.dtype == jax.dtypes.canonicalize_dtype(dtype)):
+        return x
+    x = np.asarray(x)
+    return jax.device_put(x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype)))
+
+
+def all_finite(tree) -> jax.Array:
+    """Whether every entry of every array leaf of ``tree`` is finite (a traced bool)."""
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
+
+
+def is_traced(*xs) -> bool:
+    return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
+
+
+_CHECKED_ON_HOST = contextvars.ContextVar("lierk_checked_on_host", default=False)
+
+
+@contextlib.contextmanager
+def checked_on_host():
+    """Trace a block whose traced inputs the caller has already checked on
+    the host (say, the step times it computed itself): `check` then passes
+    them through instead of adding a run-time check.
+
+    A run-time check is a host callback, and JAX's persistent compilation
+    cache does not keep programs with host callbacks: a program traced in
+    this block can be loaded from the cache in a later process."""
+    token = _CHECKED_ON_HOST.set(True)
+    try:
+        yield
+    finally:
+        _CHECKED_ON_HOST.reset(token)
+
+
+def check(x, ok: Callable, message: str):
+    """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
+
+    ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
+    the array's own methods).  For traced ``x`` the check is deferred to run time
+    (not made at all inside `checked_on_host`).
+    """
+    if is_traced(x) and _CHECKED_ON_HOST.get():
+        return x
+    if is_traced(x):
+        import jax.numpy as jnp
+
+        # The value is only known at run time; say which check failed.
+        return eqx.error_if(x, ~jnp.all(ok(x)), message.replace("{value}", "a traced value that failed the check"))
+    if not bool(np.all(ok(np.asarray(x)))):
+        raise ValueError(message.format(value=_show(x)) if "{value}" in message else message)
+    return x
+
+
+def _show(x) -> str:
+    return np.array2string(np.asarray(x), precision=6, separator=", ")
+
+
+def check_shape(x, shape: tuple, name: str):
+    if np.shape(x) != shape:
+        raise ValueError(f"{name} must have shape {shape}, got shape {np.shape(x)}")
+
+
+def check_scalar(x, name: str, dtype=None, *, bound: str = "finite"):
+    """A real scalar: NumPy when known (checked now), JAX when traced (checked
+    at run time), in ``dtype`` (default: float, as `asarray`).  ``bound``:
+    ``"finite"``, ``"positive"`` (``> 0``, finite) or ``"non-negative"``."""
+    if np.ndim(x) != 0:
+        raise ValueError(f"{name} must be a scalar, got shape {np.shape(x)}")
+    x = asarray(x, dtype, name)
+    inf = float("inf")
+    if bound == "finite":
+        return check(x, lambda v: (v == v) & (abs(v) < inf), f"{name} must be finite, got {{value}}")
+    ok = (lambda v: (v > 0) & (v < inf)) if bound == "positive" else (lambda v: (v >= 0) & (v < inf))
+    return check(x, ok, f"{name} must be {bound} and finite, got {{value}}")
+
+
+def check_attitude(R0: ArrayLike | None, dtype) -> Array:
+    """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
+    if R0 is None:
+        return as_jax(np.eye(3), dtype)
+    R0 = asarray(R0, dtype, "R0")
+    check_shape(R0, (3, 3), "R0")
+    tol = 1e-6
+    xp = np if isinstance(R0, np.ndarray) else jnp
+    R0 = check(R0, lambda R: (R == R).all() & (abs(R) < float("inf")).all(), "R0 has NaN or inf entries: {value}")
+    R0 = check(
+        R0,
+        lambda R: (xp.linalg.norm(R.T @ R - xp.eye(3)) < tol) & (xp.linalg.det(R) > 0),
+        f"R0 must be a rotation matrix (||R^T R - I|| < {tol:g} and det R = +1), got {{value}}",
+    )
+    return as_jax(R0)
+
+
+def check_vector(x: ArrayLike, name: str, dtype) -> Array:
+    x = asarray(x, dtype, name)
+    check_shape(x, (3,), name)
+    x = check(x, lambda v: (v == v).all() & (abs(v) < float("inf")).all(), f"{name} has NaN or inf entries: {{value}}")
+    return as_jax(x)
+
+
+def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
+    """Validate a rigid body's inertia and initial state, in one common float dtype.
+
+    Besides `check_inertia`'s checks, the body's state must fit the dtype
+    (`state_range_error`): checked now when the inertia and ``omega0`` are
+    known, at run time (`eqx.error_if`) when either is traced.  A concrete
+    inertia that is nearly singular is warned about, once per body (see
+    `check_inertia`).
+
+    Returns ``(inertia (3, 3), omega0 (3,), R0 (3, 3))``.
+    """
+    given = inertia
+    inertia = check_inertia(inertia)
+    dtype = jnp.result_type(inertia.dtype, asarray(omega0, name="omega0").dtype, float)
+    inertia = _remember(as_jax(inertia, dtype))
+    if not is_traced(inertia) and not _warned(given):
+        text = nearly_singular_inertia(inertia, dtype)
+        if text is not None:
+            warnings.warn(text, stacklevel=3)
+    omega0 = check_vector(omega0, "omega0", dtype)
+    if is_traced(inertia, omega0):
+        if not _CHECKED_ON_HOST.get():
+            lo, hi = _log_range(dtype)
+            moments, squares = _state_logs(inertia, omega0, jnp)
+            omega0 = eqx.error_if(
+                omega0, ~(jnp.all((moments >= lo) & (moments <= hi)) & jnp.all(squares <= hi)),
+                f"a traced inertia and omega0 give a body state outside {jnp.dtype(dtype).name}'s range "
+                "(lierk._validation.state_range_error)",
+            )
+    else:
+        reason = state_range_error(inertia, omega0, dtype)
+        if reason is not None:
+            raise ValueError(f"inertia {_show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
+                             f"with omega0 {_show(omega0)} rad/s: {reason}")
+    return inertia, omega0, check_attitude(R0, dtype)
+
+
+def _diagonal(I) -> bool:
+    I = np.asarray(I)
+    return not np.any(I - np.diag(np.diagonal(I)))
+
+
+def _log_range(dtype) -> tuple[float, float]:
+    """log10 of the smallest normal and of the largest number of ``dtype``."""
+    info = np.finfo(dtype)
+    return math.log10(float(info.tiny)), math.log10(float(info.max))
+
+
+_MOMENTS = (
+    "tr(I), the sum of the principal moments,",
+    "1/tr(I^-1), about the smallest principal moment,",
+    "det(I), the product of the principal moments,",
+)
+_SQUARES = ("|omega|^2", "|L|^2 = |I omega|^2", "2T = omega . I omega", "2T tr(I)", "2T / tr(I^-1)")
+
+
+def _state_logs(inertia, omega0, xp):
+    """log10 of `_MOMENTS` and of `_SQUARES` (``-inf`` for a body at rest),
+    two ``(3,)`` and ``(5,)`` arrays, computed from the scaled inertia and
+    ``omega0`` so that nothing overflows on the way."""
+    I, w = inertia, omega0
+    s = xp.max(xp.abs(I))
+    s = xp.where(s > 0, s, 1.0)
+    J = I / s
+    tr = J[0, 0] + J[1, 1] + J[2, 2]
+    # tr(I^-1) = (sum of the principal 2x2 minors) / det: no eigendecomposition.
+    minors = (J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0] + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+              + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
+    det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
+           + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
+    ls = xp.log10(s)
+    moments = [ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det)]
+    sw = xp.max(xp.abs(w))
+    moving = sw > 0
+    v = w / xp.where(moving, sw, 1.0)
+    lw = xp.log10(xp.where(moving, sw, 1.0))
+    Jv = J @ v
+    T2 = 2 * lw + ls + xp.log10(v @ Jv)
+    squares = [2 * lw + xp.log10(v @ v), 2 * lw + 2 * ls + xp.log10(Jv @ Jv), T2, T2 + moments[0], T2 + moments[1]]
+    return xp.stack(moments), xp.where(moving, xp.stack(squares), -xp.inf)
+
+
+def state_range_error(inertia: ArrayLike, omega0: ArrayLike, dtype=None) -> str | None:
+    """Why a body's state does not fit ``dtype`` (default: the float type JAX
+    uses now), or None when it does.
+
+    The rigid-body quantities lierk computes are second order in the state:
+    the invariants ``|L|^2 = |I omega|^2`` and ``2T = omega . I omega``, and
+    ``2T I_k`` beside ``|L|^2`` in the flip test (`lierk.conditions.flip`)
+    and the exact solution (`lierk.exact`), which also divides by the
+    product of the moments.  The principal moments (as ``tr(I)`` and
+    ``1/tr(I^-1)``, within a factor 3 of the largest and the smallest) and
+    their product ``det(I)`` must be normal numbers of ``dtype``: neither
+    infinite (at 1e150 kg m^2 the exact flip interval came out ``inf``) nor
+    below the smallest normal number (where they lose their digits: the
+    ``|L|^2`` of a 1e-300 kg m^2 body spinning at 1 rad/s is 0, and its flips
+    went unseen).  In float64 that admits moments from about 3e-103 to 5e102
+    kg m^2, in float32 from about 2e-13 to 7e12.  ``|omega|^2`` and the
+    squares above must be finite (an inertia of 1e100 kg m^2 at 1e55 rad/s
+    has ``|L|^2 = 1e310``, and ``|L|`` came out ``nan``); below the smallest
+    normal number they may fall, since with moments in range only a body at
+    rest to any precision that matters (``|omega|`` under 1e-51 rad/s in
+    float64) gets there.  ``inertia`` ``(3, 3)`` positive definite and
+    ``omega0`` ``(3,)`` finite, both concrete.
+    """
+    dtype = jnp.result_type(float) if dtype is None else dtype
+    I = np.asarray(inertia, np.float64)
+    I = np.diag(I) if I.shape == (3,) else I
+    with np.errstate(all="ignore"):
+        moments, squares = _state_logs(I, np.asarray(omega0, np.float64), np)
+    lo, hi = _log_range(dtype)
+    bounds = [(n, x, lo) for n, x in zip(_MOMENTS, moments)] + [(n, x, -math.inf) for n, x in zip(_SQUARES, squares)]
+    for name, x, low in bounds:
+        if not low <= x <= hi:
+            info = np.finfo(dtype)
+            return (f"{name} = {_power_of_ten(x)} {'overflows' if x > hi else 'underflows'} {np.dtype(dtype).name}, "
+                    f"whose normal numbers lie between {float(info.tiny):.2g} and {float(info.max):.2g} "
+                    "(lierk forms |L|^2, 2T, 2T I_k and det(I) from the body); give it in other units")
+    return None
+
+
+def _power_of_ten(x: float) -> str:
+    """``10**x`` written out, for exponents beyond any float: ``"1e+600"``."""
+    if x == -math.inf:
+        return "0"
+    e = math.floor(x)
+    m = 10 ** (x - e)
+    if round(m, 1) >= 10:
+        m, e = m / 10, e + 1
+    return f"{m:.2g}e{e:+03d}"
+
+
+def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
+    """`rigid_body_inputs` and the inverse inertia: ``(inertia (3, 3),
+    inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``."""
+    inertia, omega0, R0 = rigid_body_inputs(inertia, omega0, R0)
+    return inertia, jnp.linalg.inv(inertia), omega0, R0
+
+
+def check_inertia(inertia: ArrayLike) -> Array:
+    """Validate an inertia tensor and return it as a ``(3, 3)`` array.
+
+    A concrete inertia whose principal moments break the triangle inequality
+    ``I_max <= I_a + I_b`` (no rigid body has them) is warned about, once per
+    body: not again when an inertia this module returned (a body's own
+    ``inertia``) comes back, say to `lierk.exact`, nor inside
+    `inertia_warned`.  A traced inertia is not: a host warning cannot see
+    its value, and a run-time one would be a host callback in the program.
+    It needs none: the equations are well posed for any positive-definite
+    inertia, which is checked at run time, and are solved as given, as they
+    are after the warning.
+
+    Args:
+        inertia: ``(3, 3)`` symmetric positive-definite matrix, or ``(3,)``
+            principal moments (kg m^2).
+
+    Raises:
+        ValueError: wrong shape, NaN/inf, not symmetric, or not positive
+            definite (checked at run time with `eqx.error_if` when traced).
+    """
+    given = inertia
+    inertia = asarray(inertia, name="inertia")
+    xp = np if isinstance(inertia, np.ndarray) else jnp
+    if inertia.shape == (3,):
+        inertia = xp.diag(inertia)
+    if inertia.shape != (3, 3):
+        raise ValueError(f"inertia must have shape (3, 3) or (3,), got shape {inertia.shape}")
+    inertia = check(
+        inertia, lambda I: (I == I).all() & (abs(I) < float("inf")).all(), "inertia has NaN or inf entries: {value}"
+    )
+    inertia = check(
+        inertia,
+        lambda I: abs(I - I.T).max() <= 1e-10 * abs(I).max(),
+        "inertia must be symmetric, got {value}",
+    )
+
+    # The three leading principal minors are positive iff I is positive definite
+    # (Sylvester); this avoids an eigendecomposition in the traced check.  They
+    # are taken of I scaled to entries of at most 1: the determinant is cubic
+    # in I, and unscaled it overflowed for moments of 1e150 and vanished for
+    # 1e-150 ("not positive definite").
+    def positive_definite(I):
+        s = abs(I).max()
+        I = I / xp.where(s > 0, s, 1.0)
+        return (
+            (I[0, 0] > 0)
+            & (I[0, 0] * I[1, 1] - I[0, 1] * I[1, 0] > 0)
+            & (
+                I[0, 0] * (I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1])
+                - I[0, 1] * (I[1, 0] * I[2, 2] - I[1, 2] * I[2, 0])
+                + I[0, 2] * (I[1, 0] * I[2, 1] - I[1, 1] * I[2, 0])
+                > 0
+            )
+        )
+
+    inertia = check(inertia, positive_definite, "inertia must be positive definite, got {value}")
+    if isinstance(inertia, np.ndarray) and not _warned(given):
+        text = impossible_inertia(inertia)
+        if text is not None:
+            warnings.warn(text, stacklevel=3)
+    return _remember(as_jax(inertia))
+
+
+def impossible_inertia(inertia: ArrayLike, name: str = "inertia") -> str | None:
+    """The warning for a concrete, positive-definite ``inertia`` whose
+    principal moments break the triangle inequality (no rigid body has them),
+    naming it ``name``; None when they keep it."""
+    moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
+    if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
+        # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
+        # break it too, so this warns rather than refuses.
+        return (f"{name} {_show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
+                "no rigid body has these principal moments; the equations are solved as given")
+    return None
+
+
+def nearly_singular_inertia(inertia: ArrayLike, dtype, name: str = "inertia") -> str | None:
+    """The warning for a concrete, positive-definite ``inertia`` too close
+    to singular for ``dtype``, naming it ``name``; None otherwise."""
+    moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
+    limit = 1e-10 if dtype == jnp.float64 else 1e-5
+    if moments.min() < limit * moments.max():
+        return (f"{name} is nearly singular (I_min/I_max = {moments.min() / moments.max():.1e}): omega = I^-1 m "
+                "turns tiny momentum errors into huge spins, so expect a stiff, inaccurate run; "
+                "check the units, or drop the rotation about that axis")
+    return None
+
+
+# The inertia arrays `check_inertia` and `rigid_body_inputs` returned, by id:
+# a body's own ``inertia``, which the library hands back to them (lierk.exact,
+# the flip event, a gravity-gradient effect) and which was warned about when
+# the body was built.  Weak: they go when the body does.
+_VALIDATED: weakref.WeakValueDictionary = weakref.WeakValueDictionary()
+_INERTIA_WARNED = contextvars.ContextVar("lierk_inertia_warned", default=False)
+
+
+def _remember(x):
+    if not is_traced(x):
+        _VALIDATED[id(x)] = x
+    return x
+
+
+def _warned(given) -> bool:
+    """Whether the warnings about the inertia ``given`` (an argument, as
+    passed) have been given already."""
+    return _INERTIA_WARNED.get() or _VALIDATED.get(id(given)) is given
+
+
+@contextlib.contextmanager
+def inertia_warned():
+    """Validate inertias without warning about them (an impossible or nearly
+    singular one) in this block: the caller has warned once already, in its
+    own words (`lierk.app.scene` names the key), and builds the body's effects
+    and problem from it."""
+    token = _INERTIA_WARNED.set(True)
+    try:
+        yield
+    finally:
+        _INERTIA_WARNED.reset(token)
