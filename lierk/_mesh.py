@@ -24,7 +24,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-__all__ = ["TriangleMesh", "load", "from_arrays", "check_closed", "MassProperties", "mass_properties"]
+__all__ = ["TriangleMesh", "load", "from_arrays", "from_object", "check_closed", "MassProperties", "mass_properties"]
 
 
 class TriangleMesh(NamedTuple):
@@ -123,9 +123,25 @@ def load(path: str | os.PathLike, scale: float = 1.0) -> TriangleMesh:
             import trimesh
         except ImportError:
             raise ValueError(f"{path}: lierk reads .stl and .obj meshes; for {suffix or 'this'} files install trimesh") from None
-        m = trimesh.load(path, force="mesh")
-        vertices, faces = np.asarray(m.vertices, float), np.asarray(m.faces)
+        try:
+            m = trimesh.load_mesh(path)
+        except Exception as e:  # trimesh raises many types for unreadable files
+            raise ValueError(f"{path}: trimesh could not read it as a mesh ({type(e).__name__}: {e})") from None
+        return from_object(m, scale, what=str(path))
     return from_arrays(vertices, faces, scale)
+
+
+def from_object(mesh, scale: float = 1.0, what: str = "mesh") -> TriangleMesh:
+    """A `TriangleMesh` from a mesh object that has ``vertices`` ``(V, 3)``
+    and ``faces`` ``(F, 3)`` (a ``trimesh.Trimesh``, or any object shaped like
+    one); a ``trimesh.Scene`` of several geometries is joined into one mesh."""
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")) and hasattr(mesh, "to_geometry"):
+        mesh = mesh.to_geometry()  # a trimesh.Scene: its geometries, placed, in one mesh
+    elif not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")) and hasattr(mesh, "dump"):
+        mesh = mesh.dump(concatenate=True)  # trimesh < 4.5
+    if not (hasattr(mesh, "vertices") and hasattr(mesh, "faces")):
+        raise ValueError(f"{what}: a {type(mesh).__name__} has no vertices and faces of triangles")
+    return from_arrays(np.asarray(mesh.vertices, dtype=float), np.asarray(mesh.faces), scale)
 
 
 def check_closed(mesh: TriangleMesh) -> None:

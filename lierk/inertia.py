@@ -192,9 +192,11 @@ def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
     """Inertia of a uniform solid bounded by a closed triangle mesh.
 
     Args:
-        mesh: a file path (STL or OBJ; other formats if ``trimesh`` is
-            installed), a ``(vertices (V, 3), faces (F, 3))`` pair, or a
-            `lierk._mesh.TriangleMesh`.
+        mesh: a file path (STL or OBJ; any format trimesh reads if it is
+            installed: ``pip install lierk[mesh]``), a ``trimesh.Trimesh``
+            or ``trimesh.Scene`` (or any object with ``vertices`` ``(V, 3)``
+            and ``faces`` ``(F, 3)``), a ``(vertices, faces)`` pair, or the
+            `TriangleMesh` of an earlier result.
         density: kg/m^3.
         scale: file units to metres (``1e-3`` for a CAD file in mm); not
             applied to a `TriangleMesh`.
@@ -213,11 +215,13 @@ def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
         m = mesh
     elif isinstance(mesh, (str, os.PathLike)):
         m = _mesh.load(mesh, scale)
+    elif hasattr(mesh, "faces") or hasattr(mesh, "to_geometry") or hasattr(mesh, "dump"):
+        m = _mesh.from_object(mesh, scale)
     else:
         try:
             vertices, faces = mesh
         except (TypeError, ValueError):
-            raise ValueError(f"mesh must be a file path, a (vertices, faces) pair or a TriangleMesh, got {type(mesh).__name__}") from None
+            raise ValueError(f"mesh must be a file path, a trimesh.Trimesh, a (vertices, faces) pair or a TriangleMesh, got {type(mesh).__name__}") from None
         m = _mesh.from_arrays(vertices, faces, scale)
     props = _mesh.mass_properties(m, density)
     moments, axes = np.linalg.eigh(props.inertia)

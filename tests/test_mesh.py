@@ -93,6 +93,28 @@ def test_files_read_back_to_the_same_inertia(tmp_path, kind):
     np.testing.assert_allclose(p.mass, ref.mass, rtol=1e-6)
 
 
+def test_trimesh_objects_scenes_and_formats_are_accepted(tmp_path):
+    """A user's mesh is usually a trimesh object: a Trimesh, a Scene of
+    several placed geometries, or a file only trimesh reads (PLY here)."""
+    trimesh = pytest.importorskip("trimesh")
+    rho, (lx, ly, lz) = 2700.0, (0.3, 0.2, 0.1)
+    exact = rho * lx * ly * lz / 12 * np.array([ly**2 + lz**2, lx**2 + lz**2, lx**2 + ly**2])
+    box = trimesh.creation.box(extents=(lx, ly, lz))
+    np.testing.assert_allclose(np.diag(lierk.inertia.from_mesh(box, rho).inertia), exact, rtol=1e-12)
+    # Two boxes placed side by side along x: the parallel-axis composite.
+    scene = trimesh.Scene()
+    for dx in (-lx / 2, lx / 2):
+        scene.add_geometry(box, transform=trimesh.transformations.translation_matrix([dx, 0.0, 0.0]))
+    two = lierk.inertia.from_mesh(scene, rho)
+    ref = lierk.inertia.from_mesh(box_mesh(2 * lx, ly, lz), rho)
+    np.testing.assert_allclose(two.inertia, ref.inertia, rtol=1e-12, atol=1e-15)
+    box.export(tmp_path / "box.ply")
+    from_file = lierk.inertia.from_mesh(tmp_path / "box.ply", rho, scale=1.0)
+    np.testing.assert_allclose(np.diag(from_file.inertia), exact, rtol=1e-6)
+    with pytest.raises(ValueError, match="a trimesh.Trimesh, .* got PointCloud"):
+        lierk.inertia.from_mesh(trimesh.PointCloud(np.eye(3)), rho)
+
+
 def test_inward_faces_are_the_same_solid():
     v, f = box_mesh(0.3, 0.2, 0.1)
     a = lierk.inertia.from_mesh((v, f), 1000.0)
