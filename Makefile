@@ -47,17 +47,7 @@ test: $(STAMP)
 	  else echo "== {} FAILED:"; cat $$log; exit 1; fi'
 
 bench: $(BENCH_STAMP)
-	$(BIN)/python benchmarks/convergence.py
-	$(BIN)/python benchmarks/throughput.py
-	$(BIN)/python benchmarks/sweep.py
-	$(BIN)/python benchmarks/xla_soa.py
-	$(BIN)/python benchmarks/work_precision.py
-	$(BIN)/python benchmarks/torqued.py
-	$(BIN)/python benchmarks/formulation.py
-	$(BIN)/python benchmarks/error_estimate.py
-	$(BIN)/python benchmarks/long_horizon.py
-	$(BIN)/python benchmarks/scene_overhead.py
-	$(BIN)/python benchmarks/latency.py
+	$(BIN)/python -m benchmarks
 
 docs: $(DOCS_STAMP)
 	NO_MKDOCS_2_WARNING=1 $(BIN)/mkdocs build --strict --site-dir site

@@ -1,42 +1,54 @@
 """What the benchmark scripts share: their command line, timing, the machine
 record and the near-intermediate-axis batches.  Scripts import it as
 ``common`` (they run as ``python benchmarks/NAME.py``, so this folder is on
-``sys.path``)."""
+``sys.path``).  The peers (diffrax, SciPy, MuJoCo) are in ``peers``.
+
+Only argparse and pathlib are imported here at the top: jax, NumPy and the
+rest are imported by the functions that use them, so that a script can parse its
+command line before jax starts (the XLA host device count) and a timed child
+process imports jax itself."""
 
 from __future__ import annotations
 
 import argparse
-import json
-import platform
-import tempfile
 import time
 from pathlib import Path
-
-import jax
-import jax.numpy as jnp
-import numpy as np
+from typing import Callable
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
-def cli(doc: str, quick_help: str, run: bool) -> tuple[bool, Path]:
+def cli(doc: str, quick_help: str, run: bool = True, extra: Callable | None = None, argv: list[str] | None = None):
     """``(quick, out)`` from ``--quick`` and ``--out``.  Quick runs write to a
     temporary directory unless ``--out`` is given, so they never overwrite
     ``benchmarks/results``.  ``run``: the script runs (``__name__ ==
-    "__main__"``); imported, the defaults apply."""
+    "__main__"``) and its command line (``argv``, default ``sys.argv``) is
+    parsed; imported, the defaults apply.  ``extra(parser)`` adds a script's
+    own arguments; with it, ``(quick, out, args)``, ``args`` the parsed
+    namespace."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help=quick_help)
     parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-    args = parser.parse_args() if run else parser.parse_args([])
+    if extra is not None:
+        extra(parser)
+    args = parser.parse_args(argv) if run else parser.parse_args([])
     if args.out:
-        return args.quick, Path(args.out)
-    return args.quick, (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
+        out = Path(args.out)
+    elif args.quick:
+        import tempfile
+
+        out = Path(tempfile.gettempdir()) / "lierk-bench-quick"
+    else:
+        out = RESULTS
+    return (args.quick, out) if extra is None else (args.quick, out, args)
 
 
 def write_results(out: Path, name: str, payload, markdown: str | list[str]) -> None:
     """Write ``out/name.json`` (``payload``, NumPy scalars as floats) and
     ``out/name.md`` (``markdown``: the text, or its lines), creating ``out``,
     and say where."""
+    import json
+
     out.mkdir(parents=True, exist_ok=True)
     (out / f"{name}.json").write_text(json.dumps(payload, indent=1, default=float) + "\n")
     (out / f"{name}.md").write_text(markdown if isinstance(markdown, str) else "\n".join(markdown) + "\n")
@@ -49,6 +61,9 @@ def timed(f, *args, repeats: int, min_time: float = 0.0, max_repeats: int = 51):
     timed calls, and more (up to ``max_repeats``) until they add up to
     ``min_time`` seconds: on a shared machine one descheduling can double a
     call of a few milliseconds, and the median of 3 such calls is not robust."""
+    import jax
+    import numpy as np
+
     t = time.perf_counter()
     out = jax.block_until_ready(f(*args))
     first = time.perf_counter() - t
@@ -62,10 +77,14 @@ def timed(f, *args, repeats: int, min_time: float = 0.0, max_repeats: int = 51):
 
 def max_err(R, R_ref) -> float:
     """Largest Frobenius norm ``||R - R_ref||`` over the batch."""
+    import jax.numpy as jnp
+
     return float(jnp.max(jnp.linalg.norm(jnp.asarray(R) - R_ref, axis=(-2, -1))))
 
 
 def cpu_model() -> str:
+    import platform
+
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
             if line.startswith("model name"):
@@ -79,6 +98,8 @@ def near_axis(moments, n: int, seed: int = 0) -> tuple[np.ndarray, int]:
     """``(n, 3)`` body angular velocities (rad/s), |omega| in [1, 3], within
     ~11 degrees of the intermediate principal axis of a body with principal
     ``moments`` ``(3,)``, and that axis' index."""
+    import numpy as np
+
     axis = int(np.argsort(np.asarray(moments))[1])
     rng = np.random.default_rng(seed)
     mag = rng.uniform(1.0, 3.0, n)
@@ -96,6 +117,8 @@ def interp_time(points, level: float) -> tuple[float, bool] | None:
     ``level``, ``log time`` is interpolated linearly in ``log error``.  When
     even the cheapest point is below ``level`` its time is returned with
     ``clamped = True`` (the sweep did not go coarse enough to tell more)."""
+    import numpy as np
+
     pts = sorted((t, e) for e, t in points if np.isfinite(e) and e > 0 and t > 0)
     front = []
     for t, e in pts:  # time ascending: keep each point more accurate than every cheaper one
@@ -134,6 +157,10 @@ def machine_info(**versions) -> dict:
     jax, numpy, lierk, JAX devices, the load average now, and ``versions``
     (other packages, by name)."""
     import os
+    import platform
+
+    import jax
+    import numpy as np
 
     import lierk
 
@@ -165,68 +192,3 @@ def git_commit() -> str | None:
     except (OSError, subprocess.CalledProcessError):
         return None
     return rev.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
-
-
-# --- MuJoCo states -------------------------------------------------------------
-#
-# One body on a ball joint: qpos is the body -> world quaternion (w, x, y, z),
-# i.e. lierk's R, and qvel the BODY-frame angular velocity (checked against
-# lierk by work_precision.py's `mujoco_frame_check` and torqued.py's check).
-# mujoco is imported only when these are called, so scripts without MuJoCo
-# can still use this module.
-
-
-def _mj_full():
-    import mujoco
-
-    return mujoco.mjtState.mjSTATE_FULLPHYSICS.value
-
-
-def mujoco_initial_states(model, omegas, quats=(1.0, 0.0, 0.0, 0.0)) -> np.ndarray:
-    """``(n, nstate)`` full physics states: qpos = ``quats`` (one ``(4,)`` for
-    every member, or ``(n, 4)``), qvel = ``omegas`` ``(n, 3)`` (body frame)."""
-    import mujoco
-
-    data = mujoco.MjData(model)
-    quats = np.broadcast_to(np.asarray(quats, float), (len(omegas), 4))
-    init = np.empty((len(omegas), mujoco.mj_stateSize(model, _mj_full())))
-    for i, (w, q) in enumerate(zip(omegas, quats)):
-        mujoco.mj_resetData(model, data)
-        data.qpos[:] = q
-        data.qvel[:] = w
-        mujoco.mj_getState(model, data, init[i], _mj_full())
-    return init
-
-
-def mujoco_get_state(model, data) -> np.ndarray:
-    """``data``'s full physics state ``(nstate,)``."""
-    import mujoco
-
-    s = np.empty(mujoco.mj_stateSize(model, _mj_full()))
-    mujoco.mj_getState(model, data, s, _mj_full())
-    return s
-
-
-def mujoco_final(model, final_states) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(R (n, 3, 3), body angular velocity (n, 3), time (n,))`` from full physics states."""
-    import mujoco
-
-    data = mujoco.MjData(model)
-    n = len(final_states)
-    R, w, t = np.empty((n, 3, 3)), np.empty((n, 3)), np.empty(n)
-    r9 = np.empty(9)
-    for i, s in enumerate(final_states):
-        mujoco.mj_setState(model, data, s, _mj_full())
-        mujoco.mju_quat2Mat(r9, data.qpos)
-        R[i], w[i], t[i] = r9.reshape(3, 3), data.qvel, data.time
-    return R, w, t
-
-
-def mujoco_quats(R) -> np.ndarray:
-    """``(n, 4)`` quaternions (w, x, y, z) of rotation matrices ``R`` ``(n, 3, 3)``."""
-    import mujoco
-
-    out = np.empty((len(R), 4))
-    for i, r in enumerate(np.asarray(R, float)):
-        mujoco.mju_mat2Quat(out[i], r.ravel())
-    return out

@@ -38,11 +38,7 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
-
-RESULTS = Path(__file__).resolve().parent / "results"
 
 # name: (description, kind, body, lierk solver, diffrax solver)
 PROGRAMS = {
@@ -91,31 +87,15 @@ def _program(name: str, peer: str):
             kw = dict(dt=s, max_steps=STEPS) if kind == "fixed" else dict(rtol=s, atol=s, max_steps=MAX_STEPS)
             return lierk.solve(problem, solver, T, throw=False, **kw).R[-1]
     else:
-        import diffrax
+        import peers
 
-        I_inv = 1.0 / inertia
-
-        def field(t, y, args):
-            m, R = y[:3], y[3:].reshape(3, 3)
-            w = I_inv * m
-            W = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-            dm = jnp.cross(m, w)
-            if body == "top":
-                dm = dm + MASS * G * jnp.cross(R[2], chi)  # (R^T e3) x chi
-            return jnp.concatenate([dm, (R @ W).ravel()])
-
-        term = diffrax.ODETerm(field)
-        dsolver = getattr(diffrax, diffrax_solver)()
+        field = peers.rigid_body_field(inertia, peers.gravity_torque(MASS, G, chi) if body == "top" else None)
 
         def solve(w, s):
-            y0 = jnp.concatenate([inertia * w, jnp.eye(3).ravel()])
-            if kind == "fixed":
-                kw = dict(dt0=s, stepsize_controller=diffrax.ConstantStepSize(), max_steps=STEPS + 1)
-            else:
-                kw = dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=s, atol=s), max_steps=MAX_STEPS)
-            if name.startswith("jacfwd"):
-                kw["adjoint"] = diffrax.ForwardMode()  # (its default adjoint is reverse mode only)
-            return diffrax.diffeqsolve(term, dsolver, 0.0, T, y0=y0, throw=False, **kw).ys[-1, 3:].reshape(3, 3)
+            y0 = peers.initial_state(inertia, w)
+            kw = dict(dt=s, max_steps=STEPS + 1) if kind == "fixed" else dict(rtol=s, max_steps=MAX_STEPS)
+            # (jacfwd: ForwardMode, as diffrax's default adjoint is reverse mode only)
+            return peers.diffrax_solve(field, diffrax_solver, T, y0, forward_mode=name.startswith("jacfwd"), **kw)[0]
 
     if name.startswith("vmap"):
         return jax.vmap(solve, in_axes=(0, None)), (jnp.tile(w0, (64, 1)), setting)
@@ -150,18 +130,18 @@ def run(name: str, peer: str) -> dict:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help=f"one repeat of {', '.join(QUICK)}, into a temp dir")
-    parser.add_argument("--repeats", type=int, default=None, help="fresh processes per program (default 3; --quick 1)")
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-    parser.add_argument("--one", nargs=2, metavar=("NAME", "PEER"), help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    import common  # only the standard library: the timed children import jax themselves
+
+    def extra(parser):
+        parser.add_argument("--repeats", type=int, default=None, help="fresh processes per program (default 3; --quick 1)")
+        parser.add_argument("--one", nargs=2, metavar=("NAME", "PEER"), help=argparse.SUPPRESS)
+
+    quick, out, args = common.cli(__doc__, f"one repeat of {', '.join(QUICK)}, into a temp dir", extra=extra, argv=argv)
     if args.one:
         print(json.dumps(compile_one(*args.one)))
         return
-    repeats = args.repeats or (1 if args.quick else 3)
-    names = QUICK if args.quick else tuple(PROGRAMS)
-    out = Path(args.out) if args.out else (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
+    repeats = args.repeats or (1 if quick else 3)
+    names = QUICK if quick else tuple(PROGRAMS)
 
     import jax
 
@@ -184,8 +164,6 @@ def main(argv=None):
     meta = {"machine": {"cpu_count": os.cpu_count(), "load_average_at_end": os.getloadavg(), "jax": jax.__version__,
                         "diffrax": diffrax.__version__, "lierk": lierk.__version__}, "repeats": repeats,
             "T": T, "fixed_steps": STEPS, "adaptive_max_steps": MAX_STEPS}
-    import common  # here, not at the top: it imports jax, which the timed children must import themselves
-
     common.write_results(out, "compile_time", {"meta": meta, "rows": rows}, markdown(meta, rows))
 
 

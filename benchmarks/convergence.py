@@ -10,8 +10,10 @@ traced ``dt`` and a static ``max_steps`` (steps past T are exact no-ops).
 The fitted order is the least-squares slope of log(error) against log(h) over
 the points whose error lies between 1e-11 (round-off) and 1e-1 (pre-asymptotic).
 
-Run: ``python benchmarks/convergence.py``; writes benchmarks/results/
-convergence.json, convergence.md and convergence.png.
+Run: ``python benchmarks/convergence.py [--quick] [--out DIR]``; writes
+benchmarks/results/convergence.json, convergence.md and convergence.png
+(``--quick``: the three coarsest steps of each solver, into a temporary
+directory).
 """
 
 from __future__ import annotations
@@ -22,7 +24,6 @@ jax.config.update("jax_enable_x64", True)
 
 import platform  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
@@ -30,12 +31,12 @@ import matplotlib  # noqa: E402
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
 
 import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import lierk  # noqa: E402
+import peers  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
+QUICK, OUT = common.cli(__doc__, "the three coarsest steps of each solver, into a temp dir", __name__ == "__main__")
 T = 10.0
 OMEGA0 = np.array([1.0, 0.05, 0.3])
 # Errors outside this band are round-off or pre-asymptotic and would bias the fit.
@@ -56,17 +57,8 @@ SOLVERS = [
 
 
 def scipy_reference(inertia, omega0, t1):
-    L = inertia @ omega0
-    Iinv = np.linalg.inv(inertia)
-
-    def f(t, x):
-        R = x.reshape(3, 3)
-        w = Iinv @ R.T @ L
-        W = np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])
-        return (R @ W).ravel()
-
-    sol = solve_ivp(f, (0.0, t1), np.eye(3).ravel(), method="DOP853", rtol=1e-13, atol=1e-13)
-    return sol.y[:, -1].reshape(3, 3)
+    field = peers.free_body_field(inertia, L=inertia @ omega0, xp=np)
+    return peers.scipy_solve(field, t1, np.eye(3).ravel(), 1e-13)[0]
 
 
 def reference(inertia, omega0, t1):
@@ -112,6 +104,7 @@ def main():
     print(f"reference: {ref_name}")
     rows = []
     for label, solver, expected, steps in SOLVERS:
+        steps = steps[:3] if QUICK else steps
         hs, errs = errors(solver, inertia, steps, R_ref)
         order, n_fit = fit(hs, errs)
         rows.append(
@@ -144,7 +137,7 @@ def main():
             f"| {r['solver']} | {r['expected_order']} | {r['fitted_order']:.2f} | {r['points_in_fit']} "
             f"| {r['h'][-1]:.3g} | {r['error'][-1]:.2e} |"
         )
-    common.write_results(RESULTS, "convergence", {"meta": meta, "results": rows}, lines)
+    common.write_results(OUT, "convergence", {"meta": meta, "results": rows}, lines)
 
     fig, ax = plt.subplots(figsize=(7, 5))
     for r in rows:
@@ -157,8 +150,8 @@ def main():
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()
-    fig.savefig(RESULTS / "convergence.png", dpi=120)
-    print(f"wrote benchmarks/results/convergence.{{json,md,png}} in {time.perf_counter() - t_start:.0f} s")
+    fig.savefig(OUT / "convergence.png", dpi=120)
+    print(f"wrote convergence.{{json,md,png}} in {OUT} in {time.perf_counter() - t_start:.0f} s")
 
 
 if __name__ == "__main__":

@@ -53,6 +53,7 @@ import optimistix as optx  # noqa: E402
 from scipy.integrate import quad  # noqa: E402
 
 import lierk  # noqa: E402
+import peers  # noqa: E402
 from common import cli, git_commit, interp_time, machine_info, series_table, timed, write_results  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
@@ -120,25 +121,14 @@ def lierk_fn(solver, dt: float | None = None):
 
 
 def diffrax_fn(solver):
-    I_inv = 1.0 / np.asarray(INERTIA)
-    chi = jnp.asarray(CHI)
-
-    def field(t, y, args):
-        m, R = y[:3], y[3:].reshape(3, 3)
-        w = I_inv * m
-        W = jnp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        return jnp.concatenate([jnp.cross(m, w) + MASS * G * jnp.cross(R[2], chi), (R @ W).ravel()])
-
-    term = diffrax.ODETerm(field)
+    field = peers.rigid_body_field(INERTIA, peers.gravity_torque(MASS, G, CHI))
     root_finder = optx.Newton(rtol=1e-14, atol=1e-14)
 
     def one(w, R0, theta_c, tol):
         # R_zz, the cosine of the symmetry axis's tilt, is y[11] (R row-major).
         event = diffrax.Event(lambda t, y, args, **kw: jnp.cos(theta_c) - y[11], root_finder, direction=True)
-        sol = diffrax.diffeqsolve(
-            term, solver, 0.0, T_MAX, None, jnp.concatenate([jnp.asarray(INERTIA) * w, R0.ravel()]),
-            stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=MAX_STEPS, event=event, throw=False,
-        )
+        sol = peers.diffrax_solution(field, solver, T_MAX, peers.initial_state(INERTIA, w, R0), rtol=tol,
+                                     max_steps=MAX_STEPS, event=event)
         return sol.ts[-1], sol.stats["num_steps"], sol.result != diffrax.RESULTS.event_occurred
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)))

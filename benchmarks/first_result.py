@@ -56,12 +56,7 @@ import os
 import statistics
 import subprocess
 import sys
-import tempfile
 import time
-from pathlib import Path
-
-RESULTS = Path(__file__).resolve().parent / "results"
-HERE = Path(__file__).resolve().parent
 
 BODIES = ("free", "top", "spacecraft")
 # name: (fixed, diffrax peer)
@@ -74,6 +69,8 @@ QUICK = (("top", "DOP853"),)
 def _setup(body: str):
     """``(inertia, omega0, T, lierk effects factory, peer torque)`` of a problem."""
     import numpy as np
+
+    import peers
 
     if body in ("free", "top"):
         inertia, omega0, T = (2.0, 3.0, 4.0), (1.0, 0.3, 20.0), 1.0
@@ -95,18 +92,13 @@ def _setup(body: str):
             lierk.MagneticTorque(lierk.dipole_field(n, tilt=tilt), bdot_gain=bdot),
         )
 
-    def torque(xp, t, R, w):
-        if body == "top":
-            return mass * g * xp.cross(R[2], xp.asarray(chi))
-        u = xp.stack([xp.cos(n * t), xp.sin(n * t), 0.0 * t])  # unit position, orbit in space x-y
-        ub = R.T @ u
-        tau = 3 * n**2 * xp.cross(ub, xp.asarray(inertia) * ub)
-        a = (3.986004418e14 / n**2) ** (1 / 3)
-        d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
-        B = R.T @ (3.12e-5 * (6.371e6 / a) ** 3 * (3 * (xp.asarray(d) @ u) * u - xp.asarray(d)))
-        return tau + xp.cross(xp.asarray(rotor), w) + bdot * xp.cross(xp.cross(w, B), B)
-
-    return np.asarray(inertia), np.asarray(omega0), T, effects, (None if body == "free" else torque)
+    if body == "free":
+        torque = None
+    elif body == "top":
+        torque = peers.gravity_torque(mass, g, chi)
+    else:
+        torque = peers.orbit_torque(np.asarray(inertia), n, rotor, bdot, tilt)
+    return np.asarray(inertia), np.asarray(omega0), T, effects, torque
 
 
 def _function(body: str, solver_name: str, peer: str, compact: bool):
@@ -228,24 +220,23 @@ def cells(quick: bool):
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="the heavy top with DOP853, one repeat, into a temp dir")
-    parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-    parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    import common  # only the standard library: the timed children import jax themselves
+
+    def extra(parser):
+        parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
+        parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
+
+    quick, out, args = common.cli(__doc__, "the heavy top with DOP853, one repeat, into a temp dir", extra=extra,
+                                  argv=argv)
     if args.one:
         print(json.dumps(run_cell(json.loads(args.one))))
         return
-    repeats = args.repeats or (1 if args.quick else 3)
-    out = Path(args.out) if args.out else (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
-    sys.path.insert(0, str(HERE))
-    import common
+    repeats = args.repeats or (1 if quick else 3)
 
     meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
             "rtol": RTOL, "batch": BATCH}
     rows = []
-    for cell in cells(args.quick):
+    for cell in cells(quick):
         runs = [_fresh(cell) for _ in range(repeats)]
         row = dict(cell, **{k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "method"})
         if "method" in runs[0]:

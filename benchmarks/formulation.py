@@ -81,18 +81,12 @@ ADAPTIVE_KEY = f"DOP853 rtol {DOP853_TOL:.0e}"
 THROUGHPUT_KEY = "RKMK4 dt 0.01"
 
 
-def num_steps(t1: float, dt: float) -> int:
-    n = round(t1 / dt)
-    assert abs(n * dt - t1) <= 1e-12 * t1, f"dt = {dt} does not divide T = {t1}"
-    return n
-
-
 def initial_velocities(inertia) -> tuple[np.ndarray, int]:
     return near_axis(np.diag(np.asarray(inertia)), N, SEED)
 
 
 def fixed_fn(problem, solver, dt, t1):
-    n = num_steps(t1, dt)
+    n = lierk.num_steps(0.0, t1, dt)
 
     @jax.jit
     def run(inertia, omegas):
@@ -154,7 +148,7 @@ def main():
                     "error": max_err(R, R_ref),
                     "time_s": s,
                     "first_call_s": first,
-                    "body_steps_per_s": N * num_steps(T, dt) / s,
+                    "body_steps_per_s": N * lierk.num_steps(0.0, T, dt) / s,
                 }
             (R, steps, result), s, first = timed(fns[(fname, ADAPTIVE_KEY)], inertia, omegas, DOP853_TOL, repeats=REPEATS)
             res[ADAPTIVE_KEY] = {
@@ -181,7 +175,8 @@ def main():
     inertia = jnp.asarray(lierk.inertia.tee_handle(), jnp.float64)
     w0 = jnp.asarray([LONG_OMEGA0])
     R_ref = exact_final(inertia, w0, LONG_T)
-    long = {"omega0": LONG_OMEGA0, "T": LONG_T, "dt": LONG_DT, "steps": num_steps(LONG_T, LONG_DT), "formulations": {}}
+    long = {"omega0": LONG_OMEGA0, "T": LONG_T, "dt": LONG_DT, "steps": lierk.num_steps(0.0, LONG_T, LONG_DT),
+            "formulations": {}}
     for fname, problem in FORMULATIONS.items():
         R, s, first = timed(fixed_fn(problem, lierk.RKMK4(), LONG_DT, LONG_T), inertia, w0, repeats=REPEATS)
         long["formulations"][fname] = {"error": max_err(R, R_ref), "time_s": s, "first_call_s": first}

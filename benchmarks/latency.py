@@ -47,7 +47,6 @@ import tempfile  # noqa: E402
 from pathlib import Path  # noqa: E402
 
 ROOT = Path(__file__).resolve().parent.parent
-RESULTS = Path(__file__).resolve().parent / "results"
 EXAMPLES = ROOT / "examples"
 COMMANDS = {
     "simulate --no-gif": ["simulate", str(EXAMPLES / "tee_handle_a.toml"), "--no-gif"],
@@ -115,23 +114,24 @@ def run(argv: list[str], cache: Path | None, out: Path) -> dict:
 
 
 def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--quick", action="store_true", help="one repeat of two short commands, into a temp dir")
-    parser.add_argument("--repeats", type=int, default=None, help="runs of each state (default 3; --quick 1)")
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
-    parser.add_argument("--md", action="store_true", help="only rewrite latency.md from latency.json")
-    parser.add_argument("--one", help=argparse.SUPPRESS)
-    args = parser.parse_args(argv)
+    import common  # only the standard library: the timed children import jax themselves
+
+    def extra(parser):
+        parser.add_argument("--repeats", type=int, default=None, help="runs of each state (default 3; --quick 1)")
+        parser.add_argument("--md", action="store_true", help="only rewrite latency.md from latency.json")
+        parser.add_argument("--one", help=argparse.SUPPRESS)
+
+    quick, results, args = common.cli(__doc__, "one repeat of two short commands, into a temp dir", extra=extra,
+                                      argv=argv)
     if args.one:
         print(json.dumps(one(json.loads(args.one))))
         return
-    results = Path(args.out) if args.out else (Path(tempfile.gettempdir()) / "lierk-bench-quick" if args.quick else RESULTS)
     if args.md:
         data = json.loads((results / "latency.json").read_text())
         (results / "latency.md").write_text("\n".join(markdown(data["meta"], data["rows"])) + "\n")
         return
-    repeats = args.repeats or (1 if args.quick else 3)
-    commands = QUICK if args.quick else COMMANDS
+    repeats = args.repeats or (1 if quick else 3)
+    commands = QUICK if quick else COMMANDS
     start_load = os.getloadavg()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
@@ -155,9 +155,7 @@ def main(argv=None):
 
     meta = dict(machine=dict(cpu_count=os.cpu_count(), jax=jax.__version__, lierk=lierk.__version__,
                              load_average_at_start=start_load, load_average_at_end=os.getloadavg()),
-                repeats=repeats, quick=args.quick)
-    import common  # here, not at the top: it imports jax, which the timed children must import themselves
-
+                repeats=repeats, quick=quick)
     common.write_results(results, "latency", dict(meta=meta, rows=rows), markdown(meta, rows))
 
 

@@ -43,9 +43,11 @@ walk, 10 for a drift), and the mean at the end within a few standard errors
 of zero.  See `run_brouwer`.
 
 Run: ``python benchmarks/long_horizon.py [--part free|heavy_top|brouwer|all]
-[--out DIR]`` (default all, benchmarks/results); writes long_horizon.{json,
+[--quick] [--out DIR]`` (default all, benchmarks/results); writes long_horizon.{json,
 md,png} (T-handle), long_horizon_top.{json,md,png} (heavy tops) and
-long_horizon_brouwer.{json,md,png}.
+long_horizon_brouwer.{json,md,png}.  ``--quick`` (horizons of 20 s, 40 s for
+the heavy tops and 10 s for Brouwer's law, into a temporary directory) only
+checks that the script works.
 """
 
 from __future__ import annotations
@@ -54,7 +56,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import os  # noqa: E402
 import platform  # noqa: E402
@@ -71,8 +72,20 @@ import numpy as np  # noqa: E402
 import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import lierk  # noqa: E402
 
-RESULTS = Path(__file__).resolve().parent / "results"
-T = 1000.0
+
+def _options(parser):
+    parser.add_argument("--part", choices=("free", "heavy_top", "brouwer", "brouwer-md", "all"), default="all",
+                        help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*); "
+                        "brouwer: the energy's rounding walk over draws (long_horizon_brouwer.*)")
+    parser.add_argument("--brouwer-T", type=float, default=None,
+                        help="horizon of the brouwer part (s; default 1000, --quick 10); dt is 1e-3")
+    parser.add_argument("--brouwer-bodies", default=None,
+                        help="comma-separated body keys to rerun in the brouwer part, keeping the other stored rows")
+
+
+QUICK, OUT, ARGS = common.cli(__doc__, "horizons of 20 s (heavy tops 40 s, brouwer 10 s), into a temp dir",
+                              __name__ == "__main__", extra=_options)
+T = 20.0 if QUICK else 1000.0
 DT = 0.01
 SAVE_EVERY = 10
 OMEGA0 = np.array([1.0, 0.05, 0.3])
@@ -206,7 +219,7 @@ def run_free(out: Path):
 # --- Heavy tops: bounded energy over 10^6 steps (issue 10, item 4) ------------
 
 EXAMPLES = Path(__file__).resolve().parent.parent / "examples"
-TOP_T = 1000.0
+TOP_T = 40.0 if QUICK else 1000.0  # a multiple of TOP_SAVES * TOP_DT_COARSE
 TOP_DT = 1e-3  # 10^6 steps over TOP_T
 TOP_DT_COARSE = 0.02  # BlanesMoan4 at 20x fewer steps, still far below 1e-6
 TOP_DT_MID = 0.004  # BlanesMoan4 where its truncation error is back above the rounding walk
@@ -268,7 +281,7 @@ def top_problems():
 
 def _top_solve_fn(solver, dt, rtol):
     if dt is not None:
-        n = round(TOP_T / dt)
+        n = lierk.num_steps(0.0, TOP_T, dt)
         assert n % TOP_SAVES == 0, (n, TOP_SAVES)
         saveat = lierk.SaveAt(t0=True, steps=n // TOP_SAVES)
         return lambda p: lierk.solve(p, solver, TOP_T, dt=dt, saveat=saveat)
@@ -490,7 +503,7 @@ def top_markdown(meta, results) -> list[str]:
 
 # --- Brouwer's law: rounding as a random walk (issue 23, item 4) -------------
 
-BROUWER_T = 1000.0
+BROUWER_T = 10.0 if QUICK else 1000.0
 BROUWER_DT = 1e-3  # 10^6 steps
 BROUWER_DRAWS = 8
 BROUWER_SAVES = 1000
@@ -538,7 +551,7 @@ def run_brouwer(out: Path, T: float = BROUWER_T, only: tuple[str, ...] | None = 
     stored JSON (same T), each row with the lierk commit it was measured at;
     every row stores its curves, and the figure is drawn from the rows."""
     machine = common.machine_info(matplotlib=matplotlib.__version__)
-    n = round(T / BROUWER_DT)
+    n = lierk.num_steps(0.0, T, BROUWER_DT)
     bodies = brouwer_bodies()
     unknown = set(only or ()) - {b[0] for b in bodies}
     if unknown:
@@ -703,23 +716,14 @@ def brouwer_markdown(meta, rows) -> list[str]:
     return lines
 
 
-def main(argv=None):
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--part", choices=("free", "heavy_top", "brouwer", "brouwer-md", "all"), default="all",
-                        help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*); "
-                        "brouwer: the energy's rounding walk over draws (long_horizon_brouwer.*)")
-    parser.add_argument("--brouwer-T", type=float, default=BROUWER_T, help="horizon of the brouwer part (s); dt is 1e-3")
-    parser.add_argument("--brouwer-bodies", default=None,
-                        help="comma-separated body keys to rerun in the brouwer part, keeping the other stored rows")
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
-    args = parser.parse_args(argv)
-    out = Path(args.out) if args.out else RESULTS
+def main():
+    args, out = ARGS, OUT
     if args.part in ("free", "all"):
         run_free(out)
     if args.part in ("heavy_top", "all"):
         run_heavy_top(out)
     if args.part in ("brouwer", "all"):
-        run_brouwer(out, T=args.brouwer_T,
+        run_brouwer(out, T=args.brouwer_T or BROUWER_T,
                     only=tuple(args.brouwer_bodies.split(",")) if args.brouwer_bodies else None)
     if args.part == "brouwer-md":
         # Rewrite long_horizon_brouwer.md from its JSON (after a change of wording).

@@ -5,9 +5,10 @@ sides compile the same program; this measures it.  For scale it also times the
 same body as `RigidBodyWithEffects` with no effects (momentum carried as
 state) and with damping only.
 
-Run: ``python benchmarks/scene_overhead.py`` (writes
-``benchmarks/results/scene_overhead.json``).  Times are medians over repeats of
-compiled runs, interleaved so machine noise hits every variant alike.
+Run: ``python benchmarks/scene_overhead.py [--quick] [--out DIR]`` (writes
+``benchmarks/results/scene_overhead.json``; ``--quick``: 3 repeats, into a
+temporary directory).  Times are medians over repeats of compiled runs,
+interleaved so machine noise hits every variant alike.
 """
 
 from __future__ import annotations
@@ -22,20 +23,21 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
+import common  # noqa: E402
 import lierk  # noqa: E402
+from lierk import Damping, RigidBodyWithEffects  # noqa: E402
 from lierk.app import scene as scene_mod  # noqa: E402
-from lierk import RigidBodyWithEffects
-from lierk import Damping  # noqa: E402
 
+QUICK, OUT = common.cli(__doc__, "3 repeats, into a temp dir", __name__ == "__main__")
 HERE = pathlib.Path(__file__).resolve().parent
 EXAMPLE = HERE.parent / "examples" / "tee_handle_a.toml"
-REPEATS = 15
+REPEATS = 3 if QUICK else 15
 
 
 def compiled(problem, solver, t1, dt, every):
     saveat = lierk.SaveAt(t0=True, steps=every, t1=True)
     # Under jit t1 and dt are traced, so the step count is passed statically.
-    n = round(t1 / dt)
+    n = lierk.num_steps(0.0, t1, dt)
     f = jax.jit(lambda p: lierk.solve(p, solver, t1, dt=dt, saveat=saveat, max_steps=n).R)
     jax.block_until_ready(f(problem))  # compile
     return lambda: jax.block_until_ready(f(problem))
@@ -67,7 +69,7 @@ def main():
         "solver": scene.solver.name,
         "t1": t1,
         "dt": dt,
-        "steps": round(t1 / dt),
+        "steps": lierk.num_steps(0.0, t1, dt),
         "repeats": REPEATS,
         "median_seconds": med,
         "min_seconds": {k: min(v) for k, v in times.items()},
@@ -76,12 +78,12 @@ def main():
         "relative_to_direct": {k: v / med["FreeRigidBody direct"] for k, v in med.items()},
         "machine": {"python": platform.python_version(), "jax": jax.__version__, "cpu": platform.processor() or platform.machine()},
     }
-    out = HERE / "results" / "scene_overhead.json"
-    out.parent.mkdir(exist_ok=True)
+    out = OUT / "scene_overhead.json"
+    out.parent.mkdir(parents=True, exist_ok=True)
     out.write_text(json.dumps(result, indent=2) + "\n")
     for k, v in med.items():
         print(f"{k:40s} {1e3 * v:8.2f} ms  ({v / med['FreeRigidBody direct']:.3f}x)")
-    print(f"scene / direct = {ratio:.3f} -> claim {'holds' if result['claim_holds'] else 'FAILS'}; wrote {out.relative_to(HERE.parent)}")
+    print(f"scene / direct = {ratio:.3f} -> claim {'holds' if result['claim_holds'] else 'FAILS'}; wrote {out}")
 
 
 if __name__ == "__main__":

@@ -60,6 +60,7 @@ import numpy as np  # noqa: E402
 from jax.sharding import Mesh, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
+import peers  # noqa: E402
 from common import cli, interp_time, machine_info, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (8 bodies, two settings each) to check the script works", __name__ == "__main__")
@@ -121,16 +122,11 @@ class Tee:
     def problem(self, w, R0):
         return lierk.FreeRigidBody(self.inertia, w, R0)
 
-    def field(self, t, x, args):
-        """diffrax's 9-component ODE ``X' = X hat(I^-1 X^T L)``, ``args = L``."""
-        X = x.reshape(3, 3)
-        return (X @ lierk.so3.hat(jnp.linalg.solve(self.inertia, X.T @ args))).ravel()
+    # diffrax's 9-component ODE ``X' = X hat(I^-1 X^T L)``, ``args = L``
+    field = staticmethod(peers.free_body_field(inertia))
 
     def peer_state(self, w, R0):
-        return R0.ravel(), R0 @ (self.inertia @ w)
-
-    def peer_R(self, x):
-        return x[:9].reshape(3, 3)
+        return peers.free_body_state(self.inertia, w, R0)
 
     def reference(self, W, R0):
         f = jax.jit(jax.vmap(lambda w, R: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(self.inertia, v, self.T, R)[0])(w)))
@@ -158,23 +154,16 @@ class Top:
     def problem(self, w, R0):
         return lierk.RigidBodyWithEffects(self.moments, w, R0, effects=self.effects)
 
-    def field(self, t, y, args):
-        """diffrax's 12-component ODE, ``y = (m, R row-major)``."""
-        m, R = y[:3], y[3:].reshape(3, 3)
-        w = m / self.moments
-        tau = self.mass * self.g * jnp.cross(R[2], self.chi)
-        return jnp.concatenate([jnp.cross(m, w) + tau, (R @ lierk.so3.hat(w)).ravel()])
+    # diffrax's 12-component ODE, ``y = (m, R row-major)``
+    field = staticmethod(peers.rigid_body_field(moments, peers.gravity_torque(mass, g, chi)))
 
     def peer_state(self, w, R0):
-        return jnp.concatenate([self.moments * w, R0.ravel()]), None
-
-    def peer_R(self, x):
-        return x[3:].reshape(3, 3)
+        return peers.initial_state(self.moments, w, R0), None
 
     def reference(self, W, R0):
         ref = lierk_jacobian(self, lierk.RKMK(lierk.tableaux.DOP853), dict(dt=self.T / (8 if QUICK else 8000)))
         J, _ = ref(W, R0)
-        J_peer, _ = diffrax_jacobian(self, diffrax.Dopri8(), 1e-13, "forward")(W, R0)
+        J_peer, _ = diffrax_jacobian(self, "Dopri8", 1e-13, "forward")(W, R0)
         check = relative_error(np.asarray(J_peer), np.asarray(J))
         return np.asarray(J), {
             "reference": "lierk RKMK(DOP853) at dt = T/8000, jax.jacfwd",
@@ -193,7 +182,7 @@ def relative_error(J, J_ref) -> float:
 def solve_options(fam, kw):
     kw = dict(kw)
     if "dt" in kw:
-        kw["max_steps"] = round(fam.T / kw["dt"])
+        kw["max_steps"] = lierk.num_steps(0.0, fam.T, kw["dt"])
     else:
         kw["max_steps"] = MAX_STEPS
     return kw
@@ -238,22 +227,21 @@ def lierk_forward(fam, solver, kw):
     return on_devices(one)
 
 
-def diffrax_run(fam, solver, tol, adjoint, w, R0):
-    x0, args = fam.peer_state(w, R0)
-    sol = diffrax.diffeqsolve(
-        diffrax.ODETerm(fam.field), solver, 0.0, fam.T, None, x0, args=args,
-        stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=MAX_STEPS,
-        adjoint=adjoint, throw=False,
-    )
-    return fam.peer_R(sol.ys[-1]), sol.stats["num_steps"]
+def diffrax_run(fam, solver, tol, w, R0, forward_mode=False):
+    """``(R(T), steps)`` of diffrax's adaptive solve of ``fam``'s peer ODE."""
+    y0, args = fam.peer_state(w, R0)
+    return peers.diffrax_solve(fam.field, solver, fam.T, y0, rtol=tol, max_steps=MAX_STEPS, forward_mode=forward_mode,
+                               args=args)[:2]
 
 
 def diffrax_jacobian(fam, solver, tol, mode):
-    adjoint = diffrax.ForwardMode() if mode == "forward" else diffrax.RecursiveCheckpointAdjoint()
-    jac = jax.jacfwd if mode == "forward" else jax.jacrev
+    """Forward mode: ``jax.jacfwd`` with diffrax's ``ForwardMode``; else
+    ``jax.jacrev`` through its default ``RecursiveCheckpointAdjoint``."""
+    forward = mode == "forward"
+    jac = jax.jacfwd if forward else jax.jacrev
 
     def one(w, R0):
-        J, (_, steps) = jac(lambda v: (lambda out: (out[0], out))(diffrax_run(fam, solver, tol, adjoint, v, R0)), has_aux=True)(w)
+        J, (_, steps) = jac(lambda v: (lambda out: (out[0], out))(diffrax_run(fam, solver, tol, v, R0, forward)), has_aux=True)(w)
         return J, steps
 
     return on_devices(one)
@@ -262,7 +250,7 @@ def diffrax_jacobian(fam, solver, tol, mode):
 def diffrax_gradient(fam, solver, tol):
     def one(w, R0):
         def loss(v):
-            R, steps = diffrax_run(fam, solver, tol, diffrax.RecursiveCheckpointAdjoint(), v, R0)
+            R, steps = diffrax_run(fam, solver, tol, v, R0)
             return jnp.sum(LOSS_WEIGHTS * R), steps
 
         return jax.grad(loss, has_aux=True)(w)
@@ -271,7 +259,7 @@ def diffrax_gradient(fam, solver, tol):
 
 
 def diffrax_forward(fam, solver, tol):
-    return on_devices(lambda w, R0: diffrax_run(fam, solver, tol, diffrax.RecursiveCheckpointAdjoint(), w, R0)[0])
+    return on_devices(lambda w, R0: diffrax_run(fam, solver, tol, w, R0)[0])
 
 
 def run_family(fam) -> dict:

@@ -15,21 +15,25 @@ is sharded over them (`NamedSharding` over the batch axis, as
 `lierk.sweep` does); batch 1000 is also timed on a single device for
 comparison.  Fewer steps are used for large batches to bound the run time.
 
-Run: ``python benchmarks/throughput.py [--quick] [--devices N]``; writes
-benchmarks/results/throughput.json and throughput.md.
+Run: ``python benchmarks/throughput.py [--quick] [--devices N] [--repeats N] [--out DIR]``;
+writes benchmarks/results/throughput.json and throughput.md (``--quick``: a
+temporary directory).
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 
-_parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-_parser.add_argument("--quick", action="store_true", help="tiny run: batches 1 and 1000, few steps, two solvers")
-_parser.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)")
-_parser.add_argument("--repeats", type=int, default=5)
-_parser.add_argument("--out", default=None, help="results directory (default benchmarks/results)")
-ARGS = _parser.parse_args() if __name__ == "__main__" else _parser.parse_args([])
+import common
+
+
+def _options(parser):
+    parser.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs at least (default 5)")
+
+
+QUICK, OUT, ARGS = common.cli(__doc__, "tiny run: batches 1 and 1000, few steps, two solvers", __name__ == "__main__",
+                              extra=_options)
 
 import host_devices  # noqa: E402
 
@@ -41,19 +45,17 @@ jax.config.update("jax_enable_x64", True)
 
 import json  # noqa: E402
 import time  # noqa: E402
-from pathlib import Path  # noqa: E402
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
-from common import machine_info, timed, write_results  # noqa: E402
 
 DT = 0.01
 # Runs of a few ms are repeated until they add up to this (common.timed): the
 # median of a handful of such runs moved 2x between two runs of this script.
-MIN_TIME = 0.0 if ARGS.quick else 0.5
+MIN_TIME = 0.0 if QUICK else 0.5
 SOLVERS = [
     lierk.ExplicitEuler(),
     lierk.LieEuler(),
@@ -72,7 +74,7 @@ def label(solver) -> str:
     return solver.name + (" (fixed dt)" if solver.adaptive else "")
 
 
-def num_steps(solver, batch: int, quick: bool) -> int:
+def budget_steps(solver, batch: int, quick: bool) -> int:
     # About 1e6 stage evaluations per timed run (2e5 with --quick), 20 to 1000 steps.
     budget = (2e5 if quick else 1e6) / solver.stages
     return int(min(1000, max(20, budget // batch)))
@@ -96,7 +98,7 @@ def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> d
     t = time.perf_counter()
     compiled = final_R.lower(omegas).compile()
     compile_s = time.perf_counter() - t
-    out, run_s, first_s = timed(compiled, omegas, repeats=repeats, min_time=MIN_TIME)
+    out, run_s, first_s = common.timed(compiled, omegas, repeats=repeats, min_time=MIN_TIME)
     assert out.dtype == dtype and bool(jnp.all(jnp.isfinite(out)))
     return {
         "solver": label(solver),
@@ -112,11 +114,11 @@ def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> d
 
 
 def main():
-    quick = ARGS.quick
+    quick = QUICK
     batches = [1, 1000] if quick else [1, 10, 100, 1000, 10000]
     solvers = [lierk.LieEuler(), lierk.RKMK4()] if quick else SOLVERS
     all_devices = jax.devices()
-    info = machine_info()
+    info = common.machine_info()
     info["device_count"] = len(all_devices)
     print(json.dumps(info))
     t_start = time.perf_counter()
@@ -130,7 +132,7 @@ def main():
                 if not configs or batch == 1000:
                     configs.append(all_devices[:1])
                 for devs in configs:
-                    r = measure(solver, batch, dtype, num_steps(solver, batch, quick), devs, ARGS.repeats)
+                    r = measure(solver, batch, dtype, budget_steps(solver, batch, quick), devs, ARGS.repeats)
                     rows.append(r)
                     print(
                         f"{r['solver']:18s} {r['dtype']:8s} batch {batch:6d} dev {r['devices']}  "
@@ -141,8 +143,8 @@ def main():
     info["total_s"] = time.perf_counter() - t_start
     info["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
 
-    out = Path(ARGS.out) if ARGS.out else Path(__file__).resolve().parent / "results"
-    write_results(out, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows}, markdown(rows, info, batches))
+    common.write_results(OUT, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows},
+                         markdown(rows, info, batches))
     print(f"({info['total_s']:.0f} s)")
 
 

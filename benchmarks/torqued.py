@@ -66,6 +66,7 @@ checks that the script works and writes to a temporary directory unless
 
 from __future__ import annotations
 
+import functools
 import os
 
 import host_devices
@@ -82,25 +83,13 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
-import mujoco.rollout  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
 
 import lierk  # noqa: E402
-from common import (  # noqa: E402
-    cli,
-    interp_time,
-    machine_info,
-    max_err,
-    mujoco_final,
-    mujoco_initial_states,
-    mujoco_quats,
-    series_table,
-    timed,
-    write_results,
-)
+import peers  # noqa: E402
+from common import cli, interp_time, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (8 bodies, few settings, no repeats) to check the script works", __name__ == "__main__")
 
@@ -198,22 +187,24 @@ class Family:
         """Orbit effects: MuJoCo has no model of them, so it sits this family out."""
         return bool(self.orbit_n)
 
-    def torque(self, xp, R, omega, t=0.0):
-        """Body-frame torque (N m), written out for the peers (``xp``: numpy or jax.numpy)."""
-        tau = -self.c * omega + xp.asarray(self.tau_b) + R.T @ xp.asarray(self.tau_s)
-        if self.gravity:
-            tau = tau + self.mass * self.g * xp.cross(R[2], xp.asarray(self.chi))
+    @functools.cached_property
+    def torque(self):
+        """``torque(xp, t, R, omega)``: the body-frame torque (N m), written out
+        for the peers (``xp``: numpy or jax.numpy)."""
+        gravity = peers.gravity_torque(self.mass, self.g, self.chi) if self.gravity else None
+        orbit = None
         if self.orbit_n:
-            n = self.orbit_n
-            u = xp.stack([xp.cos(n * t), xp.sin(n * t), 0.0 * t])  # unit position, orbit in space x-y
-            ub = R.T @ u
-            tau = tau + 3 * n**2 * xp.cross(ub, xp.asarray(self.inertia) * ub)
-            # Earth's dipole along the orbit: B = B0 (R_E/a)^3 (3 (d.u) u - d).
-            a = (3.986004418e14 / n**2) ** (1 / 3)
-            d = -np.array([np.sin(self.field_tilt), 0.0, np.cos(self.field_tilt)])
-            B = R.T @ (3.12e-5 * (6.371e6 / a) ** 3 * (3 * (xp.asarray(d) @ u) * u - xp.asarray(d)))
-            tau = tau + xp.cross(xp.asarray(self.rotor), omega) + self.bdot * xp.cross(xp.cross(omega, B), B)
-        return tau
+            orbit = peers.orbit_torque(self.inertia, self.orbit_n, self.rotor, self.bdot, self.field_tilt)
+
+        def torque(xp, t, R, omega):
+            tau = -self.c * omega + xp.asarray(self.tau_b) + R.T @ xp.asarray(self.tau_s)
+            if gravity is not None:
+                tau = tau + gravity(xp, t, R, omega)
+            if orbit is not None:
+                tau = tau + orbit(xp, t, R, omega)
+            return tau
+
+        return torque
 
     def initial(self, n: int) -> tuple[np.ndarray, np.ndarray]:
         """``(omega0 (n, 3) rad/s body frame, R0 (n, 3, 3))`` from the fixed seed."""
@@ -298,12 +289,6 @@ def sweep(values: tuple, k: int = 2) -> tuple:
     return tuple(values) if not QUICK else tuple(values[::-1][:: max(1, len(values) - 1)])[:k]
 
 
-def num_steps(T: float, dt: float) -> int:
-    n = round(T / dt)
-    assert abs(n * dt - T) <= 1e-12 * T, f"dt = {dt} does not divide T = {T}"
-    return n
-
-
 # --- batched JAX programs, one half of the batch per device ------------------
 
 
@@ -328,50 +313,26 @@ def lierk_fn(fam: Family, solver, dt: float | None = None):
         if dt is None:
             sol = lierk.solve(problem, solver, fam.T, rtol=tol, atol=tol, max_steps=MAX_STEPS, throw=False)
         else:
-            sol = lierk.solve(problem, solver, fam.T, dt=dt, max_steps=num_steps(fam.T, dt), throw=False)
+            sol = lierk.solve(problem, solver, fam.T, dt=dt, max_steps=lierk.num_steps(0.0, fam.T, dt), throw=False)
         return sol.R[-1], sol.stats["num_steps"], sol.result
 
     return on_devices(one)
 
 
-def twelve_component_field(fam: Family, xp):
-    """``y = (m (3), R row-major (9))``: ``m' = m x omega + tau``, ``R' = R hat(omega)``."""
-    I_inv = 1.0 / np.asarray(fam.inertia)
-
-    def f(t, y, args=None):
-        m, R = y[:3], y[3:].reshape(3, 3)
-        w = I_inv * m
-        W = xp.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-        return xp.concatenate([xp.cross(m, w) + fam.torque(xp, R, w, t), (R @ W).ravel()])
-
-    return f
-
-
 def diffrax_fn(fam: Family, solver, dt: float | None = None):
     """Adaptive (``dt`` None; the setting is ``rtol = atol``) or constant-step solve."""
-    term = diffrax.ODETerm(twelve_component_field(fam, jnp))
-    inertia = jnp.asarray(fam.inertia)
-    if dt is None:
-        control = lambda tol: dict(dt0=None, stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol), max_steps=MAX_STEPS)  # noqa: E731
-    else:
-        control = lambda tol: dict(dt0=dt, stepsize_controller=diffrax.ConstantStepSize(), max_steps=num_steps(fam.T, dt) + 1)  # noqa: E731
+    field = peers.rigid_body_field(fam.inertia, fam.torque)
+    control = dict(max_steps=MAX_STEPS) if dt is None else dict(dt=dt, max_steps=lierk.num_steps(0.0, fam.T, dt) + 1)
 
     def one(w, R0, tol):
-        sol = diffrax.diffeqsolve(
-            term, solver, 0.0, fam.T, y0=jnp.concatenate([inertia * w, R0.ravel()]), **control(tol), throw=False,
-        )
-        failed = jnp.where(sol.result == diffrax.RESULTS.successful, 0, 1)  # 1: lierk's max_steps_reached
-        return sol.ys[-1, 3:].reshape(3, 3), sol.stats["num_steps"], failed
+        return peers.diffrax_solve(field, solver, fam.T, peers.initial_state(fam.inertia, w, R0), rtol=tol, **control)
 
     return on_devices(one)
 
 
 def scipy_one(fam: Family, w, R0, tol):
-    f = twelve_component_field(fam, np)
-    y0 = np.concatenate([np.asarray(fam.inertia) * w, np.asarray(R0).ravel()])
-    sol = solve_ivp(f, (0.0, fam.T), y0, method="DOP853", rtol=tol, atol=tol)
-    assert sol.success, sol.message
-    return sol.y[3:, -1].reshape(3, 3), sol.nfev
+    field = peers.rigid_body_field(fam.inertia, fam.torque, xp=np)
+    return peers.scipy_solve(field, fam.T, peers.initial_state(fam.inertia, w, R0, xp=np), tol)
 
 
 # --- MuJoCo -------------------------------------------------------------------
@@ -434,24 +395,11 @@ def mujoco_control(fam: Family, model) -> tuple[np.ndarray, int]:
 def mujoco_runner(fam: Family, omegas, R0s, dt: float, T: float | None = None):
     """A function that rolls the batch out to ``T`` (default the family's) and
     returns the final full states; plus its model."""
-    n = num_steps(fam.T if T is None else T, dt)
-    chunk = max(d for d in range(1, min(n, MUJOCO_CHUNK) + 1) if n % d == 0)
     model = mujoco.MjModel.from_xml_string(mujoco_xml(fam, dt))
-    init = mujoco_initial_states(model, omegas, mujoco_quats(R0s))
-    datas = [mujoco.MjData(model) for _ in range(MUJOCO_THREADS)]
+    init = peers.mujoco_initial_states(model, omegas, peers.mujoco_quats(R0s))
     u, spec = mujoco_control(fam, model)
-    control = np.ascontiguousarray(np.broadcast_to(u, (len(init), chunk, len(u))))
-    state = np.empty((len(init), chunk, init.shape[1]))
-
-    def go():
-        s = init
-        for _ in range(n // chunk):
-            mujoco.rollout.rollout(model, datas, s, control, control_spec=spec, nstep=chunk, state=state,
-                                   persistent_pool=True)
-            s = state[:, -1].copy()
-        return s
-
-    return go, model
+    n = lierk.num_steps(0.0, fam.T if T is None else T, dt)
+    return peers.mujoco_rollout(model, init, n, MUJOCO_THREADS, u, spec, chunk=MUJOCO_CHUNK), model
 
 
 def mujoco_check(fam: Family, omega, R0) -> dict:
@@ -460,7 +408,7 @@ def mujoco_check(fam: Family, omega, R0) -> dict:
     torque, which must disagree if it matters."""
     T = min(fam.T, 1.0)
     go, model = mujoco_runner(fam, omega[None], R0[None], 1e-4, T)
-    R_mj, w_mj, t_mj = mujoco_final(model, go())
+    R_mj, w_mj, t_mj = peers.mujoco_final(model, go())
 
     def lierk_ref(effects):
         p = lierk.RigidBodyWithEffects(jnp.asarray(fam.inertia), omega, R0, effects=effects)
@@ -582,7 +530,7 @@ def run_family(fam: Family) -> dict:
     for dt in sweep(fam.dts4[:-1]) if not fam.spacecraft else ():
         go, model = mujoco_runner(fam, omegas_np, R0_np, dt)
         final, s, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
-        R, _, t_end = mujoco_final(model, final)
+        R, _, t_end = peers.mujoco_final(model, final)
         assert np.all(np.abs(t_end - fam.T) <= 1e-9 * fam.T), f"MuJoCo ended at {t_end.min()}..{t_end.max()}"
         add("MuJoCo RK4", "mujoco", "dt", dt, R, s, first, R_ref=R_ref, note=f"rollout, {MUJOCO_THREADS} threads")
 

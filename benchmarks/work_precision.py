@@ -49,24 +49,13 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
-import mujoco.rollout  # noqa: E402
 import numpy as np  # noqa: E402
 import scipy  # noqa: E402
-from scipy.integrate import solve_ivp  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import (  # noqa: E402
-    cli,
-    machine_info,
-    max_err,
-    mujoco_final,
-    mujoco_get_state,
-    mujoco_initial_states,
-    series_table,
-    timed,
-    write_results,
-)
+import peers  # noqa: E402
+from common import cli, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
@@ -92,14 +81,8 @@ CHECK_IDS = [0, 1] if QUICK else [0, 1, 2, 3, 4]
 CHECK_TOL = 1e-13
 
 INERTIA = lierk.inertia.tee_handle()
-INERTIA_INV = jnp.linalg.inv(INERTIA)
-
-
-def num_steps(dt: float) -> int:
-    """Steps of size ``dt`` that end exactly at ``T`` (every dt used divides T)."""
-    n = round(T / dt)
-    assert abs(n * dt - T) <= 1e-12 * T, f"dt = {dt} does not divide T = {T}"
-    return n
+# diffrax's ODE: the 9-component X' = X hat(I^{-1} X^T L), args = L.
+FIELD = peers.free_body_field(INERTIA)
 
 
 def initial_velocities() -> np.ndarray:
@@ -117,29 +100,12 @@ def max_orth(R) -> float:
 # --- peers -------------------------------------------------------------------
 
 
-def nine_component_field(t, x, L):
-    """The 9-component ODE dX/dt = X hat(I^{-1} X^T L), X row-major."""
-    X = x.reshape(3, 3)
-    return (X @ lierk.so3.hat(INERTIA_INV @ (X.T @ L))).ravel()
-
-
 def diffrax_fn(solver):
     @jax.jit
     def run(omegas, tol):
         def one(w):
-            sol = diffrax.diffeqsolve(
-                diffrax.ODETerm(nine_component_field),
-                solver,
-                0.0,
-                T,
-                None,
-                jnp.eye(3).ravel(),
-                args=INERTIA @ w,
-                stepsize_controller=diffrax.PIDController(rtol=tol, atol=tol),
-                max_steps=100_000,
-                throw=False,
-            )
-            return sol.ys[-1].reshape(3, 3), sol.stats["num_steps"]
+            x0, L = peers.free_body_state(INERTIA, w)
+            return peers.diffrax_solve(FIELD, solver, T, x0, rtol=tol, max_steps=100_000, args=L)[:2]
 
         return jax.vmap(one)(omegas)
 
@@ -147,18 +113,8 @@ def diffrax_fn(solver):
 
 
 def scipy_one(w, tol):
-    I = np.asarray(INERTIA)
-    Iinv = np.linalg.inv(I)
-    L = I @ w
-
-    def f(t, x):
-        X = x.reshape(3, 3)
-        v = Iinv @ (X.T @ L)
-        W = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-        return (X @ W).ravel()
-
-    sol = solve_ivp(f, (0.0, T), np.eye(3).ravel(), method="DOP853", rtol=tol, atol=tol)
-    return sol.y[:, -1].reshape(3, 3), sol.nfev
+    """SciPy's DOP853 on the 9-component ODE: ``(R(T), nfev)``."""
+    return peers.scipy_solve(peers.free_body_field(INERTIA, L=np.asarray(INERTIA) @ w, xp=np), T, np.eye(3).ravel(), tol)
 
 
 def report_rk4_one(w, h):
@@ -178,7 +134,7 @@ def report_rk4_one(w, h):
         return np.eye(3) + (1 - np.cos(om * h)) * (S @ S) / om**2 + np.sin(om * h) * S / om
 
     W = np.eye(3)
-    for _ in range(num_steps(h)):
+    for _ in range(lierk.num_steps(0.0, T, h)):
         Wt = W.T
         S1 = hat(I_inv @ Wt @ L)
         S2 = hat(I_inv @ expo(-h / 2, S1) @ Wt @ L)
@@ -211,9 +167,6 @@ def report_rk4_one(w, h):
 # (<flag constraint="disable" contact="disable" .../>) gave bit-identical states
 # about 20% faster in a small test.
 
-MJ_FULL = mujoco.mjtState.mjSTATE_FULLPHYSICS.value
-
-
 def mujoco_xml(dt: float) -> str:
     I = np.asarray(INERTIA)
     d = np.diag(I)
@@ -242,10 +195,10 @@ def mujoco_frame_check(w) -> dict:
     R0 = R0.reshape(3, 3)
     model = mujoco.MjModel.from_xml_string(mujoco_xml(dt))
     data = mujoco.MjData(model)
-    mujoco.mj_setState(model, data, mujoco_initial_states(model, [w], quat0)[0], MJ_FULL)
+    peers.mujoco_set_state(model, data, peers.mujoco_initial_states(model, [w], quat0)[0])
     for _ in range(n):
         mujoco.mj_step(model, data)
-    R_mj, w_mj, t_mj = mujoco_final(model, [mujoco_get_state(model, data)])
+    R_mj, w_mj, t_mj = peers.mujoco_final(model, [peers.mujoco_get_state(model, data)])
     R_ex, w_ex = lierk.exact.free_rigid_body(INERTIA, w, n * dt, R0=R0)
     R_ex, w_ex = np.asarray(R_ex), np.asarray(w_ex)
     return {
@@ -257,19 +210,12 @@ def mujoco_frame_check(w) -> dict:
 
 
 def mujoco_batch(omegas_np, dt):
-    """Roll the batch out for ``num_steps(dt)`` steps; ``(R, w, t, median s, first s)``."""
-    n = num_steps(dt)
+    """Roll the batch out to ``T``; ``(R, w, t, median s, first s)``."""
     model = mujoco.MjModel.from_xml_string(mujoco_xml(dt))
-    init = mujoco_initial_states(model, omegas_np)
-    datas = [mujoco.MjData(model) for _ in range(MUJOCO_THREADS)]
-    state = np.empty((len(init), n, init.shape[1]))
-
-    def go():
-        mujoco.rollout.rollout(model, datas, init, nstep=n, state=state, persistent_pool=True)
-        return state
-
-    state, seconds, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
-    R, w, t = mujoco_final(model, state[:, -1])
+    init = peers.mujoco_initial_states(model, omegas_np)
+    go = peers.mujoco_rollout(model, init, lierk.num_steps(0.0, T, dt), MUJOCO_THREADS)
+    final, seconds, first = timed(go, repeats=REPEATS, min_time=MIN_TIME)
+    R, w, t = peers.mujoco_final(model, final)
     assert np.all(np.abs(t - T) <= 1e-9 * T), f"MuJoCo ended at t = {t.min()}..{t.max()}, not T = {T}"
     return R, w, t, seconds, first
 
@@ -293,7 +239,7 @@ def lierk_fixed_fn(solver, dt, problem=lierk.FreeRigidBody):
     @jax.jit
     def run(omegas):
         def one(w):
-            sol = lierk.solve(problem(INERTIA, w), solver, T, dt=dt, max_steps=num_steps(dt))
+            sol = lierk.solve(problem(INERTIA, w), solver, T, dt=dt, max_steps=lierk.num_steps(0.0, T, dt))
             return sol.R[-1], sol.stats["num_steps"]
 
         return jax.vmap(one)(omegas)
@@ -416,7 +362,7 @@ def main():
     print(f"MuJoCo ball-joint qvel frame check: {frame_check}")
     for dt in MUJOCO_DTS:
         R, _, t_end, s, first = mujoco_batch(omegas_np, dt)
-        add("MuJoCo RK4 (ball joint)", "mujoco", dt, R, s, np.full(N, num_steps(dt)), kind="dt", first=first,
+        add("MuJoCo RK4 (ball joint)", "mujoco", dt, R, s, np.full(N, lierk.num_steps(0.0, T, dt)), kind="dt", first=first,
             note=f"rollout, {MUJOCO_THREADS} threads, |t_end - T| <= {np.max(np.abs(t_end - T)):.0e}")
 
     one_ref = R_ref[0]

@@ -24,7 +24,7 @@ from ._loops import _batched_together, frozen, solve_adaptive, solve_fixed
 from ._solution import RESULTS, SaveAt, Solution
 from ._solvers.base import field_at
 
-__all__ = ["TOLERANCE_RATIO", "DEFAULT_TARGET_MAX_STEPS", "finer", "estimate_fixed", "estimate_adaptive", "solve_to_target"]
+__all__ = ["TOLERANCE_RATIO", "DEFAULT_TARGET_MAX_STEPS", "finer", "fixed_refinement", "richardson", "estimate_fixed", "estimate_adaptive", "solve_to_target"]
 
 # The finer solve of an adaptive error estimate divides both tolerances by
 # this; the calibrated pairs' global error is proportional to the tolerance
@@ -62,6 +62,21 @@ def finer(controller: Controller, order: int) -> Controller:
     )
 
 
+def fixed_refinement(every: int | None = None) -> tuple[int, int]:
+    """``(num, den)``: the finer solve of a fixed-step error estimate takes
+    ``num`` steps for every ``den`` (its step is ``dt den / num``), so it is
+    ``(num / den)^order`` times more accurate: 3 for 2 (1.5x the cost), or 2
+    for 1 when an odd save interval ``every`` leaves no other common grid."""
+    return (2, 1) if every is not None and every % 2 else (3, 2)
+
+
+def richardson(gap, ratio):
+    """Richardson's estimate of a solve's error from ``gap``, its distance to
+    a solve ``ratio`` times more accurate: ``gap ratio / (ratio - 1)``
+    (arrays or floats)."""
+    return gap * (ratio / (ratio - 1.0))
+
+
 def _own_controller(tol: Array) -> Controller:
     """A `Controller` with ``rtol = atol = tol``, a tolerance this module
     computed itself (positive and finite): it is not checked again at run
@@ -81,15 +96,13 @@ def _attitude_gap(sol: Solution, fine: Solution) -> Array:
 
 def _with_estimate(sol: Solution, fine: Solution, ratio) -> Solution:
     """``sol`` with Richardson's estimate from a solve ``ratio`` times more accurate."""
-    est = _attitude_gap(sol, fine) * (ratio / (ratio - 1.0))
+    est = richardson(_attitude_gap(sol, fine), ratio)
     return eqx.tree_at(lambda s: s.error_estimate, sol, est, is_leaf=lambda x: x is None)
 
 
 def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
     """``sol`` (``n`` fixed steps of ``dt``) with its estimate from a finer solve."""
-    # The finer solve takes 3 steps for every 2 (cost 1.5x), or 2 for 1 when
-    # an odd save interval leaves no other common grid.
-    num, den = (2, 1) if saveat.steps and saveat.every % 2 else (3, 2)
+    num, den = fixed_refinement(saveat.every if saveat.steps else None)
     fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
     fine_dt = jax.lax.stop_gradient(dt) * den / num
     fine = solve_fixed(frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))

@@ -44,7 +44,7 @@ from . import so3, _validation as validation
 from ._controller import Controller
 from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from ._solution import RESULTS, SaveAt, raise_if_failed
-from ._global_error import TOLERANCE_RATIO, finer
+from ._global_error import TOLERANCE_RATIO, finer, fixed_refinement, richardson
 from ._solve import DEFAULT_ADAPTIVE_MAX_STEPS, num_steps, solve
 from ._solvers import AbstractSplitting
 from ._solvers.base import AbstractSolver
@@ -407,7 +407,7 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
                 eqx.combine(jax.tree_util.tree_map(lambda x: x[i], both), kept[0]) for i in (0, 1)
             )
         gap = jax.tree_util.tree_map(lambda a, b: jnp.sum((_jacobian_R(R, a) - _jacobian_R(Rf, b)) ** 2), J, Jf)
-        est = jnp.sqrt(sum(jax.tree_util.tree_leaves(gap))) * (ratio / (ratio - 1.0))
+        est = richardson(jnp.sqrt(sum(jax.tree_util.tree_leaves(gap))), ratio)
         est = jax.lax.stop_gradient(jnp.where(solf.result == RESULTS.successful, est, jnp.inf))
     else:
         J, Jy, R, y, sol = run(solve_options)
@@ -464,10 +464,11 @@ def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:
     fine = dict(options)
     if options.get("dt") is not None:
         dt = options["dt"]
-        fine["dt"] = (jax.lax.stop_gradient(dt) if eqx.is_array(dt) else float(dt)) * 2.0 / 3.0
+        num, den = fixed_refinement()
+        fine["dt"] = (jax.lax.stop_gradient(dt) if eqx.is_array(dt) else float(dt)) * den / num
         if options.get("max_steps") is not None:
-            fine["max_steps"] = -(-3 * int(options["max_steps"]) // 2)
-        return fine, 1.5**solver.order
+            fine["max_steps"] = -(-num * int(options["max_steps"]) // den)
+        return fine, (num / den) ** solver.order
     if options.get("controller") is not None:
         fine["controller"] = finer(options["controller"], solver.order)
     else:

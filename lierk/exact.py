@@ -79,7 +79,7 @@ from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
 from lierk._validation import is_traced, rigid_body_inputs
 
-__all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "flip_times", "sphere", "principal_frame"]
+__all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "sphere", "principal_frame"]
 
 
 def _dtype(*xs) -> jnp.dtype:
@@ -683,31 +683,3 @@ def sphere(omega0: ArrayLike, t: ArrayLike, R0: ArrayLike | None = None) -> tupl
     R0 = jnp.eye(3, dtype=omega0.dtype) if R0 is None else jnp.asarray(R0, dtype=omega0.dtype)
     R = R0 @ so3.exp(t[..., None] * omega0)
     return R, jnp.broadcast_to(omega0, t.shape + (3,))
-
-
-def flip_times(problem, sol) -> np.ndarray | None:
-    """When a solved torque-free body flips: the times (s) at which its body
-    momentum crosses the plane normal to the intermediate principal axis (the
-    middle of each Dzhanibekov flip), by linear interpolation between saved
-    points.  None when the body does not flip (`flip_interval` is ``inf``),
-    is not torque-free (``problem.torque_free``) or ``sol`` carries no
-    momentum (the report's `SpatialFreeRigidBody`).
-
-    A host-side reading of a finished solve (NumPy on its concrete values),
-    for reports and figures; not jittable.
-
-    Args:
-        problem: the rigid body that was solved.
-        sol: its `lierk.Solution`, with ``ts`` ``(n,)`` and momenta ``y`` ``(n, 3)``.
-
-    Returns:
-        ``(k,)`` flip times in ``[sol.ts[0], sol.ts[-1]]``, or None.
-    """
-    if not problem.torque_free or sol.y is None:
-        return None
-    if not math.isfinite(float(flip_interval(problem.inertia, problem.omega0))):
-        return None
-    e2 = np.linalg.eigh(np.asarray(problem.inertia, float))[1][:, 1]
-    ts, m2 = np.asarray(sol.ts, float), np.asarray(sol.y, float) @ e2
-    k = np.nonzero(np.signbit(m2[1:]) != np.signbit(m2[:-1]))[0]
-    return ts[k] - m2[k] * (ts[k + 1] - ts[k]) / (m2[k + 1] - m2[k])

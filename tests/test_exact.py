@@ -645,19 +645,3 @@ def test_flip_interval_vmaps_and_differentiates():
     h = 1e-6
     fd = [(float(flip(T_HANDLE, w + h * e)) - float(flip(T_HANDLE, w - h * e))) / (2 * h) for e in np.eye(3)]
     np.testing.assert_allclose(g, fd, rtol=1e-5, atol=1e-5 * np.abs(fd).max())
-
-
-def test_flip_times_of_a_solve_are_spaced_by_the_flip_interval():
-    w0 = np.array([1.0, 0.05, 0.0])
-    tau = float(flip(T_HANDLE, w0))
-    body = lierk.FreeRigidBody(T_HANDLE, w0)
-    sol = lierk.solve(body, lierk.RKMK4(), 3.2 * tau, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=5))
-    times = exact.flip_times(body, sol)
-    assert len(times) == 3
-    # Interpolated between saved points 0.05 s apart: each crossing to ~1e-4 s.
-    np.testing.assert_allclose(np.diff(times), tau, atol=2e-3)
-    # Not for a body that does not flip, nor one that is not torque-free.
-    calm = lierk.FreeRigidBody(T_HANDLE, [0.05, 0.0, 1.0])
-    assert exact.flip_times(calm, lierk.solve(calm, lierk.RKMK4(), 10.0, dt=0.1, saveat=lierk.SaveAt(steps=1))) is None
-    top = lierk.RigidBodyWithEffects(T_HANDLE, w0, effects=(lierk.Gravity([0.0, 0.0, 0.01], 0.1),))
-    assert exact.flip_times(top, lierk.solve(top, lierk.RKMK4(), 1.0, dt=0.1, saveat=lierk.SaveAt(steps=1))) is None

@@ -586,9 +586,11 @@ def _richardson(sol, fine, ratio: float) -> float:
     ``estimate_error=True`` computes it."""
     from lierk import RESULTS
 
+    from .._global_error import richardson
+
     if int(fine.result) != RESULTS.successful:
         return math.inf
-    return float(np.max(_gaps(sol.R, fine.R) * (ratio / (ratio - 1.0))))
+    return float(np.max(richardson(_gaps(sol.R, fine.R), ratio)))
 
 
 def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
@@ -642,8 +644,9 @@ def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
     """One setting ``v`` of method ``m``: timed, measured against ``R_ref``,
     and with Richardson's estimate of its error from a finer run of the same
     program (as ``lierk.solve(..., estimate_error=True)`` makes it)."""
-    from .._global_error import TOLERANCE_RATIO
     from lierk import RESULTS
+
+    from .._global_error import TOLERANCE_RATIO, fixed_refinement
 
     ts_np = programs.ts_np
     eps = float(np.finfo(programs.dtype).eps)
@@ -654,9 +657,7 @@ def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
     else:
         every = max(1, round((ts_np[1] - ts_np[0]) / v))
         run = programs.run(m, v, every)
-        # The finer solve takes 3 steps for every 2, or 2 for 1 when an odd
-        # save interval leaves no other common grid (`global_error.estimate_fixed`).
-        num, den = (2, 1) if every % 2 else (3, 2)
+        num, den = fixed_refinement(every)
         fine, ratio = programs.run(m, v * den / num, every * num // den), (num / den) ** m.solver.order
     sol = run()  # compiles; the timed calls follow
     if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
