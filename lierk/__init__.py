@@ -18,7 +18,7 @@ Data flows one way: problem -> ``solve(problem, solver, ...)`` ->
 `Solution` -> `lierk.app` (figures, reports, the CLI).
 """
 
-import importlib
+import importlib as _importlib
 
 from . import conditions as conditions
 from . import exact as exact
@@ -95,7 +95,7 @@ def __getattr__(name: str):
     # The application is imported when first used, so that `import lierk`
     # loads only the integrators (no matplotlib, no tqdm, no TOML parser).
     if name == "app":
-        return importlib.import_module(f"{__name__}.app")
+        return _importlib.import_module(f"{__name__}.app")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

@@ -3,7 +3,8 @@
 Each module is imported when first used (``lierk.app.scene``), so that
 importing one part loads neither matplotlib nor the others:
 
-- `scene`: scene files (TOML/JSON) -> a problem, a solver and run settings;
+- `scene`, `scene_schema`: scene files (TOML) -> a problem, a solver and run
+  settings; the schema they follow (`lierk schema` prints it);
 - `simulation`: a scene's run, diagnostics and figures written to a folder;
 - `cli`, `cli_arguments`: the ``lierk`` command;
 - `accuracy`: work-precision reports of a scene's solvers;
@@ -16,15 +17,15 @@ importing one part loads neither matplotlib nor the others:
 - `demo`: the report's cases, end to end (``python -m lierk.app.demo``).
 """
 
-import importlib
+import importlib as _importlib
 
 _MODULES = ("accuracy", "cache", "cli", "cli_arguments", "compilations", "demo", "diagnostics",
-            "distributed", "omega_sweep", "plot", "scene", "segments", "simulation", "store")
+            "distributed", "omega_sweep", "plot", "scene", "scene_schema", "segments", "simulation", "store")
 
 
 def __getattr__(name: str):
     if name in _MODULES:
-        return importlib.import_module(f"{__name__}.{name}")
+        return _importlib.import_module(f"{__name__}.{name}")
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

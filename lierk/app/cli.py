@@ -3,6 +3,7 @@
     lierk simulate SCENE.toml --out DIR      trajectory (.npz), figures and a GIF
     lierk sweep SCENE.toml --out DIR ...     a grid of initial angular velocities
     lierk accuracy SCENE.toml --out DIR      work against precision of the solvers
+    lierk schema > scene.schema.json         the JSON Schema of scene files, for editors
 
 All run in double precision unless ``--float32`` is given: the command line
 is an application and picks its precision itself (the library never touches
@@ -305,13 +306,33 @@ def accuracy(args) -> int:
 
 
 # --------------------------------------------------------------------------
+# schema
+
+
+def schema() -> int:
+    """Print the JSON Schema of scene files (`lierk.app.scene_schema.json_schema`)."""
+    import json
+
+    from .scene_schema import json_schema
+
+    try:
+        print(json.dumps(json_schema(), indent=2), flush=True)
+    except BrokenPipeError:  # `lierk schema | head`: the reader has gone
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+    return 0
+
+
+# --------------------------------------------------------------------------
 
 
 def main(argv=None) -> int:
     args = parse(sys.argv[1:] if argv is None else list(argv))
     if args.command is None:
-        print("lierk: error: a command is required: simulate, sweep or accuracy (see lierk --help)", file=sys.stderr)
+        print("lierk: error: a command is required: simulate, sweep, accuracy or schema (see lierk --help)",
+              file=sys.stderr)
         return 2
+    if args.command == "schema":
+        return schema()
     prog = f"lierk {args.command}"
 
     def show(message, *a, **k):

@@ -108,20 +108,20 @@ def _add_common(parser: argparse.ArgumentParser, default) -> None:
 def build_parser() -> argparse.ArgumentParser:
     """The parser of ``lierk``: the options every command takes, and one
     subparser per command (``args.command``: ``"simulate"``, ``"sweep"``,
-    ``"accuracy"``, or None when none is given)."""
+    ``"accuracy"``, ``"schema"``, or None when none is given)."""
     common = argparse.ArgumentParser(add_help=False)
     _add_common(common, lambda value: argparse.SUPPRESS)
 
     parser = _Parser(
         prog="lierk",
         description="Rigid-body rotation with Lie-group Runge-Kutta integrators. "
-        "Scenes are TOML files (see examples/ and lierk.app.scene for the format).",
+        "Scenes are TOML files (see examples/; 'lierk schema' prints their format as JSON Schema).",
         epilog="Run 'lierk COMMAND --help' for the options of one command.",
     )
     _add_common(parser, lambda value: value)
     parser.add_argument("--version", action="version", version=f"lierk {version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
-    for add in (_add_simulate, _add_sweep, _add_accuracy):
+    for add in (_add_simulate, _add_sweep, _add_accuracy, _add_schema):
         add(sub, common)
     return parser
 
@@ -178,6 +178,14 @@ _ACCURACY = """
     own [run] settings other than t1 are not used.
 """
 
+_SCHEMA = """
+    Print the JSON Schema (2020-12) of scene files on stdout (lierk.app.scene_schema), for an editor to
+    complete and check them: each key's type, unit, default and allowed values. With Taplo (Even Better
+    TOML): lierk schema > scene.schema.json, then '#:schema scene.schema.json' as a scene file's first line.
+    The rules across keys (exactly one of dt, rtol or target_error; one torque row per time) are checked
+    when a scene is loaded.
+"""
+
 _TEXTS = {
     "simulate": {
         "help": "integrate a scene; write the trajectory, figures and an animation",
@@ -193,6 +201,11 @@ _TEXTS = {
         "help": "work against precision: which solver and setting reach each error, and how fast",
         "description": _ACCURACY,
         "epilog": "example: lierk accuracy examples/heavy_top.toml --out out/accuracy",
+    },
+    "schema": {
+        "help": "print the JSON Schema of scene files, for editors",
+        "description": _SCHEMA,
+        "epilog": "example: lierk schema > scene.schema.json",
     },
 }
 
@@ -271,6 +284,11 @@ def _add_accuracy(sub, common) -> None:
         help="at most N steps or tolerances per solver (default 10); fewer is faster",
     )
     acc.add_argument("--quick", action="store_true", help="a faster, coarser run: same as --max-settings 4")
+
+
+def _add_schema(sub, common) -> None:
+    # No scene, no --out and none of the common options: it only prints.
+    sub.add_parser("schema", **_TEXTS["schema"])
 
 
 def _join_negative_ranges(argv: list[str]) -> list[str]:
