@@ -32,6 +32,7 @@ import re
 from typing import Annotated, Any, Literal
 
 import msgspec
+import numpy as np
 from msgspec import UNSET, Meta, Struct, UnsetType
 
 from lierk import SOLVERS, GravityGradient, dipole_field
@@ -660,12 +661,26 @@ def parse(d: dict) -> SceneFile:
         ValueError: one line naming the key's path (``effects[1].pivot_to_com[2]``),
             the value and what is allowed.
     """
+    d = _plain(d)
     try:
         scene = msgspec.convert(d, SceneFile)
     except msgspec.ValidationError as e:
         raise ValueError(_message(str(e), d)) from None
     _check_finite(d, "")
     return scene
+
+
+def _plain(x):
+    """``x`` with NumPy scalars and arrays, and tuples, as Python numbers and
+    lists: a scene built in Python (`lierk.app.scene.from_dict`) may hold
+    them, and msgspec takes only the built-in types."""
+    if isinstance(x, dict):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, (np.ndarray, np.generic)):
+        return _plain(x.tolist())
+    return x
 
 
 def _check_finite(x, path: str) -> None:
