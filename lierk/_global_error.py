@@ -97,6 +97,8 @@ def _attitude_gap(sol: Solution, fine: Solution) -> Array:
 def _with_estimate(sol: Solution, fine: Solution, ratio) -> Solution:
     """``sol`` with Richardson's estimate from a solve ``ratio`` times more accurate."""
     est = richardson(_attitude_gap(sol, fine), ratio)
+    # A solve that blew up has no error bound, whatever its finer twin did.
+    est = jnp.where(sol.result == RESULTS.nonfinite, jnp.inf, est)
     return eqx.tree_at(lambda s: s.error_estimate, sol, est, is_leaf=lambda x: x is None)
 
 

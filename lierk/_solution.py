@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-__all__ = ["trajectory", "RESULTS", "SaveAt", "Solution"]
+__all__ = ["RESULTS", "SaveAt", "Solution"]
 
 
 class RESULTS:
@@ -208,6 +208,29 @@ class Solution(eqx.Module):
 
         return to_mrp(self.R)
 
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray, Any]:
+        """The valid saved entries of one (unbatched) solve, in time order, as
+        NumPy arrays for figures, files and diagnostics: ``ts`` ``(n,)`` (s),
+        ``R`` ``(n, 3, 3)`` body -> space and ``y`` (leaves ``(n, ...)``),
+        ``n = n_saved``.
+
+        A solve cut short (a terminating event, ``max_steps``) keeps its
+        final state in the last row when ``SaveAt(t1=True)`` asked for it
+        (``sol.R[-1]`` is where it ended), after the rows it never reached
+        (padding: NaN states); those rows are left out here.
+        """
+        ts = np.asarray(self.ts)
+        if ts.ndim != 1:
+            raise ValueError(f"this needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
+        n, total = int(np.asarray(self.n_saved)), ts.shape[0]
+        R = np.asarray(self.R)
+        rows = np.arange(n)
+        if 0 < n < total and np.isfinite(R[-1]).all() and not np.isfinite(R[n - 1]).all():
+            # Row n - 1 is padding and the last row is the final state.
+            rows = np.r_[np.arange(n - 1), total - 1]
+        y = jax.tree_util.tree_map(lambda x: np.asarray(x)[rows], self.y)
+        return ts[rows], R[rows], y
+
     def chosen_setting(self) -> str | None:
         """The setting a ``target_error=`` solve chose, as text (``"dt = 0.01
         s"`` or ``"rtol = atol = 1e-08"``); None for other solves.  Reads
@@ -244,15 +267,3 @@ def raise_if_failed(sol: Solution, throw: bool) -> Solution:
     for code, message in failures:
         sol = eqx.error_if(sol, jnp.any(sol.result == code), f"lierk.solve failed: {message}")
     return sol
-
-
-def trajectory(sol) -> tuple[np.ndarray, np.ndarray, Any]:
-    """The valid saved entries of an unbatched `Solution` as NumPy arrays (for
-    figures, files and diagnostics):
-    ``ts (n,)`` (s), ``R (n, 3, 3)`` body -> space, and ``y`` (leaves ``(n, ...)``)."""
-    ts = np.asarray(sol.ts)
-    if ts.ndim != 1:
-        raise ValueError(f"this needs one trajectory, got a batch of solutions (ts has shape {ts.shape})")
-    n = int(np.asarray(sol.n_saved))
-    y = jax.tree_util.tree_map(lambda x: np.asarray(x)[:n], sol.y)
-    return ts[:n], np.asarray(sol.R)[:n], y

@@ -602,3 +602,14 @@ def test_target_error_on_a_heavy_top_against_scipy():
         assert ok.mean() >= 0.8, (solver.name, code)
         assert np.all(err[ok] <= np.broadcast_to(eps, err.shape)[ok]), (solver.name, err / eps)
         assert np.all(est[ok] >= err[ok]), (solver.name, est / err)
+
+
+def test_a_solve_that_blew_up_has_no_error_bound():
+    """Explicit Euler on a unit sphere grows |R| by sqrt(1 + (omega dt)^2) a
+    step: at dt = 1 s it overflows before 2300 s, its finer twin (dt = 2/3 s)
+    does not.  The rows past the overflow were given an estimate of 0."""
+    body = lierk.FreeRigidBody([1.0, 1.0, 1.0], [0.0, 0.0, 1.0])
+    sol = lierk.solve(body, lierk.ExplicitEuler(), 2300.0, dt=1.0, saveat=lierk.SaveAt(t0=True, steps=100, t1=True),
+                      estimate_error=True, throw=False)
+    assert int(sol.result) == lierk.RESULTS.nonfinite
+    assert np.all(np.asarray(sol.error_estimate) == np.inf)

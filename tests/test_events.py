@@ -305,3 +305,29 @@ def test_flip_event_in_float32():
     ref = exact_flip_times(CASE_A, 40.0)
     times = _times(sol.events)
     assert len(times) == 2 and abs(times[0] - ref[0]) < 2e-5 and abs(times[1] - ref[1]) < 5e-3
+
+
+def test_the_valid_rows_of_a_solve_cut_short_end_with_its_final_state():
+    """With SaveAt(t1=True) the final state is the last row (``sol.R[-1]``)
+    and the rows never reached come before it: `Solution.trajectory` reads
+    the reached rows and then the final one, all finite, times increasing."""
+    ev = lierk.conditions.flip(BODY, terminate=True)
+    t_flip = exact_flip_times(CASE_A, 20.0)[0]
+    cases = [
+        (lierk.RKMK4(), dict(dt=0.01), lierk.SaveAt(t0=True, steps=10, t1=True), 1 + int(t_flip / 0.1) + 1),
+        (lierk.RKMK4(), dict(dt=0.01), lierk.SaveAt(t0=True, steps=7, t1=True), 1 + int(t_flip / 0.07) + 1),
+        (lierk.DOP853(), dict(rtol=1e-10), lierk.SaveAt(ts=jnp.linspace(0.0, 60.0, 61), t1=True), int(t_flip) + 2),
+    ]
+    for solver, kwargs, saveat, rows in cases:
+        sol = _solve(BODY, solver, 60.0, ev, saveat=saveat, **kwargs)
+        ts, R, y = sol.trajectory()
+        assert len(ts) == rows == int(sol.n_saved)
+        assert np.isfinite(R).all() and np.isfinite(y).all() and np.all(np.diff(ts) > 0)
+        assert abs(ts[-1] - t_flip) < 1e-8 and float(sol.ts[-1]) == ts[-1]
+        np.testing.assert_array_equal(R[-1], np.asarray(sol.R[-1]))
+    # Cut short by max_steps (no event): the same layout.
+    sol = lierk.solve(BODY, lierk.DOP853(), 60.0, rtol=1e-10, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 60.0, 61), t1=True),
+                      max_steps=40, throw=False)
+    ts, R, _ = sol.trajectory()
+    assert int(sol.result) == lierk.RESULTS.max_steps_reached and np.isfinite(R).all() and np.all(np.diff(ts) >= 0)
+    assert ts[-1] == float(sol.ts[-1]) < 60.0

@@ -128,7 +128,7 @@ def test_trajectory_drops_adaptive_padding():
     sol = lierk.solve(problem, lierk.DP54(), 2.0, rtol=1e-6, saveat=lierk.SaveAt(steps=True), max_steps=200)
     n = int(sol.n_saved)
     assert n < sol.ts.shape[0]
-    ts, R, _ = plot.trajectory(sol)
+    ts, R, _ = sol.trajectory()
     assert ts.shape == (n,) and R.shape == (n, 3, 3)
     assert np.isfinite(ts).all() and np.isfinite(R).all()
     fig = plot.components(sol)

@@ -21,13 +21,10 @@ KNOWN_PRIVATE = {
     ("accuracy", "_solve"),
     ("accuracy", "_validation"),
     ("cli", "_progress"),
-    ("diagnostics", "_solution"),
-    ("plot", "_solution"),
     ("scene", "_problems"),
     ("scene", "_validation"),
     ("segments", "_progress"),
     ("segments", "_validation"),
-    ("simulation", "_solution"),
 }
 
 

@@ -148,7 +148,7 @@ class AbstractProblem(eqx.Module):
 
 class AbstractRigidBody(AbstractProblem):
     """A rigid body: inertia ``I`` (kg m^2, body frame), initial attitude
-    ``R0`` and angular velocity, and a tuple of effects (`lierk.SHIM_effects`).
+    ``R0`` and angular velocity, and a tuple of effects (`lierk.AbstractEffect` and its subclasses).
 
     Subclasses say where the body momentum ``m`` (kg m^2/s, body frame) lives:
     `_body_momenta` reads it from ``(R, y)`` and `_with_initial_momentum`

@@ -6,7 +6,7 @@ One problem covers every rigid body in lierk.  Its state is the attitude ``R``
     dR/dt = R hat(omega),    omega = I^{-1} m,
     dm/dt = m x omega + sum_k tau_k(t, R, m, omega),
 
-where each ``tau_k`` is the body-frame torque of one effect (`lierk.SHIM_effects`).
+where each ``tau_k`` is the body-frame torque of one effect (`lierk.AbstractEffect` and its subclasses).
 A torque-free body, `FreeRigidBody`, is this problem with no effects.
 
 Why the momentum is state even without torque: the report instead keeps the
@@ -65,7 +65,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
             otherwise the centre of mass).
         omega0: ``(3,)`` initial body angular velocity (rad/s).
         R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
-        effects: tuple of `lierk.SHIM_effects.AbstractEffect`; at most one
+        effects: tuple of `lierk.AbstractEffect`; at most one
             `lierk.ReactionWheels`.
 
     Example:

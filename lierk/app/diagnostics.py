@@ -61,9 +61,8 @@ def diagnostics(problem, sol, *, euler_convention: str | None = None) -> Diagnos
     (``"zyx"`` or ``"zxz"``, see `lierk.so3.to_euler`) the Euler angles too."""
     import jax
 
-    from .._solution import trajectory
 
-    _, R, y = trajectory(sol)
+    _, R, y = sol.trajectory()
     omega, L, inv, orth, q, euler = jax.device_get(_compute(problem, R, y, euler_convention))
     inv = {k: np.asarray(v) for k, v in inv.items()}
     drift = {k: _drift(v) for k, v in inv.items()}

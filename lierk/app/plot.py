@@ -24,9 +24,8 @@ from matplotlib.figure import Figure
 
 from lierk import so3
 from ..inertia import Part, composite
-from .._solution import trajectory
 
-__all__ = ["trajectory", "components", "euler_angles", "invariants", "omega_sweep", "animate", "GIF_DPI", "GIF_SIZE"]
+__all__ = ["components", "euler_angles", "invariants", "omega_sweep", "animate", "GIF_DPI", "GIF_SIZE"]
 
 # Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
 GIF_SIZE = (5.0, 5.0)
@@ -78,7 +77,7 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None,
     ``events``: ``{name: times (s)}`` (`lierk.app.scene.Scene.event_times`),
     marked with vertical lines; ``flips``: times of flips, the same as
     ``events={"flip": flips}``."""
-    ts, R, _ = trajectory(sol)
+    ts, R, _ = sol.trajectory()
     fig = _figure(figsize, title, dict(left=0.09, right=0.98, bottom=0.08, top=0.88 if title else 0.94, wspace=0.1, hspace=0.3))
     axs = fig.subplots(3, 3, sharex=True, sharey=True)
     colours = ["tab:red", "tab:blue", "tab:green"]
@@ -115,7 +114,7 @@ def euler_angles(
     ``angles``: the ``(n, 3)`` angles if already computed
     (`lierk.app.diagnostics.Diagnostics.euler_angles` in ``convention``), else
     they are computed here."""
-    ts, R, _ = trajectory(sol)
+    ts, R, _ = sol.trajectory()
     if angles is None:
         angles = _to_euler(R, convention)
     angles = np.unwrap(np.asarray(angles).reshape(-1, 3), axis=0)
@@ -151,7 +150,7 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5), q
     panel with the ratio ``Q(t) / Q(0)`` on a linear axis.  ``quantities``:
     the invariants if already computed (`lierk.app.diagnostics.Diagnostics.invariants`),
     else they are computed here."""
-    ts, R, y = trajectory(sol)
+    ts, R, y = sol.trajectory()
     if quantities is None:
         from .diagnostics import diagnostics
 
@@ -439,7 +438,7 @@ def _animation(sol, parts, L, *, frames, title, inertia, origin, trail) -> _Anim
     from matplotlib.ticker import MaxNLocator
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    ts, R, _ = trajectory(sol)
+    ts, R, _ = sol.trajectory()
     if len(ts) == 0:
         raise ValueError("the solution has no saved states to animate")
     idx = np.unique(np.linspace(0, len(ts) - 1, max(int(frames), 1)).round().astype(int))

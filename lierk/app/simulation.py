@@ -80,12 +80,11 @@ class Simulation:
         ``wheel_speeds`` ``(n, k)``, rad/s relative to the body); ``error_estimate`` ``(n,)`` (when the solve
         estimated its error); and ``event_<name>``, the times of each event
         (`event_times`)."""
-        from .._solution import trajectory
         from .scene import identifier
 
         scene, sol, diag = self.scene, self.solution, self.diagnostics
         problem = scene.problem
-        ts, R, y = trajectory(sol)
+        ts, R, y = sol.trajectory()
         data = {
             "ts": ts,
             "R": R,
