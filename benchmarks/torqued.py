@@ -3,7 +3,7 @@
 Five families of scenes, each a batch of bodies (256; ``--quick``: 8) with
 initial conditions drawn from a fixed seed, in float64 and SI units (kg m^2,
 kg, m, m/s^2, N m, N m s, rad/s, s).  Inertias are about the point the body
-turns about: the pivot for the tops (`lierk.SHIM_effects.Gravity`'s convention),
+turns about: the pivot for the tops (`lierk.Gravity`'s convention),
 the centre of mass for the satellite.  ``R`` maps body -> space, space z up.
 
 - ``lagrange_fast``: the Simo-Wong heavy symmetric top, I = diag(5, 5, 1),
