@@ -249,11 +249,12 @@ def free_rigid_body(
         Landau & Lifshitz, "Mechanics", section 37.
     """
     inertia, omega0, R0 = _validated(inertia, omega0, R0)
-    if is_traced(inertia, omega0, t, R0):
-        return _free_motion(inertia, omega0, t, R0)
-    # Concrete values (a reference for a report): one compiled program, not
-    # an eager operation (and a compilation) at a time.
-    return _free_motion_program(inertia, omega0, np.asarray(t, dtype=inertia.dtype), R0)
+    # One compiled program, also under a transform applied outside `jit`
+    # (`jax.jacfwd(free_rigid_body)`, `jax.vmap`): without it every
+    # operation of the closed form and its derivative rule ran, and was
+    # compiled, on its own (about 200 programs for a batched Jacobian).
+    # Inside an outer `jit` the program is inlined.
+    return _free_motion_program(inertia, omega0, t if is_traced(t) else np.asarray(t, dtype=inertia.dtype), R0)
 
 
 def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
@@ -642,9 +643,8 @@ def flip_interval(inertia: ArrayLike, omega0: ArrayLike) -> Array:
         Landau & Lifshitz, "Mechanics", section 37 (period ``4K/lambda``).
     """
     inertia, omega0, _ = _validated(inertia, omega0)
-    # Concrete values (a report, a figure) run as one compiled program, not
-    # an eager operation (and compilation) at a time.
-    return (_flip_interval if is_traced(inertia, omega0) else _flip_interval_program)(inertia, omega0)
+    # One compiled program, traced or not (see `free_rigid_body`).
+    return _flip_interval_program(inertia, omega0)
 
 
 def _flip_interval(inertia: Array, omega0: Array) -> Array:

@@ -15,7 +15,7 @@ import pytest
 
 import lierk
 import lierk.exact
-from helpers import TEE, fd_jacobian, order_fit
+from helpers import TEE, fd_from_values, fd_points, order_fit
 
 OMEGA = np.array([1.0, 0.05, 0.3])
 BODY = lierk.FreeRigidBody(TEE, OMEGA)
@@ -325,15 +325,18 @@ def test_evaluate_is_differentiable_in_t_and_in_the_inputs():
 
     t = 1.2345  # inside a step
     w = jnp.asarray(OMEGA)
-    f = eqx.filter_jit(lambda w: R_at(w, t)[0].ravel())
-    J = eqx.filter_jit(jax.jacfwd(lambda w: R_at(w, t)[0].ravel()))(w)
-    np.testing.assert_allclose(J, fd_jacobian(f, OMEGA, 1e-3), rtol=1e-6, atol=1e-8)
-    g = eqx.filter_jit(jax.grad(lambda w: R_at(w, t)[0][0, 2]))(w)
+    # Every derivative and the differences' values from one program.
+    J, g, dR, (R, m), values = eqx.filter_jit(lambda w, t: (
+        jax.jacfwd(lambda w: R_at(w, t)[0].ravel())(w),
+        jax.grad(lambda w: R_at(w, t)[0][0, 2])(w),
+        jax.jacfwd(lambda t: R_at(w, t)[0])(t),
+        R_at(w, t),
+        jax.vmap(lambda p: R_at(p, t)[0].ravel())(jnp.asarray(fd_points(OMEGA, 1e-3))),
+    ))(w, jnp.asarray(t))
+    np.testing.assert_allclose(J, fd_from_values(values, 1e-3), rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(g, J[2], rtol=1e-10, atol=1e-13)
     # d/dt of the interpolant is the motion's dR/dt = R hat(omega), to the
     # interpolant's accuracy.
-    dR = eqx.filter_jit(jax.jacfwd(lambda t: R_at(w, t)[0]))(jnp.asarray(t))
-    R, m = R_at(w, t)
     np.testing.assert_allclose(dR, R @ lierk.so3.hat(jnp.linalg.solve(TEE, m)), atol=1e-6)
 
 

@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import SPLITTING_SOLVERS, fd_jacobian, final_attitudes, order_fit, write
+from helpers import SPLITTING_SOLVERS, derivatives_and_differences, fd_jacobian, final_attitudes, order_fit, write
 
 import lierk
 from lierk import exact, so3
@@ -438,12 +438,10 @@ def _final_state(solver, inertia, w):
     return jnp.concatenate([sol.R[-1].ravel(), sol.y[-1]])
 
 
-# The inertia is an argument of the jitted function, so it is traced: every
-# body, symmetric ones too, drifts with the elliptic-function flow.
-_ELLIPTIC = {
-    kind: jax.jit(op(_final_state, argnums=2) if op else _final_state, static_argnums=0)
-    for kind, op in (("value", None), ("jacfwd", jax.jacfwd), ("jacrev", jax.jacrev))
-}
+# The inertia is an argument of the program, so it is traced: every body,
+# symmetric ones too, drifts with the elliptic-function flow.  One program
+# for every case, both modes and the finite differences.
+_ELLIPTIC = derivatives_and_differences(lambda w, inertia: _final_state(lierk.Strang(), inertia, w))
 STEADY = [
     ([1.0, 2.0, 3.0], [0.0, 0.0, 0.0]),
     ([1.0, 2.0, 3.0], [1e-3, 0.0, 0.0]),
@@ -463,12 +461,9 @@ def test_jacobian_at_rest_and_steady_spin_with_the_elliptic_drift():
     principal axis, a symmetric body and a sphere.  Before the fix (Strang):
     rest J = 0 against 3, |J| = 3000 at (1e-3, 0, 0), axis 0 off by 3.2.
     (Strang only: every splitting drifts with the same `exact.free_flow`.)"""
-    solver = lierk.Strang()
     for inertia, w in STEADY:
-        I, w = np.asarray(inertia), np.asarray(w, float)
-        ref = fd_jacobian(lambda v: _ELLIPTIC["value"](solver, I, v), w)
-        for kind in ("jacfwd", "jacrev"):
-            J = np.asarray(_ELLIPTIC[kind](solver, I, jnp.asarray(w)))
+        jacobians, ref = _ELLIPTIC(w, inertia)
+        for kind, J in zip(("jacfwd", "jacrev"), jacobians):
             assert np.isfinite(J).all()
             err = np.abs(J - ref).max()
             assert err < 1e-6 * np.abs(ref).max(), (inertia, w, kind, err)
@@ -483,14 +478,11 @@ def test_jacobian_at_rest_and_steady_spin_with_the_symmetric_drift(inertia):
     def value(w):
         return _final_state(lierk.BlanesMoan4(), inertia, w)
 
-    value_jit = jax.jit(value)
-    jacobians = [jax.jit(op(value)) for op in (jax.jacfwd, jax.jacrev)]
+    checks = derivatives_and_differences(value)
     for w in ([0.0, 0.0, 0.0], [1e-3, 0.0, 0.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0]):
-        w = np.asarray(w, float)
-        ref = fd_jacobian(value_jit, w)
-        for jac in jacobians:
-            J = np.asarray(jac(jnp.asarray(w)))
-            assert np.abs(J - ref).max() < 1e-6 * np.abs(ref).max(), (w, jac)
+        jacobians, ref = checks(w)
+        for kind, J in zip(("jacfwd", "jacrev"), jacobians):
+            assert np.abs(J - ref).max() < 1e-6 * np.abs(ref).max(), (w, kind)
 
 
 def test_heavy_top_released_at_rest_gradient():
@@ -504,11 +496,14 @@ def test_heavy_top_released_at_rest_gradient():
         sol = lierk.solve(lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], w, R0, effects=effects), lierk.Strang(), 1.0, dt=0.05)
         return jnp.concatenate([sol.R[-1].ravel(), sol.y[-1]])
 
-    w = np.zeros(3)
-    value = jax.jit(final)
-    ref = fd_jacobian(value, w)
-    J = np.asarray(jax.jit(jax.jacfwd(final))(jnp.asarray(w)))
-    assert np.abs(J - ref).max() < 1e-6 * np.abs(ref).max()
     weights = np.linspace(-1.0, 1.0, 12)
-    g = np.asarray(jax.jit(jax.grad(lambda w: final(w) @ weights))(jnp.asarray(w)))
+    # (The gradient as jacrev of the weighted sum: one program with jacfwd
+    # and the finite differences.)
+    def with_loss(w):
+        y = final(w)
+        return jnp.append(y, y @ weights)
+
+    (J, g), ref = derivatives_and_differences(with_loss)(np.zeros(3))
+    J, g, ref = J[:12], g[12], ref[:12]
+    assert np.abs(J - ref).max() < 1e-6 * np.abs(ref).max()
     np.testing.assert_allclose(g, weights @ ref, rtol=0, atol=1e-6 * np.abs(weights @ ref).max())
