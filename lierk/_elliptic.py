@@ -132,24 +132,24 @@ def _reduce(u: Array, K: Array) -> tuple[Array, Array]:
 
 def _landen(u: Array, m: Array, m1: Array) -> tuple[Array, Array, Array]:
     """A&S 16.4 for moderate m: ``(sn, cn, dn)``; accurate for ``m <= 0.9``."""
-    a = jnp.ones_like(m)
-    b = jnp.sqrt(m1)
-    c2 = m  # c_0^2: m itself, not sqrt(m)^2, so the derivative in m is right at m = 0
-    ratios = []
-    for _ in range(_LANDEN_STEPS):
+
+    # Two scans, not Python loops: each step's arithmetic is compiled once
+    # rather than seven times (the drift of every splitting holds it, and
+    # its derivative programs were the largest the suite compiles).
+    def descend(carry, _):
+        a, b, c2 = carry
         a_new = 0.5 * (a + b)
         # c_{n+1} = (a_n - b_n)/2 = c_n^2 / (4 a_{n+1}) without the cancellation.
         c = c2 / (4.0 * a_new)
-        c2 = c * c
-        b = jnp.sqrt(a * b)
-        a = a_new
-        ratios.append(c / a)
-    phi = (2.0**_LANDEN_STEPS) * a * u
-    phis = [phi]
-    for r in reversed(ratios):
-        phi = 0.5 * (phi + jnp.arcsin(r * jnp.sin(phi)))
-        phis.append(phi)
-    phi0 = phis[-1]
+        return (a_new, jnp.sqrt(a * b), c * c), c / a_new
+
+    # c_0^2 = m itself, not sqrt(m)^2, so the derivative in m is right at m = 0.
+    (a, _, _), ratios = lax.scan(descend, (jnp.ones_like(m), jnp.sqrt(m1), m), None, length=_LANDEN_STEPS)
+
+    def ascend(phi, r):
+        return 0.5 * (phi + jnp.arcsin(r * jnp.sin(phi))), None
+
+    phi0, _ = lax.scan(ascend, (2.0**_LANDEN_STEPS) * a * u, ratios, reverse=True)
     sn, cn = jnp.sin(phi0), jnp.cos(phi0)
     # dn^2 = m1 + m cn^2 has no cancellation (both terms >= 0).
     dn = jnp.sqrt(m1 + m * cn * cn)

@@ -20,7 +20,7 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from ._validation import as_jax, is_traced
+from ._validation import as_jax, check_scalar, is_traced
 from ._validation import check_inertia as tensor
 
 __all__ = [
@@ -41,10 +41,9 @@ _AXES = {"x": 0, "y": 1, "z": 2}
 
 
 def _positive(name: str, value) -> float:
-    v = float(value)
-    if not (v > 0 and math.isfinite(v)):
-        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
-    return v
+    # The library's one check of a positive number (`check_scalar`), read
+    # on the host: a shape's size and mass are concrete numbers.
+    return float(check_scalar(value, name, bound="positive"))
 
 
 def sphere(mass: float, radius: float) -> Array:
