@@ -12,6 +12,7 @@ from lierk.app import plot
 from lierk import RigidBodyWithEffects
 from lierk import Damping
 from lierk.app.diagnostics import diagnostics
+from lierk.app.omega_sweep import OmegaSweep
 
 from helpers import OMEGA_GENERIC, TEE
 
@@ -245,8 +246,9 @@ def test_sweep_heatmap_colour_limits_ignore_one_extreme_cell():
     x, y = np.linspace(-1, 1, 9), np.linspace(-1, 1, 7)
     sens = np.outer(1.0 + x**2, 1.0 + y**2)
     sens[4, 3] = 1.78e16
-    res = {"angle": np.outer(np.cos(x), np.sin(y)), "sensitivity": sens}
-    fig = plot.omega_sweep(res, (x, y), [0, 1], np.zeros(3), "t")
+    values = {"angle": np.outer(np.cos(x), np.sin(y)), "sensitivity": sens}
+    sweep = OmegaSweep(axes=(x, y, np.zeros(1)), values=values, failed=np.zeros(sens.shape, bool), t1=1.0)
+    fig = plot.omega_sweep(sweep, np.zeros(3), "t")
     mesh = fig.axes[1].collections[0]
     assert mesh.norm.vmax < 10 and mesh.norm.vmin >= 1.0
     marks = [ln for ln in fig.axes[1].get_lines() if ln.get_label().startswith("clipped")]

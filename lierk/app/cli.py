@@ -269,7 +269,7 @@ def sweep(args) -> int:
     with _staged_output(args.out) as tmp:
         np.savez(tmp / f"{stem}_sweep.npz", **{n: res.axes[k] for n, k in zip(names, varied)},
                  omega0=res.grid, t1=res.t1, **res.values)
-        fig = plot.omega_sweep(res.values, [res.axes[k] for k in varied], varied, omega0, title)
+        fig = plot.omega_sweep(res, omega0, title)
         fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
     # The chunks are in the .npz now; only an unfinished run's are kept (to
     # resume, and to refuse another run in their place).

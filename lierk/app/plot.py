@@ -216,20 +216,22 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5), q
 # Animation
 
 
-def omega_sweep(res: dict, axes: Sequence[np.ndarray], varied: Sequence[int], omega0, title: str | None = None) -> Figure:
-    """A sweep over initial angular velocities (``lierk sweep``): one panel per
-    quantity, a line plot for one varied component, heatmaps for two.
+def omega_sweep(sweep, omega0, title: str | None = None) -> Figure:
+    """The figure of an `lierk.app.omega_sweep.OmegaSweep` (``lierk sweep``):
+    one panel per quantity, a line plot for one varied component of omega0,
+    heatmaps for two.
 
     Args:
-        res: per quantity an array over the grid (shape ``[len(a) for a in
-            axes]``, NaN where a point failed): ``"angle"`` (rad),
-            ``"sensitivity"`` (``||dR(T)/d omega0||_F``, s), optionally
-            ``"lyapunov"`` (1/s) and ``"flip_interval"`` (s, ``inf``: no flip).
-        axes: the values (rad/s) of each varied component.
-        varied: which components of omega0 vary (0, 1, 2 for x, y, z).
+        sweep: what `lierk.app.omega_sweep.sweep_omega0` returned; its
+            ``values`` per quantity over the grid (NaN where a point failed):
+            ``"angle"`` (rad), ``"sensitivity"`` (``||dR(T)/d omega0||_F``,
+            s), optionally ``"lyapunov"`` (1/s) and ``"flip_interval"`` (s,
+            ``inf``: no flip).
         omega0: ``(3,)`` the scene's own omega0 (rad/s), marked on heatmaps.
         title: the figure's title.
     """
+    res, varied = sweep.values, sweep.varied
+    axes = [sweep.axes[k] for k in varied]
     from matplotlib.colors import LogNorm
 
     panels = []
