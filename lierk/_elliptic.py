@@ -11,7 +11,9 @@ the first and third kinds.  Everything here:
 - runs a *fixed* number of iterations (static, so it jits, vmaps and
   differentiates), chosen so float64 is converged to rounding for every
   ``m1 >= 1e-300``;
-- broadcasts over arguments and works in float32 and float64.
+- broadcasts over arguments and works in float32 and float64;
+- is one compiled program per call (`jax.jit`), so that a call outside
+  ``jit`` does not compile each of its operations on its own.
 
 Algorithms:
 
@@ -43,6 +45,7 @@ from __future__ import annotations
 
 import math
 
+import jax
 import jax.numpy as jnp
 from jax import Array, lax
 from jax.typing import ArrayLike
@@ -102,6 +105,7 @@ def _agm(a: Array, b: Array, steps: int = _AGM_STEPS) -> Array:
     return 0.5 * (a + b)
 
 
+@jax.jit
 def ellipk(m: ArrayLike, m1: ArrayLike | None = None) -> Array:
     """Complete elliptic integral of the first kind ``K(m)``.
 
@@ -256,6 +260,7 @@ def _ellipj_reduced(u: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None):
     return sn, cn, dn, j, K
 
 
+@jax.jit
 def ellipj(u: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None):
     """Jacobi elliptic functions ``sn, cn, dn`` and the amplitude ``am``.
 
@@ -280,6 +285,7 @@ def ellipj(u: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None):
 # ---------------------------------------------------------------- Carlson forms
 
 
+@jax.jit
 def elliprc(x: ArrayLike, y: ArrayLike) -> Array:
     """Carlson's degenerate integral ``R_C(x, y) = R_F(x, y, y)`` for
     ``x >= 0, y > 0``.
@@ -302,6 +308,7 @@ def elliprc(x: ArrayLike, y: ArrayLike) -> Array:
     return (1.0 + s * s * (0.3 + s * (1.0 / 7.0 + s * (0.375 + s * 9.0 / 22.0)))) / jnp.sqrt(ave)
 
 
+@jax.jit
 def elliprf(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> Array:
     """Carlson's symmetric integral of the first kind
     ``R_F(x, y, z) = 1/2 int_0^inf dt / sqrt((t+x)(t+y)(t+z))``, ``x, y, z >= 0``
@@ -330,6 +337,7 @@ def elliprf(x: ArrayLike, y: ArrayLike, z: ArrayLike) -> Array:
     return (1.0 + (e2 / 24.0 - 0.1 - 3.0 / 44.0 * e3) * e2 + e3 / 14.0) / jnp.sqrt(ave)
 
 
+@jax.jit
 def elliprj(x: ArrayLike, y: ArrayLike, z: ArrayLike, p: ArrayLike) -> Array:
     """Carlson's symmetric integral of the third kind
     ``R_J(x, y, z, p) = 3/2 int_0^inf dt / ((t+p) sqrt((t+x)(t+y)(t+z)))`` for
@@ -383,6 +391,7 @@ def _pi_reduced(s: Array, c: Array, delta2: Array, n: Array) -> Array:
     return s * elliprf(c * c, delta2, one) + (n / 3.0) * s * s2 * elliprj(c * c, delta2, one, 1.0 - n * s2)
 
 
+@jax.jit
 def ellipf(phi: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None) -> Array:
     """Incomplete elliptic integral of the first kind
     ``F(phi | m) = int_0^phi dtheta / sqrt(1 - m sin^2 theta)`` for any real
@@ -400,6 +409,7 @@ def ellipf(phi: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None) -> Array:
     return F + 2.0 * j * jnp.where(j != 0, ellipk(m, jnp.where(j != 0, m1, 0.5)), 0.0)
 
 
+@jax.jit
 def ellippi(n: ArrayLike, phi: ArrayLike, m: ArrayLike, m1: ArrayLike | None = None) -> Array:
     """Incomplete elliptic integral of the third kind
     ``Pi(n; phi | m) = int_0^phi dtheta / ((1 - n sin^2 theta)
