@@ -41,7 +41,7 @@ def asarray(x, dtype=None, name: str = "value"):
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name} must be real numbers, got {x!r} ({e})") from None
     if x.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be real numbers, got {_show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}")
+        raise ValueError(f"{name} must be real numbers, got {show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}")
     if dtype is None and (x.dtype.kind != "f" or x.dtype.itemsize < 4):
         dtype = jnp.result_type(float) if x.dtype.kind != "f" else np.float32
     if is_traced(x):
@@ -107,12 +107,13 @@ def check(x, ok: Callable, message: str):
         # The value is only known at run time; say which check failed.
         return eqx.error_if(x, ~jnp.all(ok(x)), message.replace("{value}", "a traced value that failed the check"))
     if not bool(np.all(ok(np.asarray(x)))):
-        raise ValueError(message.format(value=_show(x)) if "{value}" in message else message)
+        raise ValueError(message.format(value=show(x)) if "{value}" in message else message)
     return x
 
 
-def _show(x) -> str:
-    return np.array2string(np.asarray(x), precision=6, separator=", ")
+def show(x) -> str:
+    """An array (or number) on one line, for an error message."""
+    return " ".join(np.array2string(np.asarray(x), precision=6, separator=", ").split())
 
 
 def check_shape(x, shape: tuple, name: str):
@@ -190,8 +191,8 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
     else:
         reason = state_range_error(inertia, omega0, dtype)
         if reason is not None:
-            raise ValueError(f"inertia {_show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
-                             f"with omega0 {_show(omega0)} rad/s: {reason}")
+            raise ValueError(f"inertia {show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
+                             f"with omega0 {show(omega0)} rad/s: {reason}")
     return inertia, omega0, check_attitude(R0, dtype)
 
 
@@ -369,7 +370,7 @@ def impossible_inertia(inertia: ArrayLike, name: str = "inertia") -> str | None:
     if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
         # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
         # break it too, so this warns rather than refuses.
-        return (f"{name} {_show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
+        return (f"{name} {show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
                 "no rigid body has these principal moments; the equations are solved as given")
     return None
 

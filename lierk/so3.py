@@ -474,7 +474,7 @@ def _rotation_input(R: ArrayLike, where: str) -> Array:
             name = f"R[{', '.join(map(str, i))}]" if i else "R"
             raise ValueError(
                 f"{where} expects rotation matrices (||R^T R - I|| <= {tol:.2g} in {R.dtype.name}, det R = +1); "
-                f"{name} has ||R^T R - I|| = {err[i]:.3g} and det R = {det[i]:.6g}: {validation._show(M[i])}"
+                f"{name} has ||R^T R - I|| = {err[i]:.3g} and det R = {det[i]:.6g}: {validation.show(M[i])}"
             )
     return R
 
@@ -542,7 +542,7 @@ def from_quaternion(q: ArrayLike) -> Array:
         if bad.any():
             i = tuple(int(k) for k in np.argwhere(bad)[0])
             name = f"q[{', '.join(map(str, i))}]" if i else "q"
-            raise ValueError(f"from_quaternion needs a non-zero quaternion, got {name} = {validation._show(qn[i])}")
+            raise ValueError(f"from_quaternion needs a non-zero quaternion, got {name} = {validation.show(qn[i])}")
     q = q / jnp.linalg.norm(q, axis=-1, keepdims=True)
     w, v = q[..., 0], q[..., 1:]
     K = hat(v)

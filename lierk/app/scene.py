@@ -658,7 +658,7 @@ def _reaction_wheels(e, p: str, body: _Body):
     if times is not None:
         times = np.array(times)
         if np.any(np.diff(times) <= 0):
-            raise ValueError(f"{p}.times must be strictly increasing, got {_show(times)}")
+            raise ValueError(f"{p}.times must be strictly increasing, got {validation.show(times)}")
         if torque is None:
             raise ValueError(f"{p}: times need torque = [[u1, ...], ...], one row of {k} motor torques (N m) per time")
         if len(torque) != len(times) or not all(rows):
@@ -776,28 +776,23 @@ def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key:
         m = inertia @ omega0
         energy = 0.5 * float(omega0 @ m)
     if not finite:
-        raise ValueError(f"{what}: the inertia is not finite (too large, or a mass or size too small): {_show(inertia)}")
+        raise ValueError(f"{what}: the inertia is not finite (too large, or a mass or size too small): {validation.show(inertia)}")
     if not np.isfinite(inv).all():
-        raise ValueError(f"{what}: the inertia {_show(inertia)} kg m^2 is singular or too small to invert")
+        raise ValueError(f"{what}: the inertia {validation.show(inertia)} kg m^2 is singular or too small to invert")
     if not np.isfinite(m).all():
         raise ValueError(
-            f"{what}: the initial momentum I omega overflows (inertia {_show(inertia)} kg m^2, "
-            f"omega {_show(omega0)} rad/s)"
+            f"{what}: the initial momentum I omega overflows (inertia {validation.show(inertia)} kg m^2, "
+            f"omega {validation.show(omega0)} rad/s)"
         )
     if not math.isfinite(energy):
         raise ValueError(
-            f"{what}: the initial kinetic energy omega . I omega / 2 overflows (inertia {_show(inertia)} kg m^2, "
-            f"omega {_show(omega0)} rad/s)"
+            f"{what}: the initial kinetic energy omega . I omega / 2 overflows (inertia {validation.show(inertia)} kg m^2, "
+            f"omega {validation.show(omega0)} rad/s)"
         )
     reason = validation.state_range_error(inertia, omega0, dtype)
     if reason is not None:
         shown = np.diagonal(inertia) if not np.any(inertia - np.diag(np.diagonal(inertia))) else inertia
-        raise ValueError(f"{what}: {key} = {_show(shown)} kg m^2 with initial.omega = {_show(omega0)} rad/s: {reason}")
-
-
-def _show(x) -> str:
-    """An array on one line."""
-    return " ".join(np.array2string(np.asarray(x), precision=4, separator=", ").split())
+        raise ValueError(f"{what}: {key} = {validation.show(shown)} kg m^2 with initial.omega = {validation.show(omega0)} rad/s: {reason}")
 
 
 def _quaternion_matrix(q: np.ndarray) -> np.ndarray:
