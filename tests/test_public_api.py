@@ -12,7 +12,7 @@ import lierk
 ROOT = pathlib.Path(lierk.__file__).parent
 
 # What `lierk.app` still imports from private modules: the input checks it
-# shares with the library, the progress line, the Earth's constants and the
+# shares with the library, the progress line and the
 # accuracy report's counted fixed-step loop.  The list may only shrink.
 KNOWN_PRIVATE = {
     ("accuracy", "_global_error"),
@@ -21,7 +21,6 @@ KNOWN_PRIVATE = {
     ("accuracy", "_solve"),
     ("accuracy", "_validation"),
     ("cli", "_progress"),
-    ("scene", "_problems"),
     ("scene", "_validation"),
     ("segments", "_progress"),
     ("segments", "_validation"),

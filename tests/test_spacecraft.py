@@ -235,12 +235,23 @@ def test_constant_rotor_conserves_energy_and_total_momentum():
         (lambda: lierk.MagneticTorque(FIELD, dipole=[np.nan, 0.0, 1.0]), "dipole"),
         (lambda: lierk.MagneticTorque(FIELD), "exactly one of dipole"),
         (lambda: lierk.dipole_field(-1.0), "mean_motion"),
+        (lambda: lierk.dipole_field(radius=-7e6), "radius"),
+        (lambda: lierk.dipole_field(tilt=1.0), "mean_motion= .rad/s., radius= .m., or both"),
         (lambda: lierk.Rotor([0.1], axes=[[1.0, 0, 0]], torque=[[0.0], [1.0]], times=[1.0, 0.5]), "strictly increasing"),
     ],
 )
 def test_bad_input_is_refused_by_name(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_the_dipole_field_takes_the_orbit_as_the_gravity_gradient_does():
+    """Its radius or its mean motion, the other from mu (Kepler's third law)."""
+    radius, mu, ts = 7.0e6, 3.986004418e14, np.linspace(0.0, 6000.0, 7)
+    n = np.sqrt(mu / radius**3)
+    expected = np.stack([np.asarray(lierk.dipole_field(n, radius=radius, tilt=1.2)(t)) for t in ts])
+    for field in (lierk.dipole_field(radius=radius, tilt=1.2), lierk.dipole_field(n, tilt=1.2)):
+        np.testing.assert_allclose(np.stack([np.asarray(field(t)) for t in ts]), expected, rtol=1e-13, atol=0)
 
 
 def test_splittings_refuse_a_dipole_law_without_an_exact_kick():

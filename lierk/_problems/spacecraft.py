@@ -34,6 +34,7 @@ torque).
 
 from __future__ import annotations
 
+import math
 from typing import Callable, ClassVar
 
 import equinox as eqx
@@ -157,7 +158,9 @@ class GravityGradient(AbstractEffect):
         return 1.5 * n2 * (eig[-1] - eig[0])
 
 
-def dipole_field(mean_motion, radius=None, tilt=0.0, B0=B0_EARTH, planet_radius=R_EARTH, phase=0.0) -> Callable:
+def dipole_field(
+    mean_motion=None, radius=None, tilt=0.0, B0=B0_EARTH, planet_radius=R_EARTH, phase=0.0, mu=MU_EARTH
+) -> Callable:
     """The field ``B(t)`` (T, space frame) of a centred magnetic dipole along
     the circular orbit of `circular_orbit` (radius ``a``):
 
@@ -166,26 +169,32 @@ def dipole_field(mean_motion, radius=None, tilt=0.0, B0=B0_EARTH, planet_radius=
     ``d`` the dipole's direction, ``tilt`` (rad) its angle to the orbit
     normal (space ``z``): 0 is an equatorial orbit (a constant field along
     ``+z``), pi/2 a polar one (the field turns twice per orbit).  Earth's
-    dipole, 3.12e-5 T at the equator, by default.
+    dipole, 3.12e-5 T at the equator, by default.  The orbit is given as
+    `GravityGradient` takes it: its ``mean_motion`` or its ``radius`` (the
+    other follows from ``mu``), or both.
 
     Args:
-        mean_motion: orbit rate (rad/s).
-        radius: orbit radius (m); default ``(MU_EARTH / n^2)^(1/3)``.
+        mean_motion: orbit rate (rad/s); default ``sqrt(mu / radius^3)``.
+        radius: orbit radius (m); default ``(mu / n^2)^(1/3)``.
         tilt: the dipole's angle to the orbit normal (rad).
         B0: the field at the planet's equator on its surface (T).
         planet_radius: m.
         phase: the orbit angle at ``t = 0`` (rad).
+        mu: the planet's gravitational parameter (m^3/s^2), Earth's by default.
 
     Returns:
         A function ``t -> (3,)`` that JAX traces.
     """
-    n = float(mean_motion)
-    a = (MU_EARTH / n**2) ** (1.0 / 3.0) if radius is None else float(radius)
-    for name, value in (("mean_motion", n), ("radius", a), ("B0", B0), ("planet_radius", planet_radius)):
-        if not (np.isfinite(value) and value > 0):
+    if mean_motion is None and radius is None:
+        raise ValueError("give the orbit as mean_motion= (rad/s), radius= (m), or both")
+    given = (("mean_motion", mean_motion), ("radius", radius), ("mu", mu), ("B0", B0), ("planet_radius", planet_radius))
+    for name, value in given:
+        if value is not None and not (np.isfinite(value) and value > 0):
             raise ValueError(f"{name} must be a positive finite number, got {value!r}")
     if not np.isfinite(tilt):
         raise ValueError(f"tilt must be finite (rad), got {tilt!r}")
+    n = math.sqrt(float(mu) / float(radius) ** 3) if mean_motion is None else float(mean_motion)
+    a = (float(mu) / n**2) ** (1.0 / 3.0) if radius is None else float(radius)
     strength = float(B0) * (float(planet_radius) / a) ** 3
     d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
 

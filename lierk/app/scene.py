@@ -75,21 +75,24 @@ from lierk import (
     Damping,
     FreeRigidBody,
     Gravity,
+    GravityGradient,
+    MagneticTorque,
+    ReactionWheels,
     RigidBodyWithEffects,
+    Rotor,
     SaveAt,
     Solution,
     SpaceTorque,
     TimedTorque,
+    dipole_field,
     solver_class,
 )
 from lierk import inertia as _inertia
 from lierk import num_steps as _num_steps
 from lierk import solve as _solve
 
-# Not yet public: the input checks shared with the library, and the Earth's
-# constants of the spacecraft effects.
+# Not yet public: the input checks shared with the library.
 from .. import _validation as validation
-from .._problems import spacecraft
 from .._validation import check_attitude
 from . import scene_schema as schema
 from .scene_schema import MAX_SAVED, MAX_STEPS
@@ -613,17 +616,15 @@ def _orbit(e, p: str) -> dict:
 
 
 def _gravity_gradient(e, p: str, body: _Body):
-    return spacecraft.GravityGradient(body.inertia, mu=e.mu, phase=e.phase, **_orbit(e, p))
+    return GravityGradient(body.inertia, mu=e.mu, phase=e.phase, **_orbit(e, p))
 
 
 def _magnetic(e, p: str, body: _Body):
-    orbit = _orbit(e, p)
-    n = orbit.get("mean_motion") or math.sqrt(spacecraft.MU_EARTH / orbit["radius"] ** 3)
-    field = spacecraft.dipole_field(n, radius=orbit.get("radius"), tilt=e.tilt, B0=e.B0, phase=e.phase)
+    field = dipole_field(**_orbit(e, p), tilt=e.tilt, B0=e.B0, phase=e.phase)
     if _exactly_one(e, ("dipole", "bdot_gain"), p,
                     "magnetic needs exactly one of 'dipole' (A m^2, body frame) or 'bdot_gain'") == "dipole":
-        return spacecraft.MagneticTorque(field, dipole=np.array(e.dipole))
-    return spacecraft.MagneticTorque(field, bdot_gain=e.bdot_gain)
+        return MagneticTorque(field, dipole=np.array(e.dipole))
+    return MagneticTorque(field, bdot_gain=e.bdot_gain)
 
 
 def _rotor(e, p: str, body: _Body):
@@ -631,18 +632,18 @@ def _rotor(e, p: str, body: _Body):
         for k in ("torque", "times"):
             if _given(e, k) is not None:
                 raise ValueError(f"{p}.{k}: motor torques act along wheel axes; give 'axes' too")
-        return spacecraft.Rotor(_sized(e.momentum, 3, f"{p}.momentum"))
+        return Rotor(_sized(e.momentum, 3, f"{p}.momentum"))
     axes = np.array(e.axes)
     k = len(axes)
     momentum = _sized(e.momentum, k, f"{p}.momentum")
     if (_given(e, "torque") is None) != (_given(e, "times") is None):
         raise ValueError(f"{p}: motor torques need both 'torque' (one row of {k} per time, N m) and 'times' (s)")
     if _given(e, "torque") is None:
-        return spacecraft.Rotor(momentum, axes=axes)
+        return Rotor(momentum, axes=axes)
     if len(e.torque) != len(e.times):
         raise ValueError(f"{p}.torque must list one row of {k} wheel torques per time, got {e.torque!r}")
     torque = np.stack([_sized(row, k, f"{p}.torque[{j}]") for j, row in enumerate(e.torque)])
-    return spacecraft.Rotor(momentum, axes=axes, torque=torque, times=np.array(e.times))
+    return Rotor(momentum, axes=axes, torque=torque, times=np.array(e.times))
 
 
 def _reaction_wheels(e, p: str, body: _Body):
@@ -668,7 +669,7 @@ def _reaction_wheels(e, p: str, body: _Body):
         raise ValueError(f"{p}.torque: rows of motor torques need times = [...] (s), one per row")
     elif torque is not None:
         torque = _sized(torque, k, f"{p}.torque")
-    return spacecraft.ReactionWheels(axes, spin, speeds, torque=torque, times=times)
+    return ReactionWheels(axes, spin, speeds, torque=torque, times=times)
 
 
 _SPACECRAFT = {
