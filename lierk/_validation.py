@@ -132,7 +132,7 @@ def check_scalar(x, name: str, dtype=None, *, bound: str = "finite"):
     if bound == "finite":
         return check(x, lambda v: (v == v) & (abs(v) < inf), f"{name} must be finite, got {{value}}")
     ok = (lambda v: (v > 0) & (v < inf)) if bound == "positive" else (lambda v: (v >= 0) & (v < inf))
-    return check(x, ok, f"{name} must be a {bound} finite number, got {{value}}")
+    return check(x, ok, f"{name} must be {bound}, a finite number, got {{value}}")
 
 
 def check_attitude(R0: ArrayLike | None, dtype) -> Array:
