@@ -18,7 +18,7 @@ from scipy.optimize import brentq
 
 import lierk
 import lierk.exact
-from helpers import TEE
+from helpers import TEE, fd_jacobian
 from test_tops import TOPS, _problem, quadrature
 
 CASE_A = np.array([1.0, 0.05, 0.0])  # the report's case a: flips every 23.63 s
@@ -152,11 +152,7 @@ def _first_flip(w, solver=lierk.RKMK4(), **kwargs):
 def test_event_time_gradient_matches_finite_differences_of_the_exact_flip():
     w = jnp.asarray(CASE_A)
     # Central differences of the exact first flip (4th order, h = 1e-4).
-    fd = []
-    for e in np.eye(3):
-        v = [exact_flip_times(CASE_A + k * 1e-4 * e, 14.0)[0] for k in (2, 1, -1, -2)]
-        fd.append((-v[0] + 8 * v[1] - 8 * v[2] + v[3]) / (12 * 1e-4))
-    fd = np.array(fd)
+    fd = fd_jacobian(lambda w: exact_flip_times(w, 14.0)[0], CASE_A, h=1e-4)
     # (One program: compiled apart the three cost a third more.)
     fwd, rev, ada = eqx.filter_jit(lambda w: (
         jax.jacfwd(lambda w: _first_flip(w, dt=0.01))(w),

@@ -187,10 +187,8 @@ def dipole_field(
     """
     if mean_motion is None and radius is None:
         raise ValueError("give the orbit as mean_motion= (rad/s), radius= (m), or both")
-    given = (("mean_motion", mean_motion), ("radius", radius), ("mu", mu), ("B0", B0), ("planet_radius", planet_radius))
-    for name, value in given:
-        if value is not None and not (np.isfinite(value) and value > 0):
-            raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    for name, value in (("mean_motion", mean_motion), ("radius", radius), ("mu", mu), ("B0", B0), ("planet_radius", planet_radius)):
+        _positive(value, name)
     if not np.isfinite(tilt):
         raise ValueError(f"tilt must be finite (rad), got {tilt!r}")
     n = math.sqrt(float(mu) / float(radius) ** 3) if mean_motion is None else float(mean_motion)

@@ -230,9 +230,10 @@ def omega_sweep(sweep, omega0, title: str | None = None) -> Figure:
         omega0: ``(3,)`` the scene's own omega0 (rad/s), marked on heatmaps.
         title: the figure's title.
     """
+    from matplotlib.colors import LogNorm
+
     res, varied = sweep.values, sweep.varied
     axes = [sweep.axes[k] for k in varied]
-    from matplotlib.colors import LogNorm
 
     panels = []
     if "flip_interval" in res:
