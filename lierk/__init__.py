@@ -2,13 +2,15 @@
 
 `import lierk` is the library's whole API: the names below.  The modules
 that implement them are private (``lierk._solve``, ``lierk._loops``, ...).
-Five public namespaces hold families of functions a user imports together:
+Six public namespaces hold families of functions a user imports together:
 
 - `lierk.so3`: the rotation group (exp, log, dexpinv, conversions);
 - `lierk.exact`: the free rigid body's closed-form motion;
 - `lierk.inertia`: inertia tensors of shapes, composites and meshes;
 - `lierk.conditions`: initial conditions and events (the flip, tilt);
-- `lierk.tableaux`: the Butcher and splitting tableaux.
+- `lierk.tableaux`: the Butcher and splitting tableaux;
+- `lierk.checks`: the checks of a body's inputs, for front ends that word
+  their own messages (scene files).
 
 The application (scene files, the ``lierk`` command, simulations, accuracy
 reports, figures, resumable sweeps, multi-process set-up and the
@@ -20,6 +22,7 @@ Data flows one way: problem -> ``solve(problem, solver, ...)`` ->
 
 import importlib as _importlib
 
+from . import checks as checks
 from . import conditions as conditions
 from . import exact as exact
 from . import inertia as inertia
@@ -35,8 +38,11 @@ from ._batch import sweep_chunks as sweep_chunks
 from ._controller import AbstractStepController as AbstractStepController
 from ._controller import ConstantStep as ConstantStep
 from ._controller import Controller as Controller
+from ._controller import Decision as Decision
 from ._event import Event as Event
 from ._event import EventRecord as EventRecord
+from ._global_error import finer_options as finer_options
+from ._global_error import richardson as richardson
 from ._interpolation import DenseInterpolation as DenseInterpolation
 from ._problems import AbstractProblem as AbstractProblem
 from ._problems import AbstractRigidBody as AbstractRigidBody
@@ -87,6 +93,7 @@ from ._solvers import Strang as Strang
 from ._solvers import Yoshida4 as Yoshida4
 from ._solvers import Yoshida6 as Yoshida6
 from ._solvers import solver_class as solver_class
+from ._validation import checked_on_host as checked_on_host
 
 __version__ = "0.1.0"
 
@@ -96,8 +103,11 @@ def __getattr__(name: str):
     # loads only the integrators (no matplotlib, no tqdm, no TOML parser).
     if name == "app":
         return _importlib.import_module(f"{__name__}.app")
+    if name == "Progress":
+        # (Its module imports tqdm, which `import lierk` does not load.)
+        return _importlib.import_module(f"{__name__}._progress").Progress
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted([*globals(), "app"])
+    return sorted([*globals(), "app", "Progress"])

@@ -15,22 +15,25 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from . import _validation as validation
 from ._adjoint import ForwardMode
 from ._controller import ConstantStep, Controller
-from ._loops import _batched_together, frozen, solve_adaptive, solve_fixed
+from ._loops import _batched_together, frozen, solve_adaptive, solve_fixed, solve_fixed_at
 from ._solution import RESULTS, SaveAt, Solution
 from ._solvers.base import field_at
 
-__all__ = ["TOLERANCE_RATIO", "DEFAULT_TARGET_MAX_STEPS", "finer", "fixed_refinement", "richardson", "estimate_fixed", "estimate_adaptive", "solve_to_target"]
+__all__ = ["TOLERANCE_RATIO", "DEFAULT_ADAPTIVE_MAX_STEPS", "DEFAULT_TARGET_MAX_STEPS", "finer", "finer_options", "fixed_refinement", "richardson", "estimate_fixed", "estimate_adaptive", "solve_to_target"]
 
 # The finer solve of an adaptive error estimate divides both tolerances by
 # this; the calibrated pairs' global error is proportional to the tolerance
 # (tests/test_accuracy.py), so the finer solution is about this much better.
 TOLERANCE_RATIO = 10.0
 DEFAULT_TARGET_MAX_STEPS = 100_000
+# `lierk.solve`'s bound on an adaptive solve's attempts.
+DEFAULT_ADAPTIVE_MAX_STEPS = 4096
 # At most this many solves per `target_error` call.
 _TARGET_SOLVES = 8
 # A `target_error` confirming solve takes about this many times the steps of
@@ -58,8 +61,23 @@ def finer(controller: Controller, order: int) -> Controller:
     return eqx.tree_at(
         lambda c: (c.rtol, c.atol, c.max_angle),
         controller,
-        (controller.rtol / TOLERANCE_RATIO, controller.atol / TOLERANCE_RATIO, controller.max_angle * scale),
+        (_scaled(controller.rtol, 1 / TOLERANCE_RATIO), _scaled(controller.atol, 1 / TOLERANCE_RATIO),
+         _scaled(controller.max_angle, scale)),
     )
+
+
+def _scaled(x, factor: float):
+    """``x factor``; a concrete ``x`` in NumPy, so that a host path (a
+    report's settings) compiles nothing for it."""
+    if validation.is_traced(x):
+        return x * factor
+    return validation.as_jax(np.asarray(x) * np.asarray(factor, np.asarray(x).dtype))
+
+
+def _diagnostic(x):
+    """``x`` out of the gradient (the finer solve is a diagnostic); a
+    concrete value has no gradient, and is left as it is."""
+    return frozen(x) if validation.is_traced(x) else x
 
 
 def fixed_refinement(every: int | None = None) -> tuple[int, int]:
@@ -71,10 +89,65 @@ def fixed_refinement(every: int | None = None) -> tuple[int, int]:
 
 
 def richardson(gap, ratio):
-    """Richardson's estimate of a solve's error from ``gap``, its distance to
-    a solve ``ratio`` times more accurate: ``gap ratio / (ratio - 1)``
-    (arrays or floats)."""
+    """Richardson's estimate of a solve's global error from ``gap``, its
+    distance to a solve ``ratio`` times more accurate (`finer_options`):
+    ``gap ratio / (ratio - 1)``.  Arrays or floats, in the units of ``gap``
+    (for the attitude, the Frobenius norm ``||R - R_fine||_F``); this is how
+    ``lierk.solve(..., estimate_error=True)`` fills `Solution.error_estimate`."""
     return gap * (ratio / (ratio - 1.0))
+
+
+def finer_options(solver, **options) -> tuple[dict, float]:
+    """The finer solve behind ``estimate_error=True``: its `lierk.solve`
+    options, and how many times more accurate than the given ones it is
+    expected to be.
+
+    Example:
+        >>> fine, K = lierk.finer_options(solver, dt=0.01)   # dt = 0.00667, K = 1.5^order
+        >>> gap = ||solve(..., dt=0.01).R - solve(..., **fine).R||
+        >>> error = lierk.richardson(gap, K)
+
+    Args:
+        solver: the solve's solver (its ``order`` sets ``K`` for fixed steps).
+        **options: the coarser solve's keyword arguments: ``dt=`` (with
+            ``saveat=``, ``max_steps=``) for fixed steps; ``rtol=``/``atol=``
+            or ``controller=`` (with ``max_steps=``) for adaptive ones.  The
+            others are passed through.
+
+    Returns:
+        ``(fine, K)``.  Fixed steps: ``dt`` times 2/3, ``K = 1.5^order``
+        (times 1/2 and ``K = 2^order`` when ``SaveAt(steps=k)`` saves every
+        odd k-th step, so that both solves save at the same times), with
+        ``max_steps`` and ``k`` scaled to match.  Adaptive: both tolerances
+        divided by 10 and the controller's turn bound ``max_angle`` by
+        ``10^(1/order)`` (`finer`), ``K = 10``, ``max_steps`` doubled
+        (default 4096).  Values may be traced; ``dt`` and the tolerances of
+        the finer solve are out of the gradient (a diagnostic).
+    """
+    fine = dict(options)
+    if options.get("dt") is not None:
+        saveat = options.get("saveat")
+        every = saveat.every if saveat is not None and saveat.steps else None
+        num, den = fixed_refinement(every)
+        dt = options["dt"]
+        fine["dt"] = _scaled(_diagnostic(dt), den / num) if eqx.is_array(dt) else float(dt) * den / num
+        if options.get("max_steps") is not None:
+            fine["max_steps"] = -(-num * int(options["max_steps"]) // den)
+        if every is not None:
+            fine["saveat"] = eqx.tree_at(lambda s: s.steps, saveat, every * num // den)
+        return fine, (num / den) ** solver.order
+    controller = options.get("controller")
+    if controller is None:
+        if options.get("rtol") is None:
+            raise ValueError(f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones")
+        controller = Controller.from_tolerances(options["rtol"], options.get("atol"))
+        del fine["rtol"]
+        fine.pop("atol", None)
+    if not isinstance(controller, Controller):
+        raise ValueError(f"finer_options tightens a lierk.Controller's tolerances; {type(controller).__name__} has none")
+    fine["controller"] = finer(_diagnostic(controller), solver.order)
+    fine["max_steps"] = 2 * (options.get("max_steps") or DEFAULT_ADAPTIVE_MAX_STEPS)
+    return fine, TOLERANCE_RATIO
 
 
 def _own_controller(tol: Array) -> Controller:
@@ -102,12 +175,17 @@ def _with_estimate(sol: Solution, fine: Solution, ratio) -> Solution:
     return eqx.tree_at(lambda s: s.error_estimate, sol, est, is_leaf=lambda x: x is None)
 
 
-def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n: int) -> Solution:
-    """``sol`` (``n`` fixed steps of ``dt``) with its estimate from a finer solve."""
+def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n: int | None) -> Solution:
+    """``sol`` (``n`` fixed steps of ``dt``, or steps ending on the save
+    times ``SaveAt(ts=...)`` when ``n`` is None) with its estimate from a
+    finer solve."""
     num, den = fixed_refinement(saveat.every if saveat.steps else None)
-    fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
     fine_dt = jax.lax.stop_gradient(dt) * den / num
-    fine = solve_fixed(frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
+    if n is None:
+        fine = solve_fixed_at(frozen(problem), solver, t0, t1, fine_dt, saveat)
+    else:
+        fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
+        fine = solve_fixed(frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
     return _with_estimate(sol, fine, (num / den) ** solver.order)
 
 

@@ -3,8 +3,9 @@
 - `solve_fixed`: a static number of fixed steps through `lax.scan`
   (checkpointed in blocks for reverse mode).  It saves by structure: an outer
   scan over chunks of ``SaveAt(steps=k)`` steps stacks the chunk ends.
-  `solve_fixed_counted` takes the same steps with a traced ``k`` (one
-  compilation for every step size, as `lierk.app.accuracy` needs).
+  `solve_fixed_at` takes fixed steps that end on given save times
+  (``SaveAt(ts=...)``), their counts traced: one compilation for every step
+  size.
 - `solve_adaptive`: a while loop driven by a step-size controller
   (`lierk._controller`: `Controller` for embedded pairs, `ConstantStep` for a
   fixed step whose count is not static), differentiated as its adjoint says
@@ -36,7 +37,7 @@ from ._interpolation import DenseInterpolation
 from ._controller import AbstractStepController
 from ._solution import RESULTS, SaveAt, Solution
 
-__all__ = ["solve_fixed", "solve_fixed_counted", "solve_adaptive", "num_steps", "step_count", "frozen"]
+__all__ = ["solve_fixed", "solve_fixed_at", "solve_adaptive", "num_steps", "step_count", "frozen"]
 
 # Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`solve_fixed`).
@@ -251,33 +252,44 @@ def _fixed_step(problem, solver, schedule: _Schedule):
 
 
 @eqx.filter_jit
-def solve_fixed_counted(problem, solver, t0, t1, dt, every, n_saves: int) -> Solution:
-    """`solve_fixed` saving ``t0`` and every ``every``-th step
-    (``SaveAt(t0=True, steps=every)``) with ``every`` traced: ``n_saves``
-    (static) states after ``t0``, at most ``n_saves * every`` steps.
+def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt) -> Solution:
+    """Fixed steps of ``dt`` that end on every save time (``SaveAt(ts=...)``):
+    each gap between consecutive times of ``t0, ts..., t1`` is taken in
+    `step_count` steps of ``dt``, the last shortened to end on the gap's end
+    (a gap within rounding of a whole number of steps takes that number).
 
-    One compilation serves every step count, and a run costs its own steps
-    (no padding): each save interval is a loop whose trip count is
-    ``every``.  The steps, and so the numbers, are `solve_fixed`'s, and a
-    run takes the same time to within a few percent.  Forward mode only
-    (a loop of traced length cannot be reverse-differentiated).
-    """
-    n = (n_saves * every).astype(dt.dtype)  # (compared with step counts, which are floats)
-    needed, _, time, _ = schedule = _schedule(t0, t1, dt, n)
-    one = _fixed_step(problem, solver, schedule)
+    The counts are traced: one compilation serves every ``dt`` and every
+    ``ts`` of a length, and a run costs its own steps (no padding).  Each gap
+    is a loop of traced length, which forward mode differentiates and
+    reverse mode cannot enter (`ForwardSensitivity` reads reverse mode from
+    the forward sensitivities).  The steps are `solve_fixed`'s wherever the
+    save times fall on its grid, to rounding."""
+    ts = jnp.asarray(saveat.ts, dt.dtype)
+    starts = jnp.concatenate([t0[None], ts])
+    ends = jnp.concatenate([ts, t1[None]])
 
-    def chunk(carry, _):
-        carry = jax.lax.fori_loop(0, every, lambda _, c: one(c, None)[0], carry)
+    def gap(carry, ab):
+        a, b = ab
+        count = step_count(a, b, dt, jnp).astype(jnp.int32)
+        last = (b - a) - (count - 1).astype(dt.dtype) * dt
+
+        def one(k, c):
+            (R, y), taken = c
+            h = jnp.where(k + 1 < count, dt, last)
+            st = solver.step(problem, a + k.astype(dt.dtype) * dt, h, R, y)
+            return (st.R, st.y), taken + 1
+
+        carry = jax.lax.fori_loop(0, count, one, carry)
         return carry, carry[0]
 
     state0 = (problem.R0, problem.y0)
-    carry, saved = jax.lax.scan(chunk, (state0, jnp.asarray(0), jnp.asarray(0)), None, length=n_saves)
-    middle = (time((jnp.arange(n_saves) + 1) * every), saved)
-    state, _, taken = carry
-    ts, R, y, n_saved = _assemble(SaveAt(t0=True, steps=1), t0, state0, middle, None)
-    result = jnp.where(needed <= n, RESULTS.successful, RESULTS.max_steps_reached)
-    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
-    return Solution(ts, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)
+    (state, taken), saved = jax.lax.scan(gap, (state0, jnp.asarray(0, jnp.int32)), (starts, ends))
+    n = ts.shape[0]
+    middle = (ts, jax.tree_util.tree_map(lambda x: x[:n], saved))
+    end = (t1, state) if saveat.t1 else None
+    ts_out, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
+    result = jnp.where(validation.all_finite(state), RESULTS.successful, RESULTS.nonfinite)
+    return Solution(ts_out, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)
 
 
 def _fixed_stats(taken, solver) -> dict:
@@ -511,7 +523,13 @@ def _adaptive_loop(
         # the solver's own accuracy (no interpolation error), then on t1.
         stop = t1 if ts_req is None else jnp.min(jnp.where(ts_req > c.t, ts_req, t1))
         remaining = stop - c.t
-        clipped = c.h >= remaining
+        # A step within rounding of the remaining time ends on the stop (as
+        # `step_count` snaps fixed steps): steps of a constant dt that add up
+        # to a save time, up to the rounding of the times, would otherwise
+        # leave a step of a few ulps.
+        eps = jnp.finfo(remaining.dtype).eps
+        snap = jnp.minimum(jnp.maximum(1e-9 * c.h, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(stop))), 0.5 * c.h)
+        clipped = c.h + snap >= remaining
         last = clipped & (stop >= t1)
         t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(c.h))
         # Step by exactly the time the clock advances: far from t = 0, c.t + h

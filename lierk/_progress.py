@@ -25,7 +25,16 @@ class Progress:
     pipe, a batch job) one line is written each time the run passes another
     ``1/lines`` of ``total``, and at the end: each line has a larger
     percentage than the one before, with the elapsed time, the time left and
-    the rate.
+    the rate.  `lierk.sweep` (``progress=True``) and the ``lierk`` command
+    report through it; a loop of your own can too.
+
+    Example:
+        >>> bar = lierk.Progress("tee: t", 100.0, "s")
+        >>> with bar.compiling():
+        ...     run = jax.jit(piece).lower(*args).compile()
+        >>> for k in range(10):
+        ...     state = run(state)
+        ...     bar.update(10.0 * (k + 1))
 
     Args:
         label: what runs, e.g. ``"tee: t"``.

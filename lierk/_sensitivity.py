@@ -44,8 +44,8 @@ from . import so3, _validation as validation
 from ._controller import Controller
 from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from ._solution import RESULTS, SaveAt, raise_if_failed
-from ._global_error import TOLERANCE_RATIO, finer, fixed_refinement, richardson
-from ._solve import DEFAULT_ADAPTIVE_MAX_STEPS, num_steps, solve
+from ._global_error import finer_options, richardson
+from ._solve import num_steps, solve
 from ._solvers import AbstractSplitting
 from ._solvers.base import AbstractSolver
 
@@ -384,7 +384,7 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
         return jax.tree_util.tree_map(lambda d: _jacobian_algebra(R, d), dR), Jy, R, y, sol
 
     if estimate_error:
-        fine_options, ratio = _finer(solver, solve_options)
+        fine_options, ratio = finer_options(solver, **solve_options)
         pair = _stacked(solve_options, fine_options)
         if pair is None:
             (J, Jy, R, y, sol), (Jf, _, Rf, _, solf) = run(solve_options), run(fine_options)
@@ -456,27 +456,3 @@ def _resolving_modes(options: dict) -> dict:
     if isinstance(controller, Controller):
         controller = controller.resolving_modes()
     return {**{k: v for k, v in options.items() if k not in ("rtol", "atol")}, "controller": controller}
-
-
-def _finer(solver: AbstractSolver, options: dict) -> tuple[dict, float]:
-    """The options of the finer solve of a Richardson estimate, and how much
-    more accurate it is expected to be (as `solve`'s ``estimate_error``)."""
-    fine = dict(options)
-    if options.get("dt") is not None:
-        dt = options["dt"]
-        num, den = fixed_refinement()
-        fine["dt"] = (jax.lax.stop_gradient(dt) if eqx.is_array(dt) else float(dt)) * den / num
-        if options.get("max_steps") is not None:
-            fine["max_steps"] = -(-num * int(options["max_steps"]) // den)
-        return fine, (num / den) ** solver.order
-    if options.get("controller") is not None:
-        fine["controller"] = finer(options["controller"], solver.order)
-    else:
-        rtol = options.get("rtol")
-        if rtol is None:
-            raise ValueError(f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones")
-        atol = options.get("atol", rtol)
-        fine["rtol"], fine["atol"] = rtol / TOLERANCE_RATIO, atol / TOLERANCE_RATIO
-    fine["max_steps"] = 2 * (options.get("max_steps") or DEFAULT_ADAPTIVE_MAX_STEPS)
-    return fine, TOLERANCE_RATIO
-

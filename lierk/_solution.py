@@ -59,10 +59,14 @@ class SaveAt(eqx.Module):
             (fixed-step solves).  Adaptive solves store every accepted step in
             buffers of length ``max_steps``, padded with ``inf`` times and NaN
             states; `Solution.n_saved` counts the valid entries.
-        ts: ``(n,)`` non-decreasing times in ``[t0, t1]`` (adaptive solves).
+        ts: ``(n,)`` non-decreasing times in ``[t0, t1]``.
             Steps are shortened to end exactly on each of them, so the saved
             states carry the solver's own accuracy, with no interpolation
-            error; dense ``ts`` therefore cost steps.  For many times, or an
+            error; dense ``ts`` therefore cost steps.  With fixed steps
+            (``dt=``) each gap between save times takes ``ceil(gap/dt)``
+            steps, the last one shortened; the counts are computed at run
+            time, so every ``dt`` and every ``ts`` of a length share one
+            compilation and no ``max_steps`` is needed.  For many times, or an
             animation, ``dense=True`` and `Solution.evaluate` cost no steps.
         dense: keep every step's interpolant, for `Solution.evaluate` at any
             time (`lierk._interpolation`).  Memory O(steps): 352 to 448

@@ -15,16 +15,15 @@ from jax.typing import ArrayLike
 from . import _validation as validation
 from . import _global_error as global_error
 from ._adjoint import AbstractAdjoint, ForwardSensitivity
-from ._controller import Controller
+from ._controller import AbstractStepController, ConstantStep, Controller
 from ._event import Event, events_tuple, with_closures_converted
 from ._problems import AbstractProblem
-from ._loops import num_steps, solve_adaptive, solve_fixed
+from ._loops import num_steps, solve_adaptive, solve_fixed, solve_fixed_at
 from ._solution import RESULTS, SaveAt, Solution, raise_if_failed
 from ._solvers.base import AbstractSolver
 
 __all__ = ["solve", "num_steps"]
 
-DEFAULT_ADAPTIVE_MAX_STEPS = 4096
 
 
 def solve(
@@ -53,7 +52,12 @@ def solve(
     is traced (for example a swept ``dt`` under `vmap`), the step count
     cannot be read and ``max_steps`` (a Python int) must give it; steps past
     ``t1`` are exact no-ops, and falling short of ``t1`` is reported as
-    `RESULTS.max_steps_reached`.
+    `RESULTS.max_steps_reached`.  With ``saveat=SaveAt(ts=...)`` the steps
+    end on every save time instead (``ceil(gap/dt)`` steps per gap, the last
+    shortened), counted at run time: one compilation for every ``dt`` and
+    ``ts``, no ``max_steps``, and forward mode through the loop (reverse
+    mode through `ForwardSensitivity`, the default adjoint, up to its
+    ``max_inputs``).
 
     Adaptive steps (``rtol=``/``atol=`` or ``controller=``, with an embedded
     pair such as `RKF45`, `DP54` or `DOP853`): a while loop with the error
@@ -175,10 +179,12 @@ def solve(
         if given:
             raise ValueError(f"dt= asks for fixed steps, so {', '.join(given)} would be ignored; pass one or the other")
         dt, n = _check_fixed(dt, t0, t1, saveat, max_steps, dtype)
+        if events and saveat.ts is not None:
+            raise ValueError("event= with fixed steps saves by SaveAt(steps=...) or t0/t1, not SaveAt(ts=...) (yet)")
         adjoint = _check_adjoint(adjoint)
     else:
         controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
-        n = max_steps or DEFAULT_ADAPTIVE_MAX_STEPS
+        n = max_steps or global_error.DEFAULT_ADAPTIVE_MAX_STEPS
     checked = not validation.is_traced(t0, t1, dt, dt0, eps, saveat, controller)
     try:
         sol = _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked)
@@ -205,6 +211,10 @@ def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, e
     with validation.checked_on_host() if checked else contextlib.nullcontext():
         if eps is not None:
             sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
+        elif dt is not None and saveat.ts is not None:
+            sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat)
+            if estimate_error:
+                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, None)
         elif dt is not None:
             sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events)
             if estimate_error:
@@ -286,10 +296,19 @@ def _check_save_times(saveat: SaveAt, t0, t1, dtype) -> SaveAt:
     return eqx.tree_at(lambda s: s.ts, saveat, jnp.asarray(ts))
 
 
-def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, int]:
-    """The step ``dt`` (s) and the static step count of a fixed-step solve."""
+def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, int | None]:
+    """The step ``dt`` (s) and the static step count of a fixed-step solve
+    (None with ``SaveAt(ts=...)``, whose counts are traced)."""
     if saveat.ts is not None:
-        raise ValueError("SaveAt(ts=...) needs an adaptive solve; with fixed steps use SaveAt(steps=k)")
+        if saveat.steps:
+            raise ValueError(f"SaveAt(ts=...) and SaveAt(steps={saveat.steps}) cannot be combined: pass one or the other")
+        if saveat.dense:
+            raise ValueError("SaveAt(ts=...) with fixed steps cannot keep dense output (yet): use SaveAt(dense=True) alone")
+        if max_steps is not None:
+            raise ValueError(
+                f"max_steps={max_steps} does not apply to fixed steps with SaveAt(ts=...): each gap between save "
+                "times takes ceil(gap/dt) steps, counted at run time; leave max_steps out"
+            )
     dt = validation.check_scalar(dt, "dt", dtype)
     dt = validation.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
     if not validation.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
@@ -301,6 +320,8 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
             f"t = {float(max(abs(t0), abs(t1)))!r} (one ulp is about {float(np.spacing(max(abs(t0), abs(t1))))!r}): "
             "measure time from a closer origin (t0 = 0) or use float64"
         )
+    if saveat.ts is not None:
+        return dt, None
     n = num_steps(t0, t1, dt, max_steps)
     if saveat.steps and not (saveat.t0 or saveat.t1) and n // saveat.every == 0:
         raise ValueError(
@@ -311,11 +332,15 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
 
 
 def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint, estimate_error, dtype):
-    """``(controller, adjoint, dt0)`` of an adaptive solve."""
-    if not solver.adaptive:
+    """``(controller, adjoint, dt0)`` of a solve whose steps a controller
+    chooses (any `AbstractStepController`; `Controller` from ``rtol``)."""
+    if controller is not None and not isinstance(controller, AbstractStepController):
+        raise ValueError(f"controller must be a lierk.AbstractStepController such as lierk.Controller(...), got {controller!r}")
+    if not solver.adaptive and (controller is None or controller.decides):
         raise ValueError(
-            f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=, or target_error=. "
-            "Adaptive solvers: RKF45(), DP54(), DOP853()."
+            f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=, or target_error="
+            + (f"; {type(controller).__name__} decides on error estimates. " if controller is not None else ". ")
+            + "Adaptive solvers: RKF45(), DP54(), DOP853()."
         )
     if controller is None:
         if rtol is None:
@@ -325,8 +350,14 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
         controller = Controller.from_tolerances(rtol, atol)
     elif rtol is not None or atol is not None:
         raise ValueError("pass tolerances either as rtol=/atol= or inside controller=, not both")
-    elif not isinstance(controller, Controller):
-        raise ValueError(f"controller must be a lierk.Controller, got {controller!r}")
+    if not isinstance(controller, Controller):
+        if estimate_error:
+            raise ValueError(
+                f"estimate_error=True compares with a solve at a lierk.Controller's tolerances divided by 10; "
+                f"{type(controller).__name__} has none: estimate by hand (lierk.finer_options, lierk.richardson)"
+            )
+        if isinstance(controller, ConstantStep) and dt0 is None:
+            raise ValueError("ConstantStep() takes steps of dt0: pass dt0= (or dt= for fixed steps)")
     if saveat.steps is not False and saveat.steps is not True:
         raise ValueError(f"adaptive solves save every accepted step (SaveAt(steps=True)), not every {saveat.steps}-th")
     if saveat.steps and saveat.ts is not None:
@@ -339,7 +370,7 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     eps = float(np.finfo(dtype).eps)
     # In NumPy: inside a trace even a sum of concrete arrays is a tracer (a
     # Controller built outside `jit` and closed over inside it).
-    total = None if validation.is_traced(controller.rtol, controller.atol) else (
+    total = None if not isinstance(controller, Controller) or validation.is_traced(controller.rtol, controller.atol) else (
         float(np.asarray(controller.rtol)) + float(np.asarray(controller.atol))
     )
     if total is not None and total < eps:
@@ -364,6 +395,10 @@ def _check_adjoint(adjoint) -> AbstractAdjoint:
 # fixed-step scan has no use for it).
 def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n, events):
     return solve_fixed(problem, solver, t0, t1, dt, saveat, n, events)
+
+
+def _fixed_at_loop(adjoint, problem, solver, t0, t1, dt, saveat):
+    return solve_fixed_at(problem, solver, t0, t1, dt, saveat)
 
 
 def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events):

@@ -78,13 +78,22 @@ _CHECKED_ON_HOST = contextvars.ContextVar("lierk_checked_on_host", default=False
 
 @contextlib.contextmanager
 def checked_on_host():
-    """Trace a block whose traced inputs the caller has already checked on
-    the host (say, the step times it computed itself): `check` then passes
-    them through instead of adding a run-time check.
+    """Trace solves whose traced inputs the caller has checked itself.
 
-    A run-time check is a host callback, and JAX's persistent compilation
-    cache does not keep programs with host callbacks: a program traced in
-    this block can be loaded from the cache in a later process."""
+    Inside `jax.jit`, `lierk.solve` cannot see the values of traced inputs
+    (``t1``, ``dt``, tolerances, save times), so it checks them at run time
+    (`equinox.error_if`: a bad value raises when the program runs).  A
+    run-time check is a host callback, and JAX's persistent compilation
+    cache does not keep programs with host callbacks.  Solves traced inside
+    this block skip those checks: use it when the values are your own and
+    known to be valid (say, step sizes your code computed), so that the
+    program can be cached.  Values known while tracing are still checked.
+
+    Example:
+        >>> with lierk.checked_on_host():
+        ...     run = jax.jit(lambda dt: lierk.solve(body, lierk.RKMK4(), 1.0, dt=dt, max_steps=100))
+        ...     run.lower(0.01).compile()
+    """
     token = _CHECKED_ON_HOST.set(True)
     try:
         yield
@@ -112,7 +121,8 @@ def check(x, ok: Callable, message: str):
 
 
 def show(x) -> str:
-    """An array (or number) on one line, for an error message."""
+    """An array (or number) on one line, six significant digits, as lierk's
+    error messages print values: ``show([1, 2.5])`` is ``"[1. , 2.5]"``."""
     return " ".join(np.array2string(np.asarray(x), precision=6, separator=", ").split())
 
 
@@ -136,7 +146,10 @@ def check_scalar(x, name: str, dtype=None, *, bound: str = "finite"):
 
 
 def check_attitude(R0: ArrayLike | None, dtype) -> Array:
-    """Validate an initial attitude: ``(3, 3)``, finite, in SO(3) to 1e-6."""
+    """An initial attitude ``R0`` (body -> space), ``(3, 3)``, checked: finite,
+    and a rotation to 1e-6 (``||R^T R - I|| < 1e-6``, ``det R > 0``).
+    Returns it as a JAX array of ``dtype`` (the identity for None); raises
+    `ValueError` naming ``R0`` otherwise (at run time for a traced value)."""
     if R0 is None:
         return as_jax(np.eye(3), dtype)
     R0 = asarray(R0, dtype, "R0")
@@ -363,9 +376,10 @@ def check_inertia(inertia: ArrayLike) -> Array:
 
 
 def impossible_inertia(inertia: ArrayLike, name: str = "inertia") -> str | None:
-    """The warning for a concrete, positive-definite ``inertia`` whose
-    principal moments break the triangle inequality (no rigid body has them),
-    naming it ``name``; None when they keep it."""
+    """The warning for a concrete, positive-definite ``inertia`` (``(3, 3)``,
+    kg m^2) whose principal moments break the triangle inequality
+    ``I_max <= I_a + I_b`` (no rigid body has them), naming it ``name``;
+    None when they keep it."""
     moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
     if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
         # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
@@ -376,8 +390,9 @@ def impossible_inertia(inertia: ArrayLike, name: str = "inertia") -> str | None:
 
 
 def nearly_singular_inertia(inertia: ArrayLike, dtype, name: str = "inertia") -> str | None:
-    """The warning for a concrete, positive-definite ``inertia`` too close
-    to singular for ``dtype``, naming it ``name``; None otherwise."""
+    """The warning for a concrete, positive-definite ``inertia`` (``(3, 3)``,
+    kg m^2) too close to singular for ``dtype`` (``I_min/I_max`` below 1e-10
+    in float64, 1e-5 in float32), naming it ``name``; None otherwise."""
     moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
     limit = 1e-10 if dtype == jnp.float64 else 1e-5
     if moments.min() < limit * moments.max():
@@ -409,10 +424,10 @@ def _warned(given) -> bool:
 
 @contextlib.contextmanager
 def inertia_warned():
-    """Validate inertias without warning about them (an impossible or nearly
-    singular one) in this block: the caller has warned once already, in its
-    own words (`lierk.app.scene` names the key), and builds the body's effects
-    and problem from it."""
+    """Build bodies in this block without warning about their inertia (an
+    impossible or a nearly singular one): the caller has warned once
+    already, in its own words (`lierk.app.scene` names the key), and builds
+    the body's effects and problem from it.  Errors are still raised."""
     token = _INERTIA_WARNED.set(True)
     try:
         yield

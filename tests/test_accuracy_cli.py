@@ -328,9 +328,8 @@ def test_one_compilation_per_solver_and_the_runs_are_lierk_solve_s():
         for row in rep.rows:
             m = A.method(row.solver)
             if row.setting == "dt":
-                every = round((ts[1] - ts[0]) / row.value)
-                sol = lierk.solve(p, m.solver, scene.t1, dt=row.value, saveat=lierk.SaveAt(t0=True, steps=every),
-                                  max_steps=every * (len(ts) - 1), estimate_error=True, throw=False)
+                sol = lierk.solve(p, m.solver, scene.t1, dt=row.value, saveat=lierk.SaveAt(ts=ts), estimate_error=True,
+                                  throw=False)
             else:
                 sol = lierk.solve(p, m.solver, scene.t1, rtol=row.value, saveat=lierk.SaveAt(ts=ts),
                                   max_steps=2**17, estimate_error=True, throw=False)

@@ -259,6 +259,120 @@ def test_adaptive_solve_never_recompiles():
     assert errs[0] > 10 * errs[-2] and errs[1] > 10 * errs[-1], errs
 
 
+# --- fixed steps that end on given times ----------------------------------------------
+
+
+def test_fixed_steps_end_on_the_save_times_with_one_program_for_every_step():
+    """``dt=`` with ``SaveAt(ts=...)``: each gap between save times takes
+    ceil(gap/dt) steps of dt, the last shortened to end on the time.  The
+    counts are traced, so every dt and every ts of a length run one program;
+    on a grid the save times share with ``SaveAt(steps=k)`` the states are
+    those of the scan, and off it the error is still fourth order against
+    the closed form."""
+    body = lierk.FreeRigidBody(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]))
+
+    @jax.jit
+    @eqx.debug.assert_max_traces(max_traces=1)
+    def run(dt, ts):
+        sol = lierk.solve(body, lierk.RKMK4(), 2.0, dt=dt, saveat=lierk.SaveAt(ts=ts))
+        return sol.R, sol.stats["num_steps"]
+
+    on_grid = np.linspace(0.0, 2.0, 5)
+    for dt, every in ((0.1, 5), (0.05, 10)):
+        R, steps = run(np.float64(dt), on_grid)
+        scan = lierk.solve(body, lierk.RKMK4(), 2.0, dt=dt, saveat=lierk.SaveAt(t0=True, steps=every))
+        np.testing.assert_allclose(R, scan.R, rtol=0, atol=1e-14)
+        assert int(steps) == 20 * round(0.1 / dt)
+    off_grid = np.array([0.0, 0.33, 0.9, 1.45, 2.0])
+    exact = np.asarray(lierk.exact.free_rigid_body(np.diag([1.0, 2.0, 3.0]), body.omega0, off_grid)[0])
+    errors = []
+    for dt in (0.04, 0.02):
+        R, steps = run(np.float64(dt), off_grid)
+        gaps = np.diff(off_grid)
+        assert int(steps) == int(np.sum(np.ceil(gaps / dt - 1e-9)))
+        errors.append(np.abs(np.asarray(R) - exact).max())
+    assert 3.8 < np.log2(errors[0] / errors[1]) < 4.2, errors
+
+
+def test_fixed_steps_at_save_times_differentiate_and_estimate_their_error():
+    """Forward and reverse mode (through `ForwardSensitivity`) agree with
+    finite differences, and ``estimate_error=True`` (Richardson's, from a
+    solve at 2/3 of the step) is the true error to within 10%."""
+    ts = np.linspace(0.0, 1.5, 4)
+
+    def final(w):
+        return lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 1.5, dt=0.05, saveat=lierk.SaveAt(ts=ts)).R[-1]
+
+    w = np.asarray(OMEGA_GENERIC, float)
+    fwd, rev = jax.jit(jax.jacfwd(final))(w), jax.jit(jax.jacrev(final))(w)
+    fd = np.stack([(final(w + 1e-6 * e) - final(w - 1e-6 * e)) / 2e-6 for e in np.eye(3)], axis=-1)
+    np.testing.assert_allclose(fwd, fd, atol=1e-7)
+    np.testing.assert_allclose(rev, fwd, atol=1e-12)
+    sol = lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 1.5, dt=0.05, saveat=lierk.SaveAt(ts=ts), estimate_error=True)
+    err = np.linalg.norm(np.asarray(sol.R) - np.asarray(lierk.exact.free_rigid_body(TEE, w, ts)[0]), axis=(-2, -1))
+    est = np.asarray(sol.error_estimate)
+    np.testing.assert_allclose(est[1:], err[1:], rtol=0.1)
+
+
+def test_fixed_steps_at_save_times_refuse_what_they_cannot_honour():
+    body, ts = _tee(), np.linspace(0.0, 1.0, 3)
+    for kw, match in (
+        (dict(max_steps=10), "max_steps=10 does not apply to fixed steps with SaveAt"),
+        (dict(saveat=lierk.SaveAt(ts=ts, steps=2)), r"SaveAt\(ts=...\) and SaveAt\(steps=2\) cannot be combined"),
+        (dict(saveat=lierk.SaveAt(ts=ts, dense=True)), "cannot keep dense output"),
+        (dict(event=lierk.Event(lambda t, R, y: R[2, 2])), "event= with fixed steps"),
+    ):
+        kw = {"saveat": lierk.SaveAt(ts=ts), **kw}
+        with pytest.raises(ValueError, match=match):
+            lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.1, **kw)
+
+
+class _GrowingStep(lierk.AbstractStepController):
+    """Each step 1.25 times the last, every one taken: a controller of a
+    user's own, with no error estimate."""
+
+    decides = False
+
+    def init(self, problem, solver, t0, t1, dt0, floor_eps):
+        return None, dt0, None
+
+    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last):
+        import jax.numpy as jnp
+
+        return lierk.Decision(jnp.asarray(True), 1.25 * h_proposed, h <= 0, jnp.asarray(False), None)
+
+
+def test_solve_takes_any_step_controller_and_constant_steps_end_on_save_times():
+    """``controller=`` takes any `AbstractStepController`: `ConstantStep`
+    (with dt0) takes the steps of ``dt=`` with ``SaveAt(ts=...)``, however
+    its steps add up at the save times (without snapping the last step to
+    the time, a step of a few ulps was left, and the solve failed), and a
+    controller of one's own takes the steps it decides, with a
+    non-adaptive solver when it needs no error estimate."""
+    body = lierk.FreeRigidBody(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]))
+    for t1, n, k in ((1.2, 4, 4), (1.0, 7, 3), (1.0, 7, 7), (0.7, 10, 7)):
+        ts = np.linspace(0.0, t1, n)
+        dt = t1 / (n - 1) / k
+        a = lierk.solve(body, lierk.RKMK4(), t1, controller=lierk.ConstantStep(), dt0=dt, saveat=lierk.SaveAt(ts=ts))
+        b = lierk.solve(body, lierk.RKMK4(), t1, dt=dt, saveat=lierk.SaveAt(ts=ts))
+        assert int(a.stats["num_steps"]) == int(b.stats["num_steps"]) == (n - 1) * k
+        np.testing.assert_allclose(a.R, b.R, rtol=0, atol=1e-15)
+    sol = lierk.solve(body, lierk.RKMK4(), 1.0, controller=_GrowingStep(), dt0=0.01)
+    steps = np.cumsum(0.01 * 1.25 ** np.arange(40))
+    assert int(sol.stats["num_steps"]) == int(np.searchsorted(steps, 1.0 - 1e-12)) + 1
+    exact = np.asarray(lierk.exact.free_rigid_body(np.diag([1.0, 2.0, 3.0]), body.omega0, 1.0)[0])
+    assert np.abs(np.asarray(sol.R[-1]) - exact).max() < 1e-4
+    for kw, match in (
+        (dict(controller="pi"), "controller must be a lierk.AbstractStepController"),
+        (dict(controller=lierk.ConstantStep()), "ConstantStep\\(\\) takes steps of dt0"),
+        (dict(controller=lierk.ConstantStep(), dt0=0.1, estimate_error=True), "estimate_error=True compares"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            lierk.solve(body, lierk.RKMK4(), 1.0, **kw)
+    with pytest.raises(ValueError, match="RKMK4 has no error estimate.*Controller decides on error estimates"):
+        lierk.solve(body, lierk.RKMK4(), 1.0, controller=lierk.Controller(1e-6, 1e-6))
+
+
 # --- bad input --------------------------------------------------------------------------
 
 

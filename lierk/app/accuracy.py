@@ -15,19 +15,18 @@ records
   then the minimum of a few repeats, each ended by `jax.block_until_ready`);
 - the true error ``max_t ||R(t) - R_ref(t)||_F`` over the saved times;
 - the method's own estimate of it (Richardson's, as ``estimate_error=True``
-  computes it: a solve at ``2 dt/3`` or ``rtol/10``, the same maximum);
+  computes it: the finer solve of `lierk.finer_options`, at ``2 dt/3`` or
+  ``rtol/10``, and `lierk.richardson`, the same maximum);
 - the number of steps.
 
-Each method compiles once: ``dt`` and the tolerances are traced values of
-one program, and a fixed-step run's step count is a traced loop bound
-(`lierk._loops.solve_fixed_counted`: the same steps, numbers and cost as
-`lierk.solve`'s).  The report says how much of the wall time went to
-compiling.
+Each method compiles once: ``dt`` and the controller are traced values of
+one program, `lierk.solve` with ``SaveAt(ts=...)``, whose fixed steps end on
+every saved time and are counted at run time.  The report says how much of
+the wall time went to compiling.
 
 The saved times are ``n_times`` equally spaced times from 0 to ``t1``, the
 same for every run: fixed steps are chosen so that a whole number of them
-fits between two saved times, and adaptive solves hit the times exactly
-(`SaveAt(ts=...)`).
+fits between two saved times, and every solve ends steps on them.
 
 The reference ``R_ref``:
 
@@ -67,7 +66,9 @@ from typing import Any
 
 import numpy as np
 
-from .._progress import Progress
+from lierk import Progress
+
+from ._device import to_device
 
 __all__ = ["Row", "AccuracyReport", "work_precision", "figure", "to_json", "DECADES", "METHODS", "default_solvers",
            "method"]
@@ -478,18 +479,16 @@ def _plan(chosen, settings, problem, t1, n_times, n_max, max_steps, eps) -> list
 
 class _Programs:
     """The compiled solves of one `work_precision` call: one program per
-    method (and per ``max_steps``), whose times, step or tolerance are traced
-    arguments, so every setting, its finer twin (the error estimate) and the
-    reference reuse it.  `compile` builds them all first, several at once
-    (XLA compiles outside Python's lock), before anything is timed."""
+    method (and per ``max_steps``), whose times, step or controller are
+    traced arguments, so every setting, its finer twin (the error estimate)
+    and the reference reuse it.  `compile` builds them all first, several at
+    once (XLA compiles outside Python's lock), before anything is timed."""
 
     def __init__(self, problem, t1: float, ts: np.ndarray, max_steps: int):
-        from .._validation import as_jax
-
         dtype = problem.R0.dtype
         self.problem, self.max_steps = problem, max_steps
         self.ts_np = ts
-        self.t0, self.t1, self.ts = as_jax(0.0, dtype), as_jax(t1, dtype), as_jax(ts, dtype)
+        self.t0, self.t1, self.ts = (to_device(v, dtype) for v in (0.0, t1, ts))
         self.dtype = dtype
         self._programs: dict = {}  # key -> the jitted function, or once compiled its executable
         self._compiled: set = set()
@@ -500,8 +499,8 @@ class _Programs:
         threads as there are cores."""
         import concurrent.futures
 
-        todo = {k: self._jitted(k).lower(*self._arguments(k, 1.0, 1)) for k in dict.fromkeys(keys)
-                if k not in self._compiled}
+        todo = {k: self._jitted(k).lower(*self._arguments(k, {"dt": 1.0} if k[1] == "fixed" else {"rtol": 1.0}))
+                for k in dict.fromkeys(keys) if k not in self._compiled}
         if not todo:
             return
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(todo), os.cpu_count() or 1))) as pool:
@@ -515,47 +514,51 @@ class _Programs:
             return (m, "adaptive", self.max_steps if max_steps is None else max_steps)
         return (m, "fixed", None)
 
-    def run(self, m: _Method, value: float, every: int = 1, max_steps: int | None = None):
-        """A call of ``m``'s program at ``value``: ``rtol = atol`` (adaptive,
-        ``lierk.solve(..., saveat=SaveAt(ts=ts))``), or ``every`` fixed steps
-        of ``value`` between saved times (`lierk._loops.solve_fixed_counted`,
-        flagged for invariant drift as `lierk.solve` flags it)."""
+    def run(self, m: _Method, options: dict, max_steps: int | None = None):
+        """A call of ``m``'s program with ``options``: ``{"dt": dt}`` (fixed
+        steps ending on the saved times), or ``{"rtol": tol}`` (``atol`` the
+        same) or ``{"controller": c}`` (adaptive), as `lierk.solve` takes
+        them (`lierk.finer_options` gives the finer ones)."""
         import jax
 
         key = self.key(m, max_steps)
         if key not in self._programs:
             self._programs[key] = self._jitted(key)
-        program, args = self._programs[key], self._arguments(key, value, every)
+        program, args = self._programs[key], self._arguments(key, options)
         return lambda: jax.block_until_ready(program(*args))
 
-    def _arguments(self, key, value: float, every: int) -> tuple:
-        from .._validation import as_jax
+    def _arguments(self, key, options: dict) -> tuple:
+        from lierk import Controller
 
         if key[1] == "fixed":
-            return (self.problem, self.t0, self.t1, as_jax(value, self.dtype), as_jax(every))
-        return (self.problem, self.t0, self.t1, self.ts, as_jax(value, self.dtype))
+            return (self.problem, self.t0, self.t1, self.ts, to_device(options["dt"], self.dtype))
+        import equinox as eqx
+        import jax
+
+        c = options.get("controller")
+        if c is None:
+            c = Controller.from_tolerances(options["rtol"], options.get("atol", options["rtol"]))
+        # Every leaf in the problem's dtype, so that a finer controller runs the same program.
+        c = jax.tree_util.tree_map(lambda x: to_device(x, self.dtype) if eqx.is_array(x) else x, c)
+        return (self.problem, self.t0, self.t1, self.ts, c)
 
     def _jitted(self, key):
         import equinox as eqx
 
-        from .._loops import solve_fixed_counted
-        from lierk import SaveAt
-        from lierk import solve
-        from .._solve import _flag_drift
-        from .._validation import checked_on_host
+        from lierk import SaveAt, checked_on_host, solve
 
         m, kind, steps = key
         if kind == "fixed":
-            n_saves = len(self.ts_np) - 1
 
-            def run(problem, t0, t1, dt, every):
-                return _flag_drift(problem, solve_fixed_counted(problem, m.solver, t0, t1, dt, every, n_saves))
+            def run(problem, t0, t1, ts, dt):
+                # The times and steps are this module's own, checked here.
+                with checked_on_host():
+                    return solve(problem, m.solver, t1, t0=t0, dt=dt, saveat=SaveAt(ts=ts), throw=False)
         else:
 
-            def run(problem, t0, t1, ts, rtol):
-                # The times and tolerances are this module's own, checked here.
+            def run(problem, t0, t1, ts, controller):
                 with checked_on_host():
-                    return solve(problem, m.solver, t1, t0=t0, rtol=rtol, atol=rtol, saveat=SaveAt(ts=ts),
+                    return solve(problem, m.solver, t1, t0=t0, controller=controller, saveat=SaveAt(ts=ts),
                                  max_steps=steps, throw=False)
 
         return eqx.filter_jit(run)
@@ -582,11 +585,9 @@ def _max_gap(R, R_ref) -> float:
 def _richardson(sol, fine, ratio: float) -> float:
     """Richardson's estimate of ``max_t ||R(t) - R_exact(t)||_F`` for ``sol``
     from ``fine``, a solve ``ratio`` times more accurate (``inf`` if it
-    failed): ``||R - R_fine|| ratio/(ratio - 1)``, as `lierk.solve`'s
-    ``estimate_error=True`` computes it."""
-    from lierk import RESULTS
-
-    from .._global_error import richardson
+    failed), as `lierk.solve`'s ``estimate_error=True`` computes it
+    (`lierk.richardson`)."""
+    from lierk import RESULTS, richardson
 
     if int(fine.result) != RESULTS.successful:
         return math.inf
@@ -610,7 +611,7 @@ def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
     # The rows' programs, with their max_steps first, then with more room.
     for steps in (max_steps, 16 * max_steps):
-        ref = programs.run(method("DOP853"), rtol_ref, max_steps=steps)()
+        ref = programs.run(method("DOP853"), {"rtol": rtol_ref}, max_steps=steps)()
         if int(ref.result) == RESULTS.successful:
             break
     if int(ref.result) != RESULTS.successful:
@@ -620,13 +621,14 @@ def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     R_ref = np.asarray(ref.R, dtype=float)
     reference = f"DOP853, rtol = atol = {rtol_ref:.0e}, {int(ref.stats['num_steps'])} steps"
     # Its own error: Richardson's estimate from a solve at rtol / 10, as for the rows.
-    from .._global_error import TOLERANCE_RATIO
+    from lierk import finer_options
 
-    fine = programs.run(method("DOP853"), rtol_ref / TOLERANCE_RATIO, max_steps=steps)()
-    error = _richardson(ref, fine, TOLERANCE_RATIO)
+    fine_options, ratio = finer_options(method("DOP853").solver, rtol=rtol_ref)
+    fine = programs.run(method("DOP853"), fine_options, max_steps=steps)()
+    error = _richardson(ref, fine, ratio)
     tick()
     for steps in (max_steps, 16 * max_steps):
-        chk = programs.run(method("DP54"), rtol_ref, max_steps=steps)()
+        chk = programs.run(method("DP54"), {"rtol": rtol_ref}, max_steps=steps)()
         if int(chk.result) == RESULTS.successful:
             break
     check = f"DP54, rtol = atol = {rtol_ref:.0e}"
@@ -644,21 +646,16 @@ def _run(programs: _Programs, m: _Method, v: float, repeats: int, R_ref) -> Row:
     """One setting ``v`` of method ``m``: timed, measured against ``R_ref``,
     and with Richardson's estimate of its error from a finer run of the same
     program (as ``lierk.solve(..., estimate_error=True)`` makes it)."""
-    from lierk import RESULTS
-
-    from .._global_error import TOLERANCE_RATIO, fixed_refinement
+    from lierk import RESULTS, finer_options
 
     ts_np = programs.ts_np
     eps = float(np.finfo(programs.dtype).eps)
     t1 = float(programs.t1)
-    if m.adaptive:
-        run = programs.run(m, v)
-        fine, ratio = programs.run(m, v / TOLERANCE_RATIO), TOLERANCE_RATIO
-    else:
-        every = max(1, round((ts_np[1] - ts_np[0]) / v))
-        run = programs.run(m, v, every)
-        num, den = fixed_refinement(every)
-        fine, ratio = programs.run(m, v * den / num, every * num // den), (num / den) ** m.solver.order
+    options = {"rtol": v} if m.adaptive else {"dt": v}
+    run = programs.run(m, options)
+    # The finer solve of `lierk.solve`'s estimate_error=True, in the same program.
+    fine_options, ratio = finer_options(m.solver, **options)
+    fine = programs.run(m, {k: fine_options[k] for k in ("dt", "controller") if k in fine_options})
     sol = run()  # compiles; the timed calls follow
     if not np.allclose(np.asarray(sol.ts, dtype=float), ts_np, rtol=0, atol=64 * eps * max(1.0, t1)):
         raise AssertionError(f"{m.name} saved at {np.asarray(sol.ts)}, not at the common times {ts_np}")

@@ -238,7 +238,7 @@ def sweep(args) -> int:
     import numpy as np
 
     from . import plot
-    from .._progress import Progress
+    from lierk import Progress
     from .omega_sweep import omega_grid, open_sweep_store, sweep_omega0
 
     omega0 = np.asarray(scene.problem.omega0, dtype=float)

@@ -42,7 +42,7 @@ cannot say: rules across keys, rotations and non-zero axes, runs too large
 to attempt (more than `MAX_STEPS` fixed steps, more than `MAX_SAVED` saved
 states) and a body whose initial momentum, energy or inverse inertia
 overflows, or whose state does not fit the working precision
-(`lierk._validation.state_range_error`: ``|L|^2``, ``2T``, ``2T I_k``, the
+(`lierk.checks.state_range_error`: ``|L|^2``, ``2T``, ``2T I_k``, the
 moments and their product must be normal numbers; 1e300 kg m^2 spinning at 1
 rad/s is refused).  An inertia no rigid body has (the triangle inequality)
 is warned about once, as ``body.inertia``.
@@ -92,8 +92,8 @@ from lierk import num_steps as _num_steps
 from lierk import solve as _solve
 
 # Not yet public: the input checks shared with the library.
-from .. import _validation as validation
-from .._validation import check_attitude
+from lierk import checks as validation
+from lierk.checks import check_attitude
 from . import scene_schema as schema
 from .scene_schema import MAX_SAVED, MAX_STEPS
 
@@ -764,7 +764,7 @@ def _run(r):
 def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key: str) -> None:
     """The body's inverse inertia, initial momentum and energy must be finite
     (a body of 1e-320 kg m^2, or 1e200 kg m^2 spinning at 1e200 rad/s, is
-    not), and its state must fit ``dtype`` (`lierk._validation.state_range_error`:
+    not), and its state must fit ``dtype`` (`lierk.checks.state_range_error`:
     |L|^2 of 1e300 kg m^2 at 1 rad/s overflows, although |L| does not).
     ``key`` names the inertia in messages."""
     inertia = np.asarray(inertia, dtype=float)

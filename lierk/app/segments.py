@@ -9,11 +9,11 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from .._progress import Progress
+from lierk import Progress
 from lierk import EventRecord
 from lierk import RESULTS, SaveAt, Solution
-from lierk import num_steps, solve
-from .._validation import as_jax, checked_on_host
+from lierk import checked_on_host, num_steps, solve
+from ._device import to_device
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -94,8 +94,8 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
             ta = float(group[-1])
 
     def arguments(problem, ta, tb, group):
-        args = (problem, as_jax(ta, dtype), as_jax(tb, dtype))
-        return args if group is None else args + (as_jax(group, dtype),)
+        args = (problem, to_device(ta, dtype), to_device(tb, dtype))
+        return args if group is None else args + (to_device(group, dtype),)
 
     with bar.compiling():
         piece = piece.lower(*arguments(problem, *pieces[0])).compile()
@@ -129,7 +129,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         stats = {k: stats.get(k, 0) + int(v) for k, v in sol.stats.items()}
         if _check(code, ta, tb, throw):
             break
-        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: as_jax(x[-1]), sol.y))
+        problem = problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: to_device(x[-1]), sol.y))
         bar.update(tb)
 
     ts = np.concatenate(ts_out)
@@ -140,12 +140,12 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[: len(ts)]
     y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
     return Solution(
-        ts=as_jax(ts, dtype),
-        R=as_jax(np.concatenate(R_out), dtype),
-        y=jax.tree_util.tree_map(lambda x: as_jax(x, dtype), y),
-        n_saved=as_jax(len(ts)),
+        ts=to_device(ts, dtype),
+        R=to_device(np.concatenate(R_out), dtype),
+        y=jax.tree_util.tree_map(lambda x: to_device(x, dtype), y),
+        n_saved=to_device(len(ts)),
         stats=stats,
-        result=as_jax(code),
+        result=to_device(code),
         events=tuple(_joined(e, records) for e, records in zip(events, found)) if events else None,
     )
 
@@ -160,11 +160,11 @@ def _joined(event, records) -> EventRecord:
     y = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *[jax.tree_util.tree_map(lambda a: a[: len(k)], r.y) for k, r in kept])
     pad = n - len(ts)
     return EventRecord(
-        ts=as_jax(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
-        R=as_jax(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
-        y=jax.tree_util.tree_map(lambda a: as_jax(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
-        count=as_jax(np.int32(sum(int(r.count) for r in records))),
-        stopped=as_jax(np.bool_(any(bool(r.stopped) for r in records))),
+        ts=to_device(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
+        R=to_device(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
+        y=jax.tree_util.tree_map(lambda a: to_device(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
+        count=to_device(np.int32(sum(int(r.count) for r in records))),
+        stopped=to_device(np.bool_(any(bool(r.stopped) for r in records))),
     )
 
 

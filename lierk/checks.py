@@ -1,0 +1,27 @@
+"""The checks lierk applies to a rigid body's inputs, for a front end that
+checks a whole input first and names its own keys (as `lierk.app.scene`
+does for scene files: ``body.inertia``, ``initial.attitude``).
+
+The problems (`lierk.FreeRigidBody`, `lierk.RigidBodyWithEffects`) run the
+same checks when they are built, naming their own arguments; these
+functions let a caller run them first, word the messages itself, and then
+build the problem inside `inertia_warned` so that nothing is warned twice.
+
+- `check_attitude`: an initial attitude, a rotation matrix.
+- `impossible_inertia`, `nearly_singular_inertia`: the warnings an inertia
+  deserves (no rigid body has it; too close to singular for the precision).
+- `state_range_error`: why a body's state does not fit a float type.
+- `inertia_warned`: build bodies without repeating those warnings.
+- `show`: a value on one line, as lierk's messages print them.
+
+All take concrete values (NumPy arrays or numbers), on the host.
+"""
+
+from ._validation import check_attitude as check_attitude
+from ._validation import impossible_inertia as impossible_inertia
+from ._validation import inertia_warned as inertia_warned
+from ._validation import nearly_singular_inertia as nearly_singular_inertia
+from ._validation import show as show
+from ._validation import state_range_error as state_range_error
+
+__all__ = ["check_attitude", "impossible_inertia", "nearly_singular_inertia", "state_range_error", "inertia_warned", "show"]
