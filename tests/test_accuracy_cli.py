@@ -58,10 +58,10 @@ def _exact_error(scene, row, ts):
     p = scene.problem
     if row["setting"] == "dt":
         m = round((ts[1] - ts[0]) / row["value"])
-        sol = lierk.solve(p, lierk.app.scene.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
+        sol = lierk.solve(p, lierk.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
                           saveat=lierk.SaveAt(t0=True, steps=m))
     else:
-        sol = lierk.solve(p, lierk.app.scene.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
+        sol = lierk.solve(p, lierk.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
                           saveat=lierk.SaveAt(ts=np.asarray(ts)), max_steps=2**17)
     np.testing.assert_allclose(sol.ts, ts, rtol=0, atol=1e-12)
     R_exact = np.asarray(lierk.exact.free_rigid_body(p.inertia, p.omega0, np.asarray(ts), p.R0)[0])
