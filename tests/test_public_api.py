@@ -74,3 +74,10 @@ def test_the_application_uses_only_the_public_api():
              for m in re.findall(r"\blierk\.(_\w+)", "\n".join(
                  line for line in p.read_text().splitlines() if not line.lstrip().startswith("#")))}
     assert not reads, sorted(reads)
+
+
+def test_every_public_name_is_rendered_in_the_api_reference():
+    text = "\n".join(p.read_text() for p in (ROOT.parent / "docs" / "api").glob("*.md"))
+    documented = set(re.findall(r"^::: lierk\.(\w+)", text, re.M))
+    missing = sorted(n for n in dir(lierk) if not n.startswith("_") and n != "app" and n not in documented)
+    assert not missing, missing
