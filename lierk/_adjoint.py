@@ -26,6 +26,9 @@ trade-off as diffrax's adjoints; adaptive loops are built on
 Fixed-step solves run through `lax.scan`, which both modes go through by
 themselves; every adjoint but `ForwardSensitivity` leaves them to it (reverse
 mode then recomputes blocks of about sqrt(steps) steps: bounded memory).
+Fixed steps that end on save times (``SaveAt(ts=...)``) run loops of traced
+length, which only forward mode enters: reverse mode through them needs
+`ForwardSensitivity` within its ``max_inputs``.
 """
 
 from __future__ import annotations
@@ -127,7 +130,8 @@ class ForwardSensitivity(AbstractAdjoint):
             (None: 6 for fixed steps, 32 for adaptive ones, about where
             ``fallback`` becomes cheaper).
         fallback: the adjoint used beyond ``max_inputs``.  Fixed steps then go
-            through the scan itself whatever it is; adaptive ones need an
+            through the scan itself whatever it is (with ``SaveAt(ts=...)``,
+            forward mode only); adaptive ones need an
             adjoint that supports forward mode, `DirectAdjoint` (both modes,
             with a warning: its cost grows with ``max_steps``) or
             `ForwardMode` (forward only).  For reverse mode with respect to

@@ -121,8 +121,12 @@ def finer_options(solver, **options) -> tuple[dict, float]:
         ``max_steps`` and ``k`` scaled to match.  Adaptive: both tolerances
         divided by 10 and the controller's turn bound ``max_angle`` by
         ``10^(1/order)`` (`finer`), ``K = 10``, ``max_steps`` doubled
-        (default 4096).  Values may be traced; ``dt`` and the tolerances of
-        the finer solve are out of the gradient (a diagnostic).
+        (default 4096), ``dt0`` left to the solve.  Values may be traced;
+        ``dt`` and the tolerances of the finer solve are out of the gradient
+        (a diagnostic).  One difference remains: ``estimate_error``'s finer
+        solve floors its local error test at 5 eps, a solve you run at 50
+        eps, so within a few hundred eps of rounding (rtol below about
+        1e-13 in float64) the two estimates differ.
     """
     fine = dict(options)
     if options.get("dt") is not None:
@@ -134,7 +138,7 @@ def finer_options(solver, **options) -> tuple[dict, float]:
         if options.get("max_steps") is not None:
             fine["max_steps"] = -(-num * int(options["max_steps"]) // den)
         if every is not None:
-            fine["saveat"] = eqx.tree_at(lambda s: s.steps, saveat, every * num // den)
+            fine["saveat"] = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=every * num // den, ts=saveat.ts, dense=saveat.dense)
         return fine, (num / den) ** solver.order
     controller = options.get("controller")
     if controller is None:
@@ -147,6 +151,8 @@ def finer_options(solver, **options) -> tuple[dict, float]:
         raise ValueError(f"finer_options tightens a lierk.Controller's tolerances; {type(controller).__name__} has none")
     fine["controller"] = finer(_diagnostic(controller), solver.order)
     fine["max_steps"] = 2 * (options.get("max_steps") or DEFAULT_ADAPTIVE_MAX_STEPS)
+    # The finer solve chooses its own first step, as estimate_error's does.
+    fine.pop("dt0", None)
     return fine, TOLERANCE_RATIO
 
 
@@ -176,13 +182,13 @@ def _with_estimate(sol: Solution, fine: Solution, ratio) -> Solution:
 
 
 def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n: int | None) -> Solution:
-    """``sol`` (``n`` fixed steps of ``dt``, or steps ending on the save
-    times ``SaveAt(ts=...)`` when ``n`` is None) with its estimate from a
-    finer solve."""
+    """``sol`` (``n`` fixed steps of ``dt``, or with ``SaveAt(ts=...)`` steps
+    ending on the save times, at most ``n`` (None: no bound)) with its
+    estimate from a finer solve."""
     num, den = fixed_refinement(saveat.every if saveat.steps else None)
     fine_dt = jax.lax.stop_gradient(dt) * den / num
-    if n is None:
-        fine = solve_fixed_at(frozen(problem), solver, t0, t1, fine_dt, saveat)
+    if saveat.ts is not None:
+        fine = solve_fixed_at(frozen(problem), solver, t0, t1, fine_dt, saveat, None if n is None else -(-n * num // den))
     else:
         fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
         fine = solve_fixed(frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))

@@ -252,44 +252,61 @@ def _fixed_step(problem, solver, schedule: _Schedule):
 
 
 @eqx.filter_jit
-def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt) -> Solution:
+def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps: int | None = None) -> Solution:
     """Fixed steps of ``dt`` that end on every save time (``SaveAt(ts=...)``):
     each gap between consecutive times of ``t0, ts..., t1`` is taken in
     `step_count` steps of ``dt``, the last shortened to end on the gap's end
     (a gap within rounding of a whole number of steps takes that number).
 
     The counts are traced: one compilation serves every ``dt`` and every
-    ``ts`` of a length, and a run costs its own steps (no padding).  Each gap
-    is a loop of traced length, which forward mode differentiates and
-    reverse mode cannot enter (`ForwardSensitivity` reads reverse mode from
-    the forward sensitivities).  The steps are `solve_fixed`'s wherever the
-    save times fall on its grid, to rounding."""
+    ``ts`` of a length, and a run costs its own steps (no padding).
+    ``max_steps`` (static, or None for no bound) bounds the steps of the
+    whole run: one that needs more stops there, its later rows unreached
+    (NaN, not counted in ``n_saved``), with `RESULTS.max_steps_reached`.  A
+    ``dt`` that is not a positive finite number gives a non-finite state
+    (`RESULTS.nonfinite`).  Each gap is a loop of traced length, which
+    forward mode differentiates and reverse mode cannot enter
+    (`ForwardSensitivity` reads reverse mode from the forward
+    sensitivities).  The steps are `solve_fixed`'s wherever the save times
+    fall on its grid, to rounding."""
     ts = jnp.asarray(saveat.ts, dt.dtype)
     starts = jnp.concatenate([t0[None], ts])
     ends = jnp.concatenate([ts, t1[None]])
+    # A bad step (checks skipped under `lierk.checked_on_host`) makes one step of NaN.
+    valid = jnp.isfinite(dt) & (dt > 0)
+    bound = jnp.iinfo(jnp.int32).max if max_steps is None else max_steps
 
     def gap(carry, ab):
+        state, taken, short = carry
         a, b = ab
-        count = step_count(a, b, dt, jnp).astype(jnp.int32)
-        last = (b - a) - (count - 1).astype(dt.dtype) * dt
+        needed = jnp.where(valid, step_count(a, b, dt, jnp), 1.0)
+        count = jnp.minimum(needed, bound).astype(jnp.int32)
+        allowed = jnp.clip(bound - taken, 0, count)
+        last = jnp.where(valid, (b - a) - (count - 1).astype(dt.dtype) * dt, jnp.nan)
 
         def one(k, c):
-            (R, y), taken = c
+            (R, y), n = c
             h = jnp.where(k + 1 < count, dt, last)
             st = solver.step(problem, a + k.astype(dt.dtype) * dt, h, R, y)
-            return (st.R, st.y), taken + 1
+            return (st.R, st.y), n + 1
 
-        carry = jax.lax.fori_loop(0, count, one, carry)
-        return carry, carry[0]
+        state, taken = jax.lax.fori_loop(0, allowed, one, (state, taken))
+        short = short | (allowed.astype(needed.dtype) < needed)
+        row = jax.tree_util.tree_map(lambda x: jnp.where(short, jnp.full_like(x, jnp.nan), x), state)
+        return (state, taken, short), (row, ~short)
 
     state0 = (problem.R0, problem.y0)
-    (state, taken), saved = jax.lax.scan(gap, (state0, jnp.asarray(0, jnp.int32)), (starts, ends))
+    init = (state0, jnp.asarray(0, jnp.int32), jnp.asarray(False))
+    (state, taken, short), (saved, reached) = jax.lax.scan(gap, init, (starts, ends))
     n = ts.shape[0]
     middle = (ts, jax.tree_util.tree_map(lambda x: x[:n], saved))
-    end = (t1, state) if saveat.t1 else None
-    ts_out, R, y, n_saved = _assemble(saveat, t0, state0, middle, end)
-    result = jnp.where(validation.all_finite(state), RESULTS.successful, RESULTS.nonfinite)
-    return Solution(ts_out, R, y, jnp.asarray(n_saved), _fixed_stats(taken, solver), result)
+    end = (t1, jax.tree_util.tree_map(lambda x: x[n], saved)) if saveat.t1 else None
+    ts_out, R, y, _ = _assemble(saveat, t0, state0, middle, end)
+    reached = reached.astype(jnp.int32)
+    n_saved = int(saveat.t0) + jnp.sum(reached[:n], dtype=jnp.int32) + (reached[n] if saveat.t1 else 0)
+    result = jnp.where(short, RESULTS.max_steps_reached, RESULTS.successful)
+    result = jnp.where(validation.all_finite(state), result, RESULTS.nonfinite)
+    return Solution(ts_out, R, y, n_saved.astype(jnp.int32), _fixed_stats(taken, solver), result)
 
 
 def _fixed_stats(taken, solver) -> dict:

@@ -38,7 +38,7 @@ def solve(
     rtol: ArrayLike | None = None,
     atol: ArrayLike | None = None,
     dt0: ArrayLike | None = None,
-    controller: Controller | None = None,
+    controller: AbstractStepController | None = None,
     throw: bool = True,
     adjoint: AbstractAdjoint | None = None,
     estimate_error: bool = False,
@@ -55,9 +55,13 @@ def solve(
     `RESULTS.max_steps_reached`.  With ``saveat=SaveAt(ts=...)`` the steps
     end on every save time instead (``ceil(gap/dt)`` steps per gap, the last
     shortened), counted at run time: one compilation for every ``dt`` and
-    ``ts``, no ``max_steps``, and forward mode through the loop (reverse
-    mode through `ForwardSensitivity`, the default adjoint, up to its
-    ``max_inputs``).
+    ``ts``, and a run costs its own steps; ``max_steps`` is then optional, a
+    bound on the whole run's steps.  Its loops have traced lengths, which
+    forward mode goes through; reverse mode (`jax.grad`) goes through
+    `ForwardSensitivity`, the default adjoint, for up to its ``max_inputs``
+    (6) perturbed input scalars, and otherwise fails: for reverse mode with
+    respect to more inputs (an inertia, an attitude) or with another adjoint,
+    save with ``SaveAt(steps=k)``.
 
     Adaptive steps (``rtol=``/``atol=`` or ``controller=``, with an embedded
     pair such as `RKF45`, `DP54` or `DOP853`): a while loop with the error
@@ -130,7 +134,9 @@ def solve(
         atol: absolute tolerance (defaults to ``rtol``); the momentum's is
             scaled by the problem's reference momentum.
         dt0: initial step of an adaptive solve (s).
-        controller: full control of step-size selection.
+        controller: full control of step-size selection: a `Controller`,
+            `ConstantStep()` (steps of ``dt0``, any solver), or a
+            `AbstractStepController` of your own.
         throw: raise on failure (default).  With ``throw=False`` the partial
             `Solution` comes back with its `Solution.result` code, per batch
             member under `vmap`.
@@ -212,9 +218,9 @@ def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, e
         if eps is not None:
             sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
         elif dt is not None and saveat.ts is not None:
-            sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat)
+            sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat, n)
             if estimate_error:
-                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, None)
+                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
         elif dt is not None:
             sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events)
             if estimate_error:
@@ -304,11 +310,6 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
             raise ValueError(f"SaveAt(ts=...) and SaveAt(steps={saveat.steps}) cannot be combined: pass one or the other")
         if saveat.dense:
             raise ValueError("SaveAt(ts=...) with fixed steps cannot keep dense output (yet): use SaveAt(dense=True) alone")
-        if max_steps is not None:
-            raise ValueError(
-                f"max_steps={max_steps} does not apply to fixed steps with SaveAt(ts=...): each gap between save "
-                "times takes ceil(gap/dt) steps, counted at run time; leave max_steps out"
-            )
     dt = validation.check_scalar(dt, "dt", dtype)
     dt = validation.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
     if not validation.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
@@ -321,7 +322,7 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
             "measure time from a closer origin (t0 = 0) or use float64"
         )
     if saveat.ts is not None:
-        return dt, None
+        return dt, max_steps
     n = num_steps(t0, t1, dt, max_steps)
     if saveat.steps and not (saveat.t0 or saveat.t1) and n // saveat.every == 0:
         raise ValueError(
@@ -397,8 +398,8 @@ def _fixed_loop(adjoint, problem, solver, t0, t1, dt, saveat, n, events):
     return solve_fixed(problem, solver, t0, t1, dt, saveat, n, events)
 
 
-def _fixed_at_loop(adjoint, problem, solver, t0, t1, dt, saveat):
-    return solve_fixed_at(problem, solver, t0, t1, dt, saveat)
+def _fixed_at_loop(adjoint, problem, solver, t0, t1, dt, saveat, max_steps):
+    return solve_fixed_at(problem, solver, t0, t1, dt, saveat, max_steps)
 
 
 def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events):

@@ -14,7 +14,9 @@ build the problem inside `inertia_warned` so that nothing is warned twice.
 - `inertia_warned`: build bodies without repeating those warnings.
 - `show`: a value on one line, as lierk's messages print them.
 
-All take concrete values (NumPy arrays or numbers), on the host.
+They are host checks, of concrete values (NumPy arrays or numbers):
+`check_attitude` also accepts a traced attitude, which it then checks at
+run time.
 """
 
 from ._validation import check_attitude as check_attitude

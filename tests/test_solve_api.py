@@ -314,10 +314,53 @@ def test_fixed_steps_at_save_times_differentiate_and_estimate_their_error():
     np.testing.assert_allclose(est[1:], err[1:], rtol=0.1)
 
 
+def test_fixed_steps_at_save_times_are_bounded_by_max_steps_and_a_bad_step_is_not_success():
+    """``max_steps`` bounds the whole run: cut short, the rows not reached are
+    NaN and uncounted, and the result says so; a step that is not a positive
+    finite number (its check skipped by `lierk.checked_on_host`) gives a
+    non-finite state, not R0 with success."""
+    body, ts = _tee(), np.linspace(0.0, 1.0, 5)
+    full = lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.05, saveat=lierk.SaveAt(ts=ts, t1=True))
+    cut = lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.05, saveat=lierk.SaveAt(ts=ts, t1=True), max_steps=12, throw=False)
+    assert int(full.stats["num_steps"]) == 20 and int(full.n_saved) == 6
+    assert int(cut.result) == lierk.RESULTS.max_steps_reached and int(cut.stats["num_steps"]) == 12
+    assert int(cut.n_saved) == 3  # t = 0, 0.25, 0.5 reached
+    np.testing.assert_array_equal(np.asarray(cut.R[:3]), np.asarray(full.R[:3]))
+    assert np.isnan(np.asarray(cut.R[3:])).all()
+
+    @jax.jit
+    def run(dt):
+        with lierk.checked_on_host():
+            return lierk.solve(body, lierk.RKMK4(), 1.0, dt=dt, saveat=lierk.SaveAt(ts=ts), throw=False).result
+
+    for bad in (np.nan, -0.1, 0.0):
+        assert int(run(np.float64(bad))) == lierk.RESULTS.nonfinite, bad
+
+
+def test_finer_options_reproduce_estimate_error():
+    """`lierk.finer_options` and `lierk.richardson` compute by hand the very
+    estimate of ``estimate_error=True``: fixed steps saving every even and
+    odd k-th step, at save times, and adaptive steps by tolerance."""
+    body = lierk.FreeRigidBody(np.diag([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]))
+    ts = np.array([0.0, 0.33, 0.8, 1.5])
+    cases = [
+        (lierk.RKMK4(), dict(dt=0.05, saveat=lierk.SaveAt(steps=4))),
+        (lierk.RKMK4(), dict(dt=0.05, saveat=lierk.SaveAt(steps=3, t1=True))),
+        (lierk.RKMK4(), dict(dt=0.05, saveat=lierk.SaveAt(ts=ts))),
+        (lierk.DOP853(), dict(rtol=1e-7, dt0=0.3, saveat=lierk.SaveAt(ts=ts))),
+    ]
+    for solver, options in cases:
+        sol = lierk.solve(body, solver, 1.5, estimate_error=True, **options)
+        fine_options, ratio = lierk.finer_options(solver, **options)
+        coarse = lierk.solve(body, solver, 1.5, **options)
+        fine = lierk.solve(body, solver, 1.5, **fine_options)
+        gap = np.linalg.norm(np.asarray(coarse.R) - np.asarray(fine.R), axis=(-2, -1))
+        np.testing.assert_allclose(lierk.richardson(gap, ratio), sol.error_estimate, rtol=1e-6, atol=1e-15)
+
+
 def test_fixed_steps_at_save_times_refuse_what_they_cannot_honour():
     body, ts = _tee(), np.linspace(0.0, 1.0, 3)
     for kw, match in (
-        (dict(max_steps=10), "max_steps=10 does not apply to fixed steps with SaveAt"),
         (dict(saveat=lierk.SaveAt(ts=ts, steps=2)), r"SaveAt\(ts=...\) and SaveAt\(steps=2\) cannot be combined"),
         (dict(saveat=lierk.SaveAt(ts=ts, dense=True)), "cannot keep dense output"),
         (dict(event=lierk.Event(lambda t, R, y: R[2, 2])), "event= with fixed steps"),

@@ -91,7 +91,7 @@ from lierk import inertia as _inertia
 from lierk import num_steps as _num_steps
 from lierk import solve as _solve
 
-# Not yet public: the input checks shared with the library.
+# The library's checks of a body, worded here with the scene's key paths.
 from lierk import checks as validation
 from lierk.checks import check_attitude
 from . import scene_schema as schema
