@@ -63,6 +63,7 @@ from ._problems.spacecraft import MagneticTorque as MagneticTorque
 from ._problems.spacecraft import ReactionWheels as ReactionWheels
 from ._problems.spacecraft import Rotor as Rotor
 from ._problems.spacecraft import dipole_field as dipole_field
+from ._progress import Progress as Progress
 from ._sensitivity import Sensitivity as Sensitivity
 from ._sensitivity import sensitivity as sensitivity
 from ._sensitivity import sensitivity_method as sensitivity_method
@@ -103,11 +104,8 @@ def __getattr__(name: str):
     # loads only the integrators (no matplotlib, no tqdm, no TOML parser).
     if name == "app":
         return _importlib.import_module(f"{__name__}.app")
-    if name == "Progress":
-        # (Its module imports tqdm, which `import lierk` does not load.)
-        return _importlib.import_module(f"{__name__}._progress").Progress
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 
 def __dir__():
-    return sorted([*globals(), "app", "Progress"])
+    return sorted([*globals(), "app"])

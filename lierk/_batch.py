@@ -425,7 +425,7 @@ def sweep(
     chunk = n if chunk_size is None else _check_chunk_size(chunk_size)
     bar = None
     if progress:
-        from ._progress import Progress  # (tqdm is imported only for a bar)
+        from ._progress import Progress
 
         bar = Progress("sweep", n, " members")
     pieces = []

@@ -10,7 +10,6 @@ import contextlib
 import sys
 import time
 
-from tqdm import tqdm
 
 __all__ = ["Progress"]
 
@@ -57,6 +56,8 @@ class Progress:
         self.start = clock()
         self.bar = None
         if not quiet and self.tty:
+            from tqdm import tqdm  # (here: `import lierk` loads no tqdm)
+
             self.bar = tqdm(total=self.total, desc=label, unit=self.unit, file=self.stream, mininterval=0.2,
                             bar_format=_METER.replace("{bar}", "|{bar}|"), dynamic_ncols=True)
 
@@ -98,6 +99,8 @@ class Progress:
             return
         while self.next_line <= frac * self.lines + 1e-9:
             self.next_line += 1
+        from tqdm import tqdm
+
         self._write(tqdm.format_meter(min(self.done, self.total), self.total, self.clock() - self.start,
                                       prefix=self.label, unit=self.unit, bar_format=_METER.replace("{bar}", "")))
 
