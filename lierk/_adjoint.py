@@ -43,6 +43,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import jax.tree_util as jtu
+import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._controller import Controller
@@ -166,12 +167,14 @@ class ForwardSensitivity(AbstractAdjoint):
             functools.partial(tangent, ForwardMode()),
         )
         kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed)
-        if _holds_function(args):
+        if _may_capture_tracer(args):
             # A function in the problem (a torque profile, an orbit, an event
             # condition) may close over a value that is being differentiated,
             # which the custom rule could not see.  Closure-converted, such
-            # values are array leaves of the loop like any input.  (Only
-            # then: the conversion traces the loop once more.)
+            # values are array leaves of the loop like any input.  Only
+            # then: the conversion traces each of the three loops once more
+            # (the heavy part of a spacecraft scene's trace, whose field
+            # closes over plain numbers).
             loops = tuple(eqx.filter_closure_convert(f, *args) for f in loops)
         return _sensitive((loops, args), **kw)
 
@@ -181,18 +184,87 @@ class ForwardSensitivity(AbstractAdjoint):
 _FUNCTIONS = (types.FunctionType, types.MethodType, functools.partial)
 
 
-def _holds_function(tree) -> bool:
-    """Whether a user function sits anywhere in ``tree``, static fields of
-    modules included (where equinox keeps them, out of the pytree's leaves)."""
+def _may_capture_tracer(tree) -> bool:
+    """Whether a user function sitting anywhere in ``tree`` (static fields of
+    modules included, where equinox keeps them out of the pytree's leaves)
+    may close over a traced value.  ``tree``'s own array leaves are not
+    looked at: they are the loop's inputs already."""
     if isinstance(tree, _FUNCTIONS):
-        return True
+        return _captures_tracer(tree, set(), [0])
     if isinstance(tree, eqx.Module):
-        return any(_holds_function(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
+        return any(_may_capture_tracer(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
     if isinstance(tree, (tuple, list)):
-        return any(_holds_function(x) for x in tree)
+        return any(_may_capture_tracer(x) for x in tree)
     if isinstance(tree, dict):
-        return any(_holds_function(x) for x in tree.values())
+        return any(_may_capture_tracer(x) for x in tree.values())
     return False
+
+
+_PLAIN = (type(None), bool, int, float, complex, str, bytes, np.ndarray, np.generic, type, types.ModuleType,
+          types.BuiltinFunctionType)
+# Top-level functions of these packages hold no traced values in their
+# globals or defaults (their closures, such as `lierk.dipole_field`'s field,
+# are still looked into).
+_LIBRARIES = ("jax", "jaxlib", "numpy", "equinox", "lierk", "math", "functools")
+_MOST_VISITS = 5000
+
+
+def _captures_tracer(x, seen: set, visits: list) -> bool:
+    """Whether ``x`` reaches a `jax.core.Tracer` through closures, defaults,
+    the globals a function reads, partials, containers and attributes.
+    Conservative: an object it cannot look inside, or more than
+    ``_MOST_VISITS`` objects, count as reaching one."""
+    if isinstance(x, jax.core.Tracer):
+        return True
+    if isinstance(x, (*_PLAIN, jax.Array)):  # a tracer is one too, but was caught above
+        return False
+    if id(x) in seen:
+        return False
+    seen.add(id(x))
+    visits[0] += 1
+    if visits[0] > _MOST_VISITS:
+        return True
+
+    def any_of(items) -> bool:
+        return any(_captures_tracer(v, seen, visits) for v in items)
+
+    if isinstance(x, types.FunctionType):
+        cells = []
+        for cell in x.__closure__ or ():
+            try:
+                cells.append(cell.cell_contents)
+            except ValueError:  # an empty cell (a name not yet bound)
+                pass
+        library = (x.__module__ or "").split(".")[0] in _LIBRARIES
+        if library and not cells:
+            return False
+        defaults = (*(x.__defaults__ or ()), *(x.__kwdefaults__ or {}).values())
+        read = () if library else tuple(x.__globals__[n] for n in _global_names(x.__code__) if n in x.__globals__)
+        return any_of((*cells, *defaults, *read))
+    if isinstance(x, types.MethodType):
+        return any_of((x.__func__, x.__self__))
+    if isinstance(x, functools.partial):
+        return any_of((x.func, *x.args, *x.keywords.values()))
+    if isinstance(x, (tuple, list, set, frozenset)):
+        return any_of(x)
+    if isinstance(x, dict):
+        return any_of(x.values())
+    if dataclasses.is_dataclass(x):  # equinox modules included
+        return any_of(getattr(x, f.name, None) for f in dataclasses.fields(x))
+    attributes = getattr(x, "__dict__", None)
+    if attributes is not None and not hasattr(type(x), "__slots__"):
+        return any_of(attributes.values())
+    return True
+
+
+def _global_names(code: types.CodeType) -> set[str]:
+    """The names a function's code (its nested functions' included) may read
+    from its globals."""
+    names = set(code.co_names)
+    for const in code.co_consts:
+        if isinstance(const, types.CodeType):
+            names |= _global_names(const)
+    return names
 
 
 def _is_none(x) -> bool:

@@ -187,7 +187,7 @@ class Controller(AbstractStepController):
         rtol = bounded("rtol", rtol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
         atol = bounded("atol", atol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
         # Keep every checked value: a traced check whose result is dropped is dead code to XLA.
-        rtol = validation.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0")
+        rtol = validation.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0", reads=atol)
         # Outside these bounds the step-size update cannot converge: a solve
         # would spin until max_steps.
         safety = bounded("safety", safety, lambda v: (v > 0) & (v <= 1), "in (0, 1]")

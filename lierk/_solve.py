@@ -283,7 +283,9 @@ def _check_times(t0, t1, dtype) -> tuple[Array, Array]:
             f"t1 = {float(t1_given)!r} rounds to t0 = {float(t0)!r} in {np.dtype(dtype).name}: the interval is below "
             "the resolution of the time axis; shift t0 towards 0 or use float64"
         )
-    t1 = validation.check(t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}")
+    t1 = validation.check(
+        t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}", reads=t0
+    )
     return t0, t1
 
 
@@ -297,6 +299,7 @@ def _check_save_times(saveat: SaveAt, t0, t1, dtype) -> SaveAt:
         ts,
         lambda x: (x >= t0).all() & (x <= t1).all() & (x[1:] >= x[:-1]).all(),
         "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1], got {value}",
+        reads=(t0, t1),
     )
     # The solve must use the checked array, or a traced check is dead code.
     return eqx.tree_at(lambda s: s.ts, saveat, jnp.asarray(ts))

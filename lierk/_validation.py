@@ -101,19 +101,21 @@ def checked_on_host():
         _CHECKED_ON_HOST.reset(token)
 
 
-def check(x, ok: Callable, message: str):
+def check(x, ok: Callable, message: str, *, reads=()):
     """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
 
     ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
-    the array's own methods).  For traced ``x`` the check is deferred to run time
-    (not made at all inside `checked_on_host`).
+    the array's own methods).  ``reads``: the other values ``ok`` reads (``t0``
+    in ``t1 >= t0``).  When ``x`` or one of them is traced, the check is
+    deferred to run time (not made at all inside `checked_on_host`), and the
+    returned ``x`` is traced: keep it, or the check is dead code.
     """
-    if is_traced(x) and _CHECKED_ON_HOST.get():
+    traced = is_traced(x, reads)
+    if traced and _CHECKED_ON_HOST.get():
         return x
-    if is_traced(x):
-        import jax.numpy as jnp
-
+    if traced:
         # The value is only known at run time; say which check failed.
+        x = jax.tree_util.tree_map(jnp.asarray, x)
         return eqx.error_if(x, ~jnp.all(ok(x)), message.replace("{value}", "a traced value that failed the check"))
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=show(x)) if "{value}" in message else message)

@@ -5,6 +5,7 @@ Each claim is checked against an independent number: forward mode through
 the plain loop (`ForwardMode`, which adds nothing to the solve), central
 finite differences, or the exact flow's derivative."""
 
+import functools
 import warnings
 
 import jax
@@ -185,6 +186,80 @@ def test_values_a_user_function_closes_over_are_differentiated():
 
     fd = fd_jacobian(lambda c: event_time(c[0]), jnp.array([0.9]), h=1e-4)
     np.testing.assert_allclose(jax.grad(event_time)(0.9), fd[0], rtol=1e-7)
+
+
+def test_a_function_closing_over_plain_numbers_traces_the_loop_once():
+    """Closure conversion (what the test above needs) traces each of the
+    primal, fallback and derivative loops once more; a function that closes
+    over no traced value (a spacecraft scene's field, built from numbers)
+    skips it.  Counted by the torque's traces, under `jax.jit` as a user
+    calls it: the count is the same as for a torque with no closure at all."""
+    I = np.diag([2.0, 3.0, 4.0])
+    calls = [0]  # a count, not the traced times: a list of tracers would be a captured tracer
+
+    def traces(make_torque, *args):
+        calls[0] = 0
+
+        def final_R(w, *args):
+            eff = lierk.TimedTorque(make_torque(*args))
+            return lierk.solve(lierk.RigidBodyWithEffects(I, w, effects=(eff,)), lierk.DP54(), 1.0, rtol=1e-6).R[-1]
+
+        jax.jit(final_R).lower(W0, *args)
+        return calls[0]
+
+    def plain(t):
+        calls[0] += 1
+        return jnp.array([0.0, 0.0, 0.3]) * jnp.cos(t)
+
+    def closing_over(a):
+        def torque(t):
+            calls[0] += 1
+            return a * jnp.array([0.0, 0.0, 1.0]) * jnp.cos(t)
+
+        return torque
+
+    n_plain = traces(lambda: plain)
+    assert n_plain > 0
+    assert traces(lambda: closing_over(0.3)) == n_plain
+    assert traces(lambda: closing_over(np.float64(0.3))) == n_plain
+    # Closing over the traced argument: converted, so traced more often.
+    assert traces(closing_over, jnp.asarray(0.3)) > n_plain
+
+
+def test_captured_tracers_are_found_wherever_a_function_keeps_them():
+    from lierk._adjoint import _may_capture_tracer
+
+    class Holder:  # a user's plain object, not a pytree
+        def __init__(self, value):
+            self.value = value
+
+    found = {}
+
+    def check(x):
+        cases = {
+            "closure": (lambda: (lambda t: x * t))(),
+            "default": lambda t, a=x: a * t,
+            "partial": functools.partial(lambda a, t: a * t, x),
+            "keyword": functools.partial(lambda t, a: a * t, a=x),
+            "nested": (lambda: (lambda t: [{"k": (x,)}][0]["k"][0] * t))(),
+            "object": (lambda h: (lambda t: h.value * t))(Holder(x)),
+            "module": (lambda eff: (lambda t: eff.c * t))(lierk.Damping(x)),
+            "method": Holder(x).__init__,
+        }
+        for name, fn in cases.items():
+            found.setdefault(name, []).append(_may_capture_tracer((lierk.FreeRigidBody(TEE, W0), {"f": fn})))
+        return x
+
+    check(0.5)
+    jax.jit(check)(0.5)
+    assert found == {name: [False, True] for name in found}
+    # What it cannot look inside counts as holding one.
+    assert _may_capture_tracer((lambda o: (lambda t: t * o))(_Opaque()))
+    assert not _may_capture_tracer(lambda t: jnp.cos(t) * np.pi)
+
+
+class _Opaque:
+    __slots__ = ()
 
 
 def test_adaptive_derivatives_in_the_times_are_those_of_the_solve():

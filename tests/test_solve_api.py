@@ -124,6 +124,24 @@ def test_vmap_over_dt_with_max_steps_equals_loop():
     assert np.abs(loop[0] - loop[-1]).max() > 1e-8
 
 
+def test_vmap_over_the_times_and_atol_with_concrete_save_times_and_rtol():
+    """The checks that read a traced neighbour (save times within [t0, t1],
+    t1 >= t0, rtol + atol > 0) run in the program: they raised
+    TracerBoolConversionError on the host before."""
+    body = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    ts = np.array([0.5, 1.0])
+
+    def saved(t0=0.0, t1=2.0, rtol=1e-9, atol=1e-9):
+        return lierk.solve(body, lierk.DP54(), t1, t0=t0, rtol=rtol, atol=atol, saveat=lierk.SaveAt(ts=ts)).R
+
+    for name, values, kw in (("t1", [1.5, 2.0], {}), ("t0", [0.0, 0.25], {}), ("atol", [1e-9, 1e-7], dict(rtol=0.0))):
+        batched = jax.vmap(lambda v: saved(**{name: v}, **kw))(np.asarray(values))
+        loop = np.stack([saved(**{name: v}, **kw) for v in values])
+        np.testing.assert_allclose(batched, loop, rtol=0, atol=1e-13, err_msg=name)
+    with pytest.raises(Exception, match=r"SaveAt\(ts=...\) must be non-decreasing and lie in \[t0, t1\]"):
+        jax.vmap(lambda t1: saved(t1=t1))(np.array([1.5, 0.7]))
+
+
 def test_max_steps_too_small_is_reported():
     sol = lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, max_steps=5, throw=False)
     assert int(sol.result) == lierk.RESULTS.max_steps_reached
