@@ -185,14 +185,15 @@ def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n
     """``sol`` (``n`` fixed steps of ``dt``, or with ``SaveAt(ts=...)`` steps
     ending on the save times, at most ``n`` (None: no bound)) with its
     estimate from a finer solve."""
-    num, den = fixed_refinement(saveat.every if saveat.steps else None)
-    fine_dt = jax.lax.stop_gradient(dt) * den / num
+    options, ratio = finer_options(solver, dt=dt, saveat=saveat, max_steps=n)
     if saveat.ts is not None:
-        fine = solve_fixed_at(frozen(problem), solver, t0, t1, fine_dt, saveat, None if n is None else -(-n * num // den))
+        fine = solve_fixed_at(frozen(problem), solver, t0, t1, options["dt"], saveat, options["max_steps"])
     else:
-        fine_saveat = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=saveat.every * num // den if saveat.steps else False)
-        fine = solve_fixed(frozen(problem), solver, t0, t1, fine_dt, fine_saveat, -(-n * num // den))
-    return _with_estimate(sol, fine, (num / den) ** solver.order)
+        # The estimate reads the saved states only: no dense output.
+        steps = options["saveat"].steps
+        fine = solve_fixed(frozen(problem), solver, t0, t1, options["dt"], SaveAt(t0=saveat.t0, t1=saveat.t1, steps=steps),
+                           options["max_steps"])
+    return _with_estimate(sol, fine, ratio)
 
 
 def estimate_adaptive(sol: Solution, problem, solver, t0, t1, saveat: SaveAt, max_steps: int, controller, adjoint) -> Solution:
