@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 import types
 import warnings
 from typing import Any, Callable, ClassVar
@@ -179,82 +180,123 @@ class ForwardSensitivity(AbstractAdjoint):
         return _sensitive((loops, args), **kw)
 
 
-# User functions that may close over traced values (lambdas, nested
-# functions, partials); classes and modules of lierk are not among them.
-_FUNCTIONS = (types.FunctionType, types.MethodType, functools.partial)
-
-
 def _may_capture_tracer(tree) -> bool:
-    """Whether a user function sitting anywhere in ``tree`` (static fields of
-    modules included, where equinox keeps them out of the pytree's leaves)
-    may close over a traced value.  ``tree``'s own array leaves are not
-    looked at: they are the loop's inputs already."""
-    if isinstance(tree, _FUNCTIONS):
-        return _captures_tracer(tree, set(), [0])
+    """Whether a function or other callable sitting anywhere in ``tree``
+    (static fields of modules included, where equinox keeps them out of the
+    pytree's leaves) may close over a traced value, or a static field holds
+    one.  ``tree``'s own array leaves are not looked at: they are the loop's
+    inputs already."""
     if isinstance(tree, eqx.Module):
-        return any(_may_capture_tracer(getattr(tree, f.name, None)) for f in dataclasses.fields(tree))
+        values = [(getattr(tree, f.name, None), f.metadata.get("static", False)) for f in dataclasses.fields(tree)]
+        return any(_captures_tracer(v) if static else _may_capture_tracer(v) for v, static in values)
     if isinstance(tree, (tuple, list)):
         return any(_may_capture_tracer(x) for x in tree)
     if isinstance(tree, dict):
         return any(_may_capture_tracer(x) for x in tree.values())
+    if callable(tree) and not isinstance(tree, type):
+        return _captures_tracer(tree)
     return False
 
 
-_PLAIN = (type(None), bool, int, float, complex, str, bytes, np.ndarray, np.generic, type, types.ModuleType,
-          types.BuiltinFunctionType)
-# Top-level functions of these packages hold no traced values in their
-# globals or defaults (their closures, such as `lierk.dipole_field`'s field,
-# are still looked into).
-_LIBRARIES = ("jax", "jaxlib", "numpy", "equinox", "lierk", "math", "functools")
+_PLAIN = (type(None), bool, int, float, complex, str, bytes, np.generic, jtu.PyTreeDef, types.GetSetDescriptorType,
+          types.MemberDescriptorType, types.WrapperDescriptorType, types.MethodDescriptorType)
+# Top-level functions, classes and modules of these packages (and of the
+# standard library) hold no traced values; closures made by them, such as
+# `lierk.dipole_field`'s field, are still looked into.
+_LIBRARIES = frozenset({"jax", "jaxlib", "numpy", "equinox", "lierk", "builtins"}) | frozenset(sys.stdlib_module_names)
+# Builtins that read a function's globals or names by string, out of sight.
+_DYNAMIC = frozenset({"globals", "vars", "locals", "eval", "exec", "__import__"})
 _MOST_VISITS = 5000
 
 
-def _captures_tracer(x, seen: set, visits: list) -> bool:
-    """Whether ``x`` reaches a `jax.core.Tracer` through closures, defaults,
-    the globals a function reads, partials, containers and attributes.
-    Conservative: an object it cannot look inside, or more than
-    ``_MOST_VISITS`` objects, count as reaching one."""
-    if isinstance(x, jax.core.Tracer):
+def _captures_tracer(root) -> bool:
+    """Whether ``root`` reaches a `jax.core.Tracer` through closures, defaults,
+    the globals a function reads, partials, bound objects, their classes,
+    user modules, containers and attributes.  Conservative: an object it
+    cannot look inside, an attribute that cannot be read, or more than
+    ``_MOST_VISITS`` objects count as reaching one."""
+    stack, seen = [root], set()
+    try:
+        while stack:
+            x = stack.pop()
+            if isinstance(x, jax.core.Tracer):
+                return True
+            if isinstance(x, (*_PLAIN, jax.Array)) or (isinstance(x, np.ndarray) and x.dtype != object):
+                continue
+            if id(x) in seen:
+                continue
+            seen.add(id(x))
+            if len(seen) > _MOST_VISITS:
+                return True
+            inside = _inside(x)
+            if inside is None:
+                return True
+            stack.extend(inside)
+    except Exception:  # an object that refuses to be looked at
         return True
-    if isinstance(x, (*_PLAIN, jax.Array)):  # a tracer is one too, but was caught above
-        return False
-    if id(x) in seen:
-        return False
-    seen.add(id(x))
-    visits[0] += 1
-    if visits[0] > _MOST_VISITS:
-        return True
+    return False
 
-    def any_of(items) -> bool:
-        return any(_captures_tracer(v, seen, visits) for v in items)
 
+def _library(name) -> bool:
+    return (name or "").split(".")[0] in _LIBRARIES
+
+
+def _inside(x) -> list | None:
+    """What ``x`` holds that a call could read, or None if it cannot be said."""
     if isinstance(x, types.FunctionType):
         cells = []
         for cell in x.__closure__ or ():
             try:
                 cells.append(cell.cell_contents)
-            except ValueError:  # an empty cell (a name not yet bound)
+            except ValueError:  # an empty cell: a name not bound yet
                 pass
-        library = (x.__module__ or "").split(".")[0] in _LIBRARIES
-        if library and not cells:
-            return False
-        defaults = (*(x.__defaults__ or ()), *(x.__kwdefaults__ or {}).values())
-        read = () if library else tuple(x.__globals__[n] for n in _global_names(x.__code__) if n in x.__globals__)
-        return any_of((*cells, *defaults, *read))
+        if _library(x.__module__):
+            return cells
+        names = _global_names(x.__code__)
+        if any(n in _DYNAMIC and n not in x.__globals__ for n in names):
+            return None
+        defaults = [*(x.__defaults__ or ()), *(x.__kwdefaults__ or {}).values()]
+        return cells + defaults + [x.__globals__[n] for n in names if n in x.__globals__]
     if isinstance(x, types.MethodType):
-        return any_of((x.__func__, x.__self__))
+        return [x.__func__, x.__self__]
+    if isinstance(x, types.BuiltinFunctionType):  # a bound builtin method keeps its object
+        owner = getattr(x, "__self__", None)
+        return [] if owner is None or isinstance(owner, types.ModuleType) else [owner]
     if isinstance(x, functools.partial):
-        return any_of((x.func, *x.args, *x.keywords.values()))
+        return [x.func, *x.args, *x.keywords.values()]
     if isinstance(x, (tuple, list, set, frozenset)):
-        return any_of(x)
+        return list(x)
     if isinstance(x, dict):
-        return any_of(x.values())
+        return list(x.values())
+    if isinstance(x, np.ndarray):  # of objects
+        return list(x.ravel())
+    if isinstance(x, types.ModuleType):
+        return [] if _library(x.__name__) else list(vars(x).values())
+    if isinstance(x, (staticmethod, classmethod)):
+        return [x.__func__]
+    if isinstance(x, property):
+        return [x.fget, x.fset, x.fdel]
+    if isinstance(x, type):
+        if _library(x.__module__):
+            return []
+        return [v for k, v in vars(x).items() if not (k.startswith("__") and k.endswith("__")) or k == "__call__"]
+    if hasattr(x, "__wrapped__") and _library(type(x).__module__):  # jax.jit's wrapper: the function is what it calls
+        return [x.__wrapped__]
+    inside = [type(x)]
     if dataclasses.is_dataclass(x):  # equinox modules included
-        return any_of(getattr(x, f.name, None) for f in dataclasses.fields(x))
+        inside += [getattr(x, f.name, None) for f in dataclasses.fields(x)]
+    if hasattr(x, "__wrapped__"):  # functools.wraps
+        inside.append(x.__wrapped__)
     attributes = getattr(x, "__dict__", None)
-    if attributes is not None and not hasattr(type(x), "__slots__"):
-        return any_of(attributes.values())
-    return True
+    slots = [n for c in type(x).__mro__ for n in _names(getattr(c, "__slots__", ())) if n not in ("__dict__", "__weakref__")]
+    if attributes is None and not slots and len(inside) == 1:
+        return None
+    inside += list((attributes or {}).values()) + [getattr(x, n) for n in slots if hasattr(x, n)]
+    return inside
+
+
+def _names(slots) -> tuple:
+    return (slots,) if isinstance(slots, str) else tuple(slots)
 
 
 def _global_names(code: types.CodeType) -> set[str]:

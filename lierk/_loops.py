@@ -673,9 +673,10 @@ def _batched_together(carry, inputs):
 @jax.custom_jvp
 def _moved_together(state):
     """``state`` (a loop's initial ``(R, y)``) as it is.  Differentiated,
-    each floating leaf's tangent is tied to all of theirs by a zero term, so
-    the attitude has one from the start whenever ``y`` has (omega0
-    perturbed, R0 not).  JAX's rules for differentiating and batching a loop
+    each floating leaf's tangent is tied to all of theirs by an exact zero
+    (the sum of an empty slice of each: no NaN or inf in one tangent can
+    reach another, in either mode), so the attitude has one from the start
+    whenever ``y`` has (omega0 perturbed, R0 not).  JAX's rules for differentiating and batching a loop
     find the carries that get tangents by tracing the body again until
     nothing changes; the attitude, which got one only after a step, cost a
     second pass of each rule over the whole body (of a Jacobian's trace:
@@ -688,12 +689,12 @@ def _moved_together_jvp(primals, tangents):
     (state,), (dstate,) = primals, tangents
     pairs = [(x, t) for x, t in zip(jax.tree_util.tree_leaves(state), jax.tree_util.tree_leaves(dstate))
              if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
-    total = functools.reduce(jnp.add, [jnp.sum(t).astype(pairs[0][0].dtype) for _, t in pairs])
+    total = functools.reduce(jnp.add, [jnp.sum(jnp.ravel(t)[:0]).astype(pairs[0][0].dtype) for _, t in pairs])
 
     def tied(x, t):
         if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
             return t
-        return t + jnp.zeros_like(x) * total.astype(x.dtype)
+        return t + total.astype(x.dtype)
 
     return state, jax.tree_util.tree_map(tied, state, dstate)
 

@@ -6,6 +6,7 @@ the plain loop (`ForwardMode`, which adds nothing to the solve), central
 finite differences, or the exact flow's derivative."""
 
 import functools
+import types
 import warnings
 
 import jax
@@ -245,7 +246,14 @@ def test_captured_tracers_are_found_wherever_a_function_keeps_them():
             "object": (lambda h: (lambda t: h.value * t))(Holder(x)),
             "module": (lambda eff: (lambda t: eff.c * t))(lierk.Damping(x)),
             "method": Holder(x).__init__,
+            "callable object": _Gain(x),
+            "method reading a global": (lambda g: (lambda t: g.from_global(t)))(_Gain(None)),
+            "class attribute": (lambda c: (lambda t: c.gain * t))(type("Params", (), {"gain": x})),
+            "module attribute": (lambda m: (lambda t: m.gain * t))(_module_holding(x)),
+            "object array": (lambda a: (lambda t: a[0] * t))(_objects(x)),
+            "jitted closure": jax.jit((lambda: (lambda t: x * t))()),
         }
+        _STORE["gain"] = x
         for name, fn in cases.items():
             found.setdefault(name, []).append(_may_capture_tracer((lierk.FreeRigidBody(TEE, W0), {"f": fn})))
         return x
@@ -253,13 +261,74 @@ def test_captured_tracers_are_found_wherever_a_function_keeps_them():
     check(0.5)
     jax.jit(check)(0.5)
     assert found == {name: [False, True] for name in found}
-    # What it cannot look inside counts as holding one.
+    # What it cannot look inside counts as holding one: an object without
+    # attributes, one that refuses to be read, a function that reads its
+    # globals by name.
     assert _may_capture_tracer((lambda o: (lambda t: t * o))(_Opaque()))
+    assert _may_capture_tracer((lambda o: (lambda t: t * o))(_Refusing()))
+    assert _may_capture_tracer(lambda t: globals()["_STORE"]["gain"] * t)
     assert not _may_capture_tracer(lambda t: jnp.cos(t) * np.pi)
+    # A long chain is walked without recursion (it raised RecursionError).
+    chain = None
+    for _ in range(3000):
+        chain = Holder(chain)
+    assert not _may_capture_tracer((lambda c: (lambda t: c.value * t))(chain))
+
+
+_STORE = {}  # a user script's global state
+
+
+class _Gain:
+    def __init__(self, gain):
+        self.gain = gain
+
+    def __call__(self, t):
+        return self.gain * t
+
+    def from_global(self, t):
+        return _STORE["gain"] * t
+
+
+def _objects(x):
+    a = np.empty(2, dtype=object)
+    a[0] = x
+    return a
+
+
+def _module_holding(x):
+    m = types.ModuleType("params")
+    m.gain = x
+    return m
 
 
 class _Opaque:
     __slots__ = ()
+
+
+class _Refusing:
+    def __getattribute__(self, name):
+        raise RuntimeError("no")
+
+
+def test_a_nan_cotangent_on_the_momentum_stays_out_of_the_attitude_gradient():
+    """The loops tie the initial attitude's tangent to the state's, so that
+    JAX's loop rules reach their fixed point in one pass.  The tie is an
+    exact zero: a NaN cotangent on y (the jnp.where trap) does not reach the
+    gradient with respect to R0, which a free body's y does not depend on
+    (with a zero times the tangents it was NaN)."""
+    theta = jnp.array([0.1, 0.2, 0.3])
+
+    def loss(theta, solver, kw, trap):
+        body = lierk.FreeRigidBody(TEE, W0, lierk.so3.exp(theta))
+        sol = lierk.solve(body, solver, 2.0, adjoint=lierk.RecursiveCheckpointAdjoint(), **kw)
+        m = sol.y[-1]
+        nan_cotangent = jnp.where(m[0] > -1e9, 0.0, jnp.sqrt(-jnp.abs(m[1]))) if trap else 0.0
+        return sol.R[-1, 0, 1] + nan_cotangent
+
+    for solver, kw in (CASES["RKMK4"], CASES["DP54"]):
+        g, g_plain = (jax.jit(jax.grad(lambda th, trap=trap: loss(th, solver, kw, trap)))(theta) for trap in (True, False))
+        assert np.all(np.isfinite(g)), g
+        np.testing.assert_array_equal(g, g_plain)
 
 
 def test_adaptive_derivatives_in_the_times_are_those_of_the_solve():
