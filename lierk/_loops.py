@@ -676,27 +676,26 @@ def _moved_together(state):
     each floating leaf's tangent is tied to all of theirs by an exact zero
     (the sum of an empty slice of each: no NaN or inf in one tangent can
     reach another, in either mode), so the attitude has one from the start
-    whenever ``y`` has (omega0 perturbed, R0 not).  JAX's rules for differentiating and batching a loop
-    find the carries that get tangents by tracing the body again until
-    nothing changes; the attitude, which got one only after a step, cost a
-    second pass of each rule over the whole body (of a Jacobian's trace:
-    ~0.4 s for DP54 on a spacecraft).  The compiled loop is the same."""
+    whenever ``y`` has (omega0 perturbed, R0 not).  JAX's rules for
+    differentiating and batching a loop find the carries that get tangents
+    by tracing the body again until nothing changes; the attitude, which got
+    one only after a step, cost a second pass of each rule over the whole
+    body (of a Jacobian's trace: ~0.4 s for DP54 on a spacecraft).  The
+    compiled loop is the same."""
     return state
+
+
+def _floating(x) -> bool:
+    return jnp.issubdtype(jnp.result_type(x), jnp.inexact)
 
 
 @_moved_together.defjvp
 def _moved_together_jvp(primals, tangents):
     (state,), (dstate,) = primals, tangents
-    pairs = [(x, t) for x, t in zip(jax.tree_util.tree_leaves(state), jax.tree_util.tree_leaves(dstate))
-             if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
-    total = functools.reduce(jnp.add, [jnp.sum(jnp.ravel(t)[:0]).astype(pairs[0][0].dtype) for _, t in pairs])
-
-    def tied(x, t):
-        if not jnp.issubdtype(jnp.result_type(x), jnp.inexact):
-            return t
-        return t + total.astype(x.dtype)
-
-    return state, jax.tree_util.tree_map(tied, state, dstate)
+    leaves = jax.tree_util.tree_leaves(state)
+    pairs = zip(leaves, jax.tree_util.tree_leaves(dstate))
+    zero = sum(jnp.sum(jnp.ravel(t)[:0], dtype=leaves[0].dtype) for x, t in pairs if _floating(x))
+    return state, jax.tree_util.tree_map(lambda x, t: t + zero.astype(x.dtype) if _floating(x) else t, state, dstate)
 
 
 def _decide(c: _Carry, d, h, record: bool, replay):
