@@ -174,10 +174,36 @@ def machine_info(**versions) -> dict:
         "numpy": np.__version__,
         "lierk": lierk.__version__,
         **versions,
-        "devices": [str(d) for d in jax.devices()],
+        **backend_info(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "load_average_at_start": os.getloadavg() if hasattr(os, "getloadavg") else None,
     }
+
+
+def backend_info() -> dict:
+    """Where JAX runs the programs: ``backend`` (``"cpu"``, ``"gpu"``, ...),
+    ``device_kind`` (the model, e.g. ``"NVIDIA H100 80GB HBM3"``) and
+    ``devices``.  A machine with a GPU runs on it by default, even where a
+    benchmark splits the CPU into host devices, so every record says which."""
+    import jax
+
+    devices = jax.devices()
+    return {"backend": jax.default_backend(), "device_kind": devices[0].device_kind,
+            "devices": [str(d) for d in devices]}
+
+
+def backend_text(m: dict) -> str:
+    """A results header's words for a machine record's backend: ``"JAX on
+    the CPU (2 XLA host devices)"`` or ``"JAX on the GPU (1 x NVIDIA H100
+    80GB HBM3)"``; records written before ``backend`` was kept say what they
+    hold."""
+    n = len(m.get("devices", [])) or m.get("device_count", 1)
+    backend = m.get("backend")
+    if backend is None:
+        return f"JAX on {n} device(s) ({', '.join(m.get('devices', [])) or 'kind not recorded'})"
+    if backend == "cpu":
+        return f"JAX on the CPU ({n} XLA host device{'s' if n != 1 else ''})"
+    return f"JAX on the {backend.upper()} ({n} x {m.get('device_kind', backend)})"
 
 
 def git_commit() -> str | None:

@@ -265,11 +265,13 @@ def _verdict(cell, peer, target: float) -> str:
 
 
 def markdown(meta, rows) -> list[str]:
+    import common
+
     m = meta["machine"]
     lines = [
         "# Time to first result: lierk beside diffrax",
         "",
-        f"{m['cpu_count']} cores ({m['cpu']}); jax {m['jax']}, lierk {m['lierk']}, commit {meta['commit']}.  Every cell in a "
+        f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}; jax {m['jax']}, lierk {m['lierk']}, commit {meta['commit']}.  Every cell in a "
         f"fresh process without the persistent cache, median of {meta['repeats']}; float64; {meta['steps']} fixed steps or "
         f"rtol = atol = {meta['rtol']:g}.  First call = trace (and lower) + XLA compile + first run, seconds; size: "
         f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "

@@ -255,6 +255,7 @@ def machine() -> dict:
         "jax": jax.__version__,
         "numba": getattr(native.numba, "__version__", None),
         "device_count": jax.device_count(),
+        **common.backend_info(),
         "xla_flags": os.environ.get("XLA_FLAGS", ""),
         "load_average_at_start": os.getloadavg(),
     }
@@ -266,7 +267,7 @@ def markdown(res: dict) -> str:
     lines = [
         "# Sweeps at scale (`benchmarks/sweep.py`)",
         "",
-        f"{m['cpu_count']} cores ({m['cpu_model']}), {m['device_count']} XLA host devices, jax {m['jax']}, "
+        f"{m['cpu_count']} cores ({m['cpu_model']}), {common.backend_text(m)}, jax {m['jax']}, "
         f"numba {m['numba']}. Other processes kept {m['others_cores_busy']:.2f} of the "
         f"{m['cpu_count']} cores busy during the run (load average {m['load_average_at_start'][0]:.1f} at the "
         f"start, {m['load_average_at_end'][0]:.1f} at the end; a shared machine: read the ratios).",

@@ -81,9 +81,10 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
     "scene_overhead": ("Scenes cost nothing extra",
                        "A scene without effects against FreeRigidBody solved directly."),
 }
-SUBFOLDERS = {"h100": ("On the H100 machine's CPUs",
-                        "Three benchmarks run once on the machine of an H100 GPU, on its 16 CPU cores "
-                        "(Intel Xeon, jax 0.11.2): no GPU benchmark is on file.")}
+SUBFOLDERS = {"h100": ("On an H100 GPU",
+                        "Three benchmarks run on one NVIDIA H100 (JAX's default backend there, jax 0.11.2; "
+                        "the native anchors of the sweep on the machine's 16 Intel Xeon cores): each file names "
+                        "its commit and device.")}
 
 
 def _slug(name: str) -> str:
