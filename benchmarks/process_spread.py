@@ -82,7 +82,7 @@ def main() -> None:
     record = {"machine": common.machine_info(), "commit": common.git_commit(), "n": N, "dt": DT, "steps": STEPS,
               "flags": SETTINGS, "processes": processes, "median_s": runs}
     lines = ["# One program, several processes (`benchmarks/process_spread.py`)", "",
-             f"2 cores, {common.cpu_model()}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
+             f"{os.cpu_count()} cores, {common.cpu_model()}, {common.backend_text(record['machine'])}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
              f"{STEPS} fixed steps of {DT} s, jit(vmap) on one device, float64.  Each cell: the median of 30 calls "
              f"in one fresh process (ms); {processes} processes per setting, taken in turn.", "",
              "| setting | " + " | ".join(SOLVERS) + " |", "|---|" + "---|" * len(SOLVERS)]

@@ -489,7 +489,9 @@ def plot(p):
         ax.invert_xaxis()
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    fig.suptitle("Sensitivity dR(T)/d$\\omega_0$: work against precision (2 cores, float64)")
+    m = p["machine"]
+    fig.suptitle(f"Sensitivity dR(T)/d$\\omega_0$: work against precision ({m['cpu_count']} cores, "
+                 f"{backend_text(m)}, float64)", fontsize=9)
     fig.tight_layout()
     fig.savefig(OUT / "sensitivity.png", dpi=110)
 
