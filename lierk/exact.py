@@ -237,7 +237,12 @@ def free_rigid_body(
         (``I1 = I2`` or ``I2 = I3``) and the sphere.  Jit-able, vmappable and
         differentiable in ``omega0``, ``t``, ``R0`` (see the module docstring
         for the non-smooth exceptional sets).  float64 accuracy is ~1e-12 over
-        100 periods of ``m`` (limited by the rounding of the phase ``lambda t``).
+        100 periods of ``m`` (limited by the rounding of the phase ``lambda t``),
+        except on needle-like bodies: the precession angle is the difference
+        of two terms of size ``|L| t / I1`` (``I1`` the smallest moment), so
+        ``R`` errs by about ``1e-16 |L| t / I1`` and up to 30 times that
+        (3.4e-8 at ``I = (1e-6, 1, 1 + 1e-6)``, ``|L| = 1.1``, ``t = 5``;
+        5.5e-12 at ``I1 = 1e-3``).
 
     Raises:
         ValueError: a wrong shape, NaN/inf, a non-symmetric or indefinite
