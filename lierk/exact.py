@@ -238,11 +238,13 @@ def free_rigid_body(
         differentiable in ``omega0``, ``t``, ``R0`` (see the module docstring
         for the non-smooth exceptional sets).  float64 accuracy is ~1e-12 over
         100 periods of ``m`` (limited by the rounding of the phase ``lambda t``),
-        except on needle-like bodies: the precession angle is the difference
-        of two terms of size ``|L| t / I1`` (``I1`` the smallest moment), so
-        ``R`` errs by about ``1e-16 |L| t / I1`` and up to 30 times that
-        (3.4e-8 at ``I = (1e-6, 1, 1 + 1e-6)``, ``|L| = 1.1``, ``t = 5``;
-        5.5e-12 at ``I1 = 1e-3``).
+        except on needle-like bodies without two equal moments: the
+        precession angle is the difference of two terms of size ``|L| t /
+        I1`` (``I1`` the smallest moment), so ``R`` errs by about ``1e-16 |L|
+        t / I1`` and up to 30 times that (3.4e-8 at ``I = (1e-6, 1, 1 +
+        1e-6)``, ``|L| = 1.1``, ``t = 5``; 5.5e-12 at ``I1 = 1e-3``).  With
+        two equal moments (a thin rod ``(1e-6, 1, 1)`` too) the precession
+        rate is constant and taken directly: exact to rounding.
 
     Raises:
         ValueError: a wrong shape, NaN/inf, a non-symmetric or indefinite
@@ -588,7 +590,12 @@ def _closed_form(inertia: Array, omega0: Array, t: Array, R0: Array):
     pi_t = pis[:-2].reshape(t.shape) + pi_wind
     theta_t = jnp.arctan2(q * sn_r, cn_r) + math.pi * j
     psi_ell = G * t / J3 + coef * (G * (pi_t - pi0) - (A3 / q) * (theta_t - theta0))
-    psi = jnp.where(stat, twoT / Gs * t, psi_ell)
+    # With J1 = J2 (r = 1, k = 0 whatever omega0) m3 = z is constant and psi'
+    # is too.  Taken from psi_ell instead, it is the difference of two terms
+    # of size G t / J3, which a thin rod (J3 = I1 small) would lose to
+    # rounding: 2.2e-9 in R at I = (1e-6, 1, 1), t = 5 s.
+    psi_sym = (twoT + Gs * (z / J3)) / (Gs + z) * t
+    psi = jnp.where(stat, twoT / Gs * t, jnp.where(r == 1.0, psi_sym, psi_ell))
 
     P0 = _minimal_rotation(m0, Gs)
     Pt = _minimal_rotation(m_t, jnp.broadcast_to(Gs, t.shape))
