@@ -243,8 +243,11 @@ def free_rigid_body(
         I1`` (``I1`` the smallest moment), so ``R`` errs by about ``1e-16 |L|
         t / I1`` and up to 30 times that (3.4e-8 at ``I = (1e-6, 1, 1 +
         1e-6)``, ``|L| = 1.1``, ``t = 5``; 5.5e-12 at ``I1 = 1e-3``).  With
-        two equal moments (a thin rod ``(1e-6, 1, 1)`` too) the precession
-        rate is constant and taken directly: exact to rounding.
+        two principal moments exactly equal (a thin rod ``(1e-6, 1, 1)``
+        too) the precession rate is constant and taken directly: exact to
+        rounding.  A full ``(3, 3)`` inertia whose equal eigenvalues come out
+        unequal by rounding takes the general formula (the rod, rotated:
+        3.1e-9).
 
     Raises:
         ValueError: a wrong shape, NaN/inf, a non-symmetric or indefinite
