@@ -276,23 +276,22 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     `free_rigid_body` is the checked entry point).  ``Q`` is ``(3, 3)``.
     ``m_h`` is ``m`` plus its change over ``h`` from Jacobi's addition
     theorems (`_momentum_change`), so that rounding does not add up to a
-    drift of the energy over many drifts.
+    drift of the energy over many drifts; its derivative is that of the
+    closed form's ``inertia omega(h)``.
     """
     omega0 = jnp.linalg.solve(inertia, m)
-    Q, _ = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
-    return Q, m + _momentum_change(inertia, m, h)
+    Q, omega_h = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
+    # The value is m + change; the derivative is that of the closed form's
+    # own m(h) = inertia omega(h), whose tangent the JVP of Q computes anyway
+    # (a zero with the derivative of m(h) is added).  Differentiating the
+    # change itself took a second JVP of the closed form, at 0 and h: the
+    # largest part of every differentiated splitting's program.
+    sg = jax.lax.stop_gradient
+    m_closed = inertia @ omega_h
+    zero = m_closed - sg(m_closed)
+    return Q, (sg(m) + _momentum_change(sg(inertia), sg(m), sg(h))) + jnp.where(jnp.isfinite(zero), zero, 0.0)
 
 
-def _momentum_change_by_difference(inertia: Array, m: Array, h: Array) -> Array:
-    """``m(h) - m(0)`` ``(3,)`` as the difference of two closed-form values:
-    the derivative of `_momentum_change`."""
-    omega0 = jnp.linalg.solve(inertia, m)
-    t = jnp.stack([jnp.zeros_like(h), h])
-    _, omega = _free_motion(inertia, omega0, t, jnp.eye(3, dtype=m.dtype))
-    return inertia @ (omega[1] - omega[0])
-
-
-@jax.custom_jvp
 def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
     """The change ``m(h) - m(0)`` ``(3,)`` (kg m^2/s, body frame) of a free
     body's momentum over ``h`` (s), with an error of order eps times the
@@ -309,10 +308,9 @@ def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
     with ``(x, y, z) = (A1 cn a, A2 sn a, A3 dn a)`` in the working frame and
     ``b = lam h``, the addition theorems (DLMF 22.8.1-3) give each component's
     change as products of ``x, y, z`` with functions of ``b`` that are
-    ``O(b)``, so every rounding is relative to the change.  Its derivative is
-    that of the same function written as a difference of closed forms
-    (`_momentum_change_by_difference`, with the closed form's treatment of
-    permanent rotations)."""
+    ``O(b)``, so every rounding is relative to the change.  Not
+    differentiated: `free_flow` gives ``m_h`` the derivative of the closed
+    form's ``inertia omega(h)`` (with its treatment of permanent rotations)."""
     c = _working_constants(inertia, jnp.linalg.solve(inertia, m))
     J1, J2, J3 = c["J"][0], c["J"][1], c["J"][2]
     x, y, z = c["x"], c["y"], c["z"]
@@ -341,14 +339,6 @@ def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
     ]) / jnp.where(D > 0, D, 1.0)
     dw = jnp.where(stat | (D <= 0), 0.0, dw)
     return c["W"] @ dw
-
-
-def _momentum_change_jvp(primals, tangents):
-    _, dout = _jvp_of_live(_momentum_change_by_difference, primals, tangents)
-    return _momentum_change(*primals), dout
-
-
-_momentum_change.defjvp(_momentum_change_jvp, symbolic_zeros=True)
 
 
 def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[Array, Array]:
