@@ -309,12 +309,15 @@ def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps: int |
     return Solution(ts_out, R, y, n_saved.astype(jnp.int32), _fixed_stats(taken, solver), result)
 
 
-def _fixed_stats(taken, solver) -> dict:
+def _fixed_stats(taken, solver, tracked: bool = False) -> dict:
+    """Step and field-evaluation counts of ``taken`` fixed steps; ``tracked``:
+    each step built its interpolant (`AbstractSolver.dense_fevals`)."""
+    per_step, initial = solver.dense_fevals if tracked else (0, 0)
     return {
         "num_steps": taken,
         "num_accepted_steps": taken,
         "num_rejected_steps": jnp.zeros_like(taken),
-        "num_fevals": taken * solver.stages,
+        "num_fevals": initial + taken * (solver.stages + per_step),
     }
 
 
@@ -391,7 +394,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         result = jnp.where(ev.nan, RESULTS.event_condition_nan, result)
         records_out = event_lib.records(events, ev)
     return Solution(
-        ts, R, y, n_saved, _fixed_stats(taken, solver), result, interpolation=interpolation, events=records_out
+        ts, R, y, n_saved, _fixed_stats(taken, solver, tracked=True), result, interpolation=interpolation, events=records_out
     )
 
 
@@ -748,19 +751,22 @@ def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req
     if saveat.dense:
         interpolation = DenseInterpolation(*final.dense, t0=t0, t1=final.t, n=final.num_accepted)
     records = event_lib.records(events, final.ev) if events else None
-    stats = _adaptive_stats(solver, final, f0, dt0)
+    stats = _adaptive_stats(solver, final, f0, dt0, saveat.dense or bool(events))
     return Solution(ts, R, y, jnp.asarray(n_saved), stats, result, interpolation=interpolation, events=records)
 
 
-def _adaptive_stats(solver, final: _Carry, f0, dt0) -> dict[str, Array]:
-    """The adaptive loop's step and field-evaluation counts, from its final carry."""
+def _adaptive_stats(solver, final: _Carry, f0, dt0, tracked: bool) -> dict[str, Array]:
+    """The adaptive loop's step and field-evaluation counts, from its final
+    carry; ``tracked``: every attempt built its interpolant (dense output,
+    events: `AbstractSolver.dense_fevals`)."""
     # The first stage is reused from the previous step when the controller
     # keeps the field at the new point (the FSAL stage or one extra
     # evaluation); one evaluation at t0, plus one inside the automatic
     # first-step estimate.
     reuses_first_stage = f0 is not None and solver.tableau.fsal
-    fevals_per_attempt = solver.stages - (1 if reuses_first_stage else 0)
-    fevals_setup = 0 if f0 is None else 1 if dt0 is not None else 2
+    per_step, initial = solver.dense_fevals if tracked else (0, 0)
+    fevals_per_attempt = solver.stages - (1 if reuses_first_stage else 0) + per_step
+    fevals_setup = (0 if f0 is None else 1 if dt0 is not None else 2) + initial
     return {
         "num_steps": final.num_steps,
         "num_accepted_steps": final.num_accepted,

@@ -110,7 +110,12 @@ class Solution(eqx.Module):
         y: extra state at the saved times (leaves ``(..., n_save, *shape)``), or None.
         n_saved: ``(...)`` number of valid saved entries (the rest is padding).
         stats: dict of int arrays: ``num_steps`` (attempted), ``num_accepted_steps``,
-            ``num_rejected_steps``, ``num_fevals``.
+            ``num_rejected_steps``, ``num_fevals``: evaluations of the
+            vector field, those of the interpolants that dense output and
+            events build included (`lierk.AbstractSolver.dense_fevals`; a
+            JVP of the field counts as one); for the splittings, drifts
+            (exact torque-free flows: each step also runs one kick more, and
+            locating an event runs shortened steps, not counted).
         result: ``(...)`` int code from `RESULTS`; 0 is success.
         error_estimate: ``(..., n_save)`` estimate of the global attitude error
             ``||R(t) - R_exact(t)||_F`` at each saved time, from

@@ -59,7 +59,9 @@ def test_summary_reports_steps_drifts_and_the_flip_interval():
     sim = simulate(_scene())
     lines = sim.summary().splitlines()
     assert lines[0] == "scene tee |L| test: a T-handle"
-    assert re.fullmatch(r"RKMK4, dt = 0\.01 s, t1 = 0\.5 s: 50 steps, 200 field evaluations, [\d.]+ s wall "
+    # 4 stages a step, and for the flip event each step's interpolant: the
+    # field and its rate at the step's end (2), and at t0.
+    assert re.fullmatch(r"RKMK4, dt = 0\.01 s, t1 = 0\.5 s: 50 steps, 302 field evaluations, [\d.]+ s wall "
                         r"\(incl\. compilation\)", lines[1]), lines[1]
     d = sim.diagnostics
     assert lines[2:4] == [f"  max relative change of energy: {d.drift['energy']:.2e}",

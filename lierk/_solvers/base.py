@@ -69,6 +69,14 @@ class AbstractSolver(eqx.Module):
         node1 = interpolation.node(problem, t + h, st.R, st.y)
         return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
 
+    @property
+    def dense_fevals(self) -> tuple[int, int]:
+        """Field evaluations that dense output and events add: ``(per step
+        attempted, once at the start)``.  Here the Hermite interpolant's
+        `dense_node` at each step's end and at ``t0``: the field and its rate
+        along the motion (a JVP, counted as one evaluation), 2 each."""
+        return 2, 2
+
     def dense_partial(self, problem) -> Any:
         """The interpolant that replaces the coefficients of `dense_step`
         when it is a shortened step of the solver

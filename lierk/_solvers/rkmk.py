@@ -180,6 +180,12 @@ class AbstractRKMK(AbstractSolver):
     def dense_node(self, problem, t, R, y):
         return None if self.tableau.dense else super().dense_node(problem, t, R, y)
 
+    @property
+    def dense_fevals(self) -> tuple[int, int]:
+        """A continuous extension's extra stages, in every step (no node);
+        else the Hermite interpolant's (`AbstractSolver.dense_fevals`)."""
+        return (len(self.tableau.dense_c), 0) if self.tableau.dense else super().dense_fevals
+
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
         tab = self.tableau
         if not tab.dense:

@@ -150,6 +150,12 @@ class AbstractSplitting(AbstractSolver):
     def dense_node(self, problem, t, R, y):
         return None
 
+    @property
+    def dense_fevals(self) -> tuple[int, int]:
+        # Nothing per step; locating an event runs shortened steps, a number
+        # that depends on the root finder's iterations (not counted).
+        return 0, 0
+
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
         st = self.step(problem, t, h, R, y, fsal)
         empty = lambda a: jnp.zeros((0,) + jnp.shape(a), jnp.result_type(a))  # noqa: E731

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from .diagnostics import Diagnostics
-from lierk import Solution
+from lierk import AbstractSplitting, Solution
 
 __all__ = ["Simulation", "simulate"]
 
@@ -110,7 +110,8 @@ class Simulation:
 
     def summary(self) -> str:
         """The report ``lierk simulate`` prints, one line each: the scene; the
-        solver, settings, steps, field evaluations and wall time; with
+        solver, settings, steps, field evaluations (drifts for a splitting)
+        and wall time; with
         ``target_error``, the setting chosen and the estimated error; the
         largest relative change of each invariant; ``max ||R^T R - I||``;
         for a torque-free body, the exact flip interval; the times of each
@@ -121,7 +122,8 @@ class Simulation:
             f"scene {scene.name}" + (f": {scene.description}" if scene.description else ""),
             f"{scene.describe_run(sol)}, t1 = {scene.t1:g} s: {st['num_accepted_steps']} steps"
             + (f" ({st['num_rejected_steps']} rejected)" if st.get("num_rejected_steps") else "")
-            + f", {st['num_fevals']} field evaluations, {self.wall:.2f} s wall (incl. compilation)",
+            + f", {st['num_fevals']} {'drifts' if isinstance(scene.solver, AbstractSplitting) else 'field evaluations'}, "
+            f"{self.wall:.2f} s wall (incl. compilation)",
         ]
         if scene.target_error is not None:
             est = np.asarray(sol.error_estimate)
