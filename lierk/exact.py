@@ -282,14 +282,24 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     omega0 = jnp.linalg.solve(inertia, m)
     Q, omega_h = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
     # The value is m + change; the derivative is that of the closed form's
-    # own m(h) = inertia omega(h), whose tangent the JVP of Q computes anyway
-    # (a zero with the derivative of m(h) is added).  Differentiating the
-    # change itself took a second JVP of the closed form, at 0 and h: the
-    # largest part of every differentiated splitting's program.
+    # own m(h) = inertia omega(h), whose tangent the JVP of Q computes anyway.
+    # Differentiating the change itself took a second JVP of the closed
+    # form, at 0 and h: the largest part of every differentiated splitting's
+    # program.
     sg = jax.lax.stop_gradient
-    m_closed = inertia @ omega_h
-    zero = m_closed - sg(m_closed)
-    return Q, (sg(m) + _momentum_change(sg(inertia), sg(m), sg(h))) + jnp.where(jnp.isfinite(zero), zero, 0.0)
+    return Q, _value_with_tangent_of(sg(m) + _momentum_change(sg(inertia), sg(m), sg(h)), inertia @ omega_h)
+
+
+@jax.custom_jvp
+def _value_with_tangent_of(value: Array, x: Array) -> Array:
+    """``value``, with the tangent of ``x`` (same shape) under
+    differentiation; undifferentiated, ``x`` is not computed at all."""
+    return value
+
+
+@_value_with_tangent_of.defjvp
+def _value_with_tangent_of_jvp(primals, tangents):
+    return primals[0], tangents[1]
 
 
 def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
