@@ -292,14 +292,19 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
 
 @jax.custom_jvp
 def _value_with_tangent_of(value: Array, x: Array) -> Array:
-    """``value``, with the tangent of ``x`` (same shape) under
+    """``value``, with the derivatives of ``x`` (same shape) under
     differentiation; undifferentiated, ``x`` is not computed at all."""
     return value
 
 
 @_value_with_tangent_of.defjvp
 def _value_with_tangent_of_jvp(primals, tangents):
-    return primals[0], tangents[1]
+    value, x = primals
+    # The value itself carries x's derivative too (an exact zero that has
+    # it), for a derivative taken of the primal of this JVP: without it the
+    # primal of a jvp would have none (jax.grad of jax.jvp(f)[0]).
+    zero = x - jax.lax.stop_gradient(x)
+    return value + jnp.where(jnp.isfinite(zero), zero, 0.0), tangents[1]
 
 
 def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:

@@ -78,6 +78,34 @@ def test_symmetric_drift_is_the_elliptic_flow():
         assert np.abs(np.asarray(m1 - m2)).max() < 1e-12 * float(jnp.linalg.norm(m))
 
 
+def test_drift_momentum_takes_every_derivative_of_the_closed_form():
+    """The drift moves m by its addition-theorem change (for the energy's
+    sake) but differentiates as the closed form's ``inertia omega(h)``: its
+    gradient and the gradient of a JVP's primal (reverse over forward, which
+    a rule attaching only the tangent left at zero) agree with the closed
+    form's, in the momentum and in h.  (A Hessian, forward over reverse,
+    reads the tangents only; it doubled this program's compile time.)"""
+    inertia = jnp.diag(jnp.array([1.0, 2.0, 3.0]))
+    w, v = jnp.array([0.3, -1.0, 0.6]), jnp.array([1.0, -0.5, 0.2, 0.7])
+
+    def drift(x):
+        return exact.free_flow(inertia, x[:3], x[3])[1] @ w
+
+    def closed(x):
+        omega0 = jnp.linalg.solve(inertia, x[:3])
+        return (inertia @ exact._free_motion(inertia, omega0, x[3], jnp.eye(3, dtype=x.dtype))[1]) @ w
+
+    @jax.jit
+    def derivatives(x):
+        return [(f(x), jax.grad(f)(x), jax.grad(lambda x: jax.jvp(f, (x,), (v,))[0])(x))
+                for f in (drift, closed)]
+
+    (a, b) = derivatives(jnp.array([0.4, -1.0, 2.0, 0.7]))
+    for p, q in zip(a, b):
+        np.testing.assert_allclose(p, q, rtol=0, atol=1e-12 * float(np.abs(q).max()))
+    assert float(np.abs(a[2]).max()) > 0.1  # (the primal's derivative is the gradient, not zero)
+
+
 def test_symmetry_axis_is_found_only_for_exactly_symmetric_constant_inertia():
     assert lierk.FreeRigidBody([2.0, 1.0, 2.0], [1.0, 0, 0]).symmetry_axis == 1
     assert lierk.FreeRigidBody([2.0, 1.0, 2.0 + 1e-9], [1.0, 0, 0]).symmetry_axis is None
