@@ -621,7 +621,7 @@ def _adaptive_loop(
         checkpoints=adjoint.checkpoints,
         buffers=(lambda c: c.decisions) if record and adjoint.kind == "checkpointed" else None,
     )
-    return _adaptive_solution(final, solver, saveat, t0, (R0, y0), ts_req, max_steps, events, f0, dt0), final.decisions
+    return _adaptive_solution(final, solver, saveat, t0, (R0, y0), ts_req, max_steps, events, f0, dt0, tracked), final.decisions
 
 
 def _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat: SaveAt, max_steps: int, decisions, events, tracked) -> _Carry:
@@ -733,8 +733,10 @@ def _events_in_step(events, c: _Carry, slopes, st, t_new, accept):
     return ev, stopped, ev.nan, end
 
 
-def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req, max_steps: int, events, f0, dt0) -> Solution:
-    """The `Solution` from the adaptive loop's final carry."""
+def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req, max_steps: int, events, f0, dt0,
+                       tracked: bool) -> Solution:
+    """The `Solution` from the adaptive loop's final carry; ``tracked``: its
+    steps built their interpolants (dense output, events)."""
     finite = validation.all_finite((final.R, final.y))
     result = jnp.where(
         final.done & finite, final.result, jnp.where(finite, RESULTS.max_steps_reached, RESULTS.nonfinite)
@@ -751,7 +753,7 @@ def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req
     if saveat.dense:
         interpolation = DenseInterpolation(*final.dense, t0=t0, t1=final.t, n=final.num_accepted)
     records = event_lib.records(events, final.ev) if events else None
-    stats = _adaptive_stats(solver, final, f0, dt0, saveat.dense or bool(events))
+    stats = _adaptive_stats(solver, final, f0, dt0, tracked)
     return Solution(ts, R, y, jnp.asarray(n_saved), stats, result, interpolation=interpolation, events=records)
 
 
