@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 from helpers import OMEGA_GENERIC, TEE, reference_R
@@ -149,8 +150,6 @@ def test_stats_count_every_field_evaluation():
     field and rate at each step's end, DOP853's three extra stages).  These
     were left out: RKMK4 with an event reported 80 of 122.  A splitting
     counts its drifts, and runs one kick more a step."""
-    import jax.numpy as jnp
-
     calls = [0]
 
     def bump():
@@ -437,8 +436,6 @@ class _GrowingStep(lierk.AbstractStepController):
         return None, dt0, None
 
     def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last):
-        import jax.numpy as jnp
-
         return lierk.Decision(jnp.asarray(True), 1.25 * h_proposed, h <= 0, jnp.asarray(False), None)
 
 

@@ -117,7 +117,8 @@ class Row:
             finer run (``2 dt/3``, or ``rtol/10``), what
             `Solution.error_estimate` gives.
         num_steps: steps attempted (accepted and rejected).
-        num_fevals: field evaluations.
+        num_fevals: field evaluations as `lierk.Solution.stats` counts them
+            (drifts for a splitting).
         result: the `lierk.RESULTS` code; 0 is success.
     """
 
