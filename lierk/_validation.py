@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 import math
 import warnings
 import weakref
@@ -116,10 +117,58 @@ def check(x, ok: Callable, message: str, *, reads=()):
     if traced:
         # The value is only known at run time; say which check failed.
         x = jax.tree_util.tree_map(jnp.asarray, x)
-        return eqx.error_if(x, ~jnp.all(ok(x)), message.replace("{value}", "a traced value that failed the check"))
+        message = message.replace("{value}", "a traced value that failed the check")
+        predicate = _Predicate.of(ok)
+        if predicate is None:
+            return eqx.error_if(x, ~jnp.all(ok(x)), message)
+        return _error_unless(x, predicate, message)
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=show(x)) if "{value}" in message else message)
     return x
+
+
+class _Predicate:
+    """A check's predicate, equal to any other with the same code and the same
+    (hashable) closed-over values, so that `_error_unless` compiles once per
+    predicate rather than once per call (a call site's lambda is a new object
+    each time)."""
+
+    def __init__(self, ok: Callable, key):
+        self.ok, self.key = ok, key
+
+    @classmethod
+    def of(cls, ok: Callable) -> "_Predicate | None":
+        """None where ``ok`` is not a plain function or closes over an
+        unhashable value (an array)."""
+        code = getattr(ok, "__code__", None)
+        if code is None:
+            return None
+        try:
+            # With each value's type: 1 == 1.0 == True, but they trace differently.
+            values = [c.cell_contents for c in ok.__closure__ or ()] + list(ok.__defaults__ or ())
+            key = (code, tuple((type(v), v) for v in values))
+            hash(key)
+        except (TypeError, ValueError):
+            return None
+        return cls(ok, key)
+
+    def __hash__(self):
+        return hash(self.key)
+
+    def __eq__(self, other):
+        return isinstance(other, _Predicate) and self.key == other.key
+
+    def __call__(self, x):
+        return self.ok(x)
+
+
+# Why a jitted check: a traced value outside `jax.jit` (under an eager
+# `jax.jacfwd` or `jax.grad`) runs each operation of the predicate as a
+# program of its own, and a rigid body's checks were about 50 of them, 1.5 s
+# of a first Jacobian.  Inside `jax.jit` the call is inlined.
+@functools.partial(jax.jit, static_argnums=(1, 2))
+def _error_unless(x, ok: _Predicate, message: str):
+    return eqx.error_if(x, ~jnp.all(ok(x)), message)
 
 
 def show(x) -> str:
@@ -196,19 +245,26 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
     omega0 = check_vector(omega0, "omega0", dtype)
     if is_traced(inertia, omega0):
         if not _CHECKED_ON_HOST.get():
-            lo, hi = _log_range(dtype)
-            moments, squares = _state_logs(inertia, omega0, jnp)
-            omega0 = eqx.error_if(
-                omega0, ~(jnp.all((moments >= lo) & (moments <= hi)) & jnp.all(squares <= hi)),
-                f"a traced inertia and omega0 give a body state outside {jnp.dtype(dtype).name}'s range "
-                "(lierk._validation.state_range_error)",
-            )
+            omega0 = _state_in_range(inertia, omega0)
     else:
         reason = state_range_error(inertia, omega0, dtype)
         if reason is not None:
             raise ValueError(f"inertia {show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
                              f"with omega0 {show(omega0)} rad/s: {reason}")
     return inertia, omega0, check_attitude(R0, dtype)
+
+
+@jax.jit
+def _state_in_range(inertia, omega0):
+    """``omega0``, checked at run time against `state_range_error`'s bounds
+    (one program: see `_error_unless`)."""
+    lo, hi = _log_range(omega0.dtype)
+    moments, squares = _state_logs(inertia, omega0, jnp)
+    return eqx.error_if(
+        omega0, ~(jnp.all((moments >= lo) & (moments <= hi)) & jnp.all(squares <= hi)),
+        f"a traced inertia and omega0 give a body state outside {omega0.dtype.name}'s range "
+        "(lierk._validation.state_range_error)",
+    )
 
 
 def _diagonal(I) -> bool:

@@ -120,3 +120,25 @@ def test_new_numbers_reuse_the_compiled_program():
     steps = [lambda t1=t1: lierk.sensitivity(_body(I1, w1), lierk.RKMK4(), t1, dt=0.01, estimate_error=False).jacobian
              for t1 in (0.3, 0.3 + 1e-12, 0.5)]
     assert _compiles(steps) == [2, 0, 1]
+
+
+def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
+    # Under an eager jax.jacfwd or jax.grad, omega0 is traced but outside any
+    # jit: a check made of jax.numpy operations ran each of them as a program
+    # of its own (about 50 for a rigid body, 1.5 s of a first Jacobian).
+    # Each check is now one program, compiled once for all the calls that
+    # make it (each call site's predicate is a new lambda every time).
+    names = [None, None]
+    jax.clear_caches()
+    for k, w in enumerate(([0.3, -0.2, 5.0], [0.2, 0.1, 4.0])):
+        with counting() as seen:
+            jax.block_until_ready(jax.jacfwd(lambda w: _body([2.0, 3.0, 4.0], w).y0)(jax.numpy.asarray(w)))
+        names[k] = seen.names
+    checks = ("jit(_error_unless)", "jit(_state_in_range)")
+    assert [names[0].count(n) for n in checks] == [1, 1], names[0]
+    for op in ("jit(log10)", "jit(_reduce_max)", "jit(abs)", "jit(matmul)", "jit(branched_error_if_impl)"):
+        assert op not in names[0], names[0]
+    assert not any(n in checks for n in names[1]), names[1]
+    # The checks still run: a NaN in omega0 is refused, by name.
+    with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
+        jax.block_until_ready(jax.jacfwd(lambda w: _body([2.0, 3.0, 4.0], w).y0)(jax.numpy.asarray([0.1, float("nan"), 1.0])))

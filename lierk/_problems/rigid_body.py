@@ -590,19 +590,16 @@ def _frobenius(A: Array) -> Array:
 
 
 def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:
-    """``(I^-1, I omega0)``: one compiled program for concrete values (eager
-    ``jax.numpy`` would compile one per operation), the same operations
-    inline when traced; the same numbers either way."""
-    if validation.is_traced(inertia, omega0):
-        return _inverse_and_momentum_ops(inertia, omega0)
+    """``(I^-1, I omega0)`` as one compiled program: eager ``jax.numpy``
+    would compile one per operation, for concrete values and for the values
+    an eager `jax.jacfwd` or `jax.grad` traces; inside `jax.jit` it is
+    inlined."""
     return _inverse_and_momentum_jit(inertia, omega0)
 
 
-def _inverse_and_momentum_ops(inertia, omega0):
+@jax.jit
+def _inverse_and_momentum_jit(inertia, omega0):
     return jnp.linalg.inv(inertia), inertia @ omega0
-
-
-_inverse_and_momentum_jit = jax.jit(_inverse_and_momentum_ops)
 
 
 def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
