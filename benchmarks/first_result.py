@@ -11,6 +11,9 @@ each first call pays the whole cost once, as a user's new script does:
   ``R(T)`` with respect to ``omega0`` (diffrax with
   ``adjoint=ForwardMode()``, which `jax.jacfwd` needs: its default adjoint
   is a ``custom_vjp``, fixed steps included);
+- ``eager``: ``jax.jacfwd(f)(omega0, s)`` called from Python with no
+  ``jit``, as most users write it (total time only: the transform runs the
+  operations around the solve one at a time, each its own program);
 - ``sensitivity``: ``lierk.sensitivity(problem, solver, T, ...)`` called from
   Python (its own program; default method, with its error estimate), lierk
   only;
@@ -61,7 +64,7 @@ import time
 BODIES = ("free", "top", "spacecraft")
 # name: (fixed, diffrax peer)
 SOLVERS = {"RKMK4": (True, "Tsit5"), "RKMK(DOP853)": (True, "Dopri8"), "DP54": (False, "Dopri5"), "DOP853": (False, "Dopri8")}
-WORKS = ("solve", "jacfwd", "sensitivity", "steady")
+WORKS = ("solve", "jacfwd", "eager", "sensitivity", "steady")
 STEPS, RTOL, BATCH = 100, 1e-8, 64
 QUICK = (("top", "DOP853"),)
 
@@ -184,10 +187,15 @@ def run_cell(cell: dict) -> dict:
             times.append(time.perf_counter() - t)
         out["steady"] = float(np.median(times))
         return out
-    if work == "jacfwd":
+    if work in ("jacfwd", "eager"):
         g = jax.jacfwd(f) if peer == "lierk" else jax.jacfwd(lambda w, s: f(w, s, forward_mode=True))
     else:
         g = f
+    if work == "eager":
+        t0 = time.perf_counter()
+        jax.block_until_ready(g(w0, s))
+        out.update(first=time.perf_counter() - t0)
+        return out
     t0 = time.perf_counter()
     lowered = jax.jit(g).lower(w0, s)
     t1 = time.perf_counter()
@@ -298,6 +306,11 @@ def markdown(meta, rows) -> list[str]:
                         lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
                                      f"{_verdict(c, b, target)} |")
                 if work == "jacfwd":
+                    e = _find(rows, body=body, solver=solver, work="eager", peer="lierk")
+                    f = _find(rows, body=body, solver=solver, work="eager", peer="diffrax")
+                    if e is not None and f is not None:
+                        lines.append(f"| {body} | {solver} vs {peer} | eager `jax.jacfwd` | {e['first']:.2f} | | "
+                                     f"{f['first']:.2f} | | {_verdict(e, f, target)} |")
                     s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
                     if s is not None:
                         lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "

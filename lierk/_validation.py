@@ -35,7 +35,7 @@ def asarray(x, dtype=None, name: str = "value"):
     `ValueError` naming ``name`` (a complex value would lose its imaginary
     part without a word)."""
     if is_traced(x):
-        x = jnp.asarray(x)
+        x = _traced(x)
     else:
         try:
             x = np.asarray(x)
@@ -46,7 +46,7 @@ def asarray(x, dtype=None, name: str = "value"):
     if dtype is None and (x.dtype.kind != "f" or x.dtype.itemsize < 4):
         dtype = jnp.result_type(float) if x.dtype.kind != "f" else np.float32
     if is_traced(x):
-        return x if dtype is None else x.astype(dtype)
+        return _traced(x, dtype)
     return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 
@@ -57,12 +57,23 @@ def as_jax(x, dtype=None):
     compiles nothing on concrete values (host paths: validation, problems
     built from a scene)."""
     if is_traced(x):
-        x = jnp.asarray(x)
-        return x if dtype is None else x.astype(dtype)
+        return _traced(x, dtype)
     if isinstance(x, jax.Array) and (dtype is None or x.dtype == jax.dtypes.canonicalize_dtype(dtype)):
         return x
     x = np.asarray(x)
     return jax.device_put(x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype)))
+
+
+def _traced(x, dtype=None):
+    """A traced ``x`` as a JAX value (of ``dtype`` if given), with no
+    operation where it is one already: under an eager `jax.jacfwd` or
+    `jax.grad` every operation on it, a cast to its own dtype included,
+    compiles a program."""
+    if not isinstance(x, jax.core.Tracer):
+        x = jnp.asarray(x)
+    if dtype is None or (x.dtype == jnp.dtype(dtype) and not x.aval.weak_type):
+        return x
+    return x.astype(dtype)
 
 
 def all_finite(tree) -> jax.Array:
@@ -116,7 +127,7 @@ def check(x, ok: Callable, message: str, *, reads=()):
         return x
     if traced:
         # The value is only known at run time; say which check failed.
-        x = jax.tree_util.tree_map(jnp.asarray, x)
+        x = jax.tree_util.tree_map(_traced, x)
         message = message.replace("{value}", "a traced value that failed the check")
         predicate = _Predicate.of(ok)
         if predicate is None:

@@ -279,6 +279,14 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     drift of the energy over many drifts; its derivative is that of the
     closed form's ``inertia omega(h)``.
     """
+    # Called on concrete values, one compiled program rather than one per
+    # operation; traced (a solver's step), inline.
+    if not is_traced(inertia, m, h):
+        return _free_flow_program(inertia, m, h)
+    return _free_flow(inertia, m, h)
+
+
+def _free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     omega0 = jnp.linalg.solve(inertia, m)
     Q, omega_h = _free_motion(inertia, omega0, h, jnp.eye(3, dtype=m.dtype))
     # The value is m + change; the derivative is that of the closed form's
@@ -288,6 +296,9 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     # program.
     sg = jax.lax.stop_gradient
     return Q, _value_with_tangent_of(sg(m) + _momentum_change(sg(inertia), sg(m), sg(h)), inertia @ omega_h)
+
+
+_free_flow_program = jax.jit(_free_flow)
 
 
 @jax.custom_jvp
@@ -371,9 +382,18 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
     3x3 product (a Blanes-Moan step on a heavy top has ten such drifts).
     """
     k = so3._axis_index(k, "symmetric_flow")
+    if not is_traced(I_a, I_3, m, h):  # as in `free_flow`
+        return _symmetric_flow_program(I_a, I_3, k, m, h)
+    return _symmetric_flow(I_a, I_3, k, m, h)
+
+
+def _symmetric_flow(I_a, I_3, k: int, m, h):
     phi = h * m[..., k] * (1.0 / I_3 - 1.0 / I_a)
     Q = so3.axis_turn(so3.exp((h / I_a) * m), k, phi)
     return so3.reorthonormalize(Q), so3.axis_turn(m, k, phi)
+
+
+_symmetric_flow_program = jax.jit(_symmetric_flow, static_argnums=2)
 
 
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
