@@ -589,16 +589,12 @@ def _frobenius(A: Array) -> Array:
     return jnp.sqrt(jnp.sum(A * A))
 
 
+@jax.jit
 def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:
     """``(I^-1, I omega0)`` as one compiled program: eager ``jax.numpy``
     would compile one per operation, for concrete values and for the values
     an eager `jax.jacfwd` or `jax.grad` traces; inside `jax.jit` it is
     inlined."""
-    return _inverse_and_momentum_jit(inertia, omega0)
-
-
-@jax.jit
-def _inverse_and_momentum_jit(inertia, omega0):
     return jnp.linalg.inv(inertia), inertia @ omega0
 
 
