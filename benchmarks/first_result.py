@@ -45,9 +45,10 @@ integrates the 12-component system (``peers.rigid_body_field``).
 Targets (issue 39): first solve at most 1.5x diffrax's; first Jacobian at
 most 2x diffrax's first ``jit(jacfwd)``.
 
-Run: ``python benchmarks/first_result.py [--quick] [--repeats N] [--out DIR]``
-(``--quick``: the heavy top with DOP853, one repeat); writes
-first_result.{json,md}.  ``--one CELL`` runs one cell in this process and
+Run: ``python benchmarks/first_result.py [--quick] [--repeats N] [--out DIR]
+[--works W,...]`` (``--quick``: the heavy top with DOP853, one repeat;
+``--works``: only those cells, written to first_result-W-....{json,md});
+writes first_result.{json,md}.  ``--one CELL`` runs one cell in this process and
 prints its JSON (what the runs above call).
 """
 
@@ -216,10 +217,10 @@ def _fresh(cell: dict) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def cells(quick: bool):
+def cells(quick: bool, works=WORKS):
     pairs = QUICK if quick else [(b, s) for b in BODIES for s in SOLVERS]
     for body, solver in pairs:
-        for work in WORKS:
+        for work in works:
             yield dict(body=body, solver=solver, work=work, peer="lierk", compact=None)
             if work in ("solve", "steady"):
                 yield dict(body=body, solver=solver, work=work, peer="lierk", compact=True)
@@ -233,6 +234,8 @@ def main(argv=None):
     def extra(parser):
         parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
         parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
+        parser.add_argument("--works", default=None,
+                            help=f"comma-separated subset of {','.join(WORKS)}; writes first_result-<works>.{{json,md}}")
 
     quick, out, args = common.cli(__doc__, "the heavy top with DOP853, one repeat, into a temp dir", extra=extra,
                                   argv=argv)
@@ -240,11 +243,16 @@ def main(argv=None):
         print(json.dumps(run_cell(json.loads(args.one))))
         return
     repeats = args.repeats or (1 if quick else 3)
+    works = tuple(args.works.split(",")) if args.works else WORKS
+    unknown = [w for w in works if w not in WORKS]
+    if unknown:
+        raise SystemExit(f"--works: unknown {', '.join(unknown)}; choose from {', '.join(WORKS)}")
+    name = "first_result" if works == WORKS else "first_result-" + "-".join(works)
 
     meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
             "rtol": RTOL, "batch": BATCH}
     rows = []
-    for cell in cells(quick):
+    for cell in cells(quick, works):
         runs = [_fresh(cell) for _ in range(repeats)]
         row = dict(cell, **{k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "method"})
         if "method" in runs[0]:
@@ -254,7 +262,7 @@ def main(argv=None):
         print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
               f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
     meta["machine"]["load_average_at_end"] = os.getloadavg()
-    common.write_results(out, "first_result", {"meta": meta, "rows": rows}, markdown(meta, rows))
+    common.write_results(out, name, {"meta": meta, "rows": rows}, markdown(meta, rows))
 
 
 def _find(rows, **kw):
@@ -315,6 +323,8 @@ def markdown(meta, rows) -> list[str]:
                     if s is not None:
                         lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
                                      f"| {s['first']:.2f} | | | | {_verdict(s, b, target)} |")
+    if not any(r["work"] == "steady" for r in rows):
+        return lines
     lines += ["", "## Steady state (after compilation)", "",
               f"| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
               "|---|---|---:|---:|---:|---:|---:|"]
