@@ -72,6 +72,9 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                              "Whether the energy error over 10^6 steps is a random walk (Brouwer's law) or a drift."),
     "first_result": ("Time to first result",
                      "A fresh process's first solve and first Jacobian (trace, compile, run), lierk beside diffrax."),
+    "first_result-jacfwd-eager": ("Time to first Jacobian, jitted and eager",
+                                  "A later run of the first Jacobians alone: jax.jit(jax.jacfwd(f)) and an eager "
+                                  "jax.jacfwd(f), as most code calls it, lierk beside diffrax."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
@@ -151,7 +154,7 @@ def render_results(page_dir: str = "guides") -> str:
                                                         _script_sentence(path.stem))
         anchor = _slug(f"{sub}-{path.stem}" if sub else path.stem)
         level = "###" if sub else "##"
-        script = f"benchmarks/{path.stem}.py"
+        script = f"benchmarks/{path.stem.split('-')[0]}.py"  # first_result-jacfwd-eager: first_result.py --works
         source = f"`benchmarks/results/{rel.as_posix()}`"
         if (ROOT / script).exists():
             source += f", written by `{script}`"
