@@ -130,9 +130,7 @@ def check(x, ok: Callable, message: str, *, reads=()):
         x = jax.tree_util.tree_map(_traced, x)
         message = message.replace("{value}", "a traced value that failed the check")
         predicate = _Predicate.of(ok)
-        if predicate is None:
-            return eqx.error_if(x, ~jnp.all(ok(x)), message)
-        return _error_unless(x, predicate, message)
+        return _error_unless(x, ok, message) if predicate is None else _error_unless_program(x, predicate, message)
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=show(x)) if "{value}" in message else message)
     return x
@@ -140,7 +138,7 @@ def check(x, ok: Callable, message: str, *, reads=()):
 
 class _Predicate:
     """A check's predicate, equal to any other with the same code and the same
-    (hashable) closed-over values, so that `_error_unless` compiles once per
+    (hashable) closed-over values, so that `_error_unless_program` compiles once per
     predicate rather than once per call (a call site's lambda is a new object
     each time)."""
 
@@ -177,9 +175,11 @@ class _Predicate:
 # `jax.jacfwd` or `jax.grad`) runs each operation of the predicate as a
 # program of its own, and a rigid body's checks were about 50 of them, 1.5 s
 # of a first Jacobian.  Inside `jax.jit` the call is inlined.
-@functools.partial(jax.jit, static_argnums=(1, 2))
-def _error_unless(x, ok: _Predicate, message: str):
+def _error_unless(x, ok: Callable, message: str):
     return eqx.error_if(x, ~jnp.all(ok(x)), message)
+
+
+_error_unless_program = jax.jit(_error_unless, static_argnums=(1, 2))
 
 
 def show(x) -> str:
@@ -268,7 +268,7 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 @jax.jit
 def _state_in_range(inertia, omega0):
     """``omega0``, checked at run time against `state_range_error`'s bounds
-    (one program: see `_error_unless`)."""
+    (one program: see `_error_unless_program`)."""
     lo, hi = _log_range(omega0.dtype)
     moments, squares = _state_logs(inertia, omega0, jnp)
     return eqx.error_if(

@@ -128,11 +128,14 @@ def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
     # of its own (about 50 for a rigid body, 1.5 s of a first Jacobian).
     # Each check is now one program, compiled once for all the calls that
     # make it (each call site's predicate is a new lambda every time).
+    def momentum_jacobian(w):
+        return jax.block_until_ready(jax.jacfwd(lambda w: _body([2.0, 3.0, 4.0], w).y0)(jax.numpy.asarray(w)))
+
     names = [None, None]
     jax.clear_caches()
     for k, w in enumerate(([0.3, -0.2, 5.0], [0.2, 0.1, 4.0])):
         with counting() as seen:
-            jax.block_until_ready(jax.jacfwd(lambda w: _body([2.0, 3.0, 4.0], w).y0)(jax.numpy.asarray(w)))
+            momentum_jacobian(w)
         names[k] = seen.names
     checks = ("jit(_error_unless)", "jit(_state_in_range)")
     assert [names[0].count(n) for n in checks] == [1, 1], names[0]
@@ -141,4 +144,4 @@ def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
     assert not any(n in checks for n in names[1]), names[1]
     # The checks still run: a NaN in omega0 is refused, by name.
     with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
-        jax.block_until_ready(jax.jacfwd(lambda w: _body([2.0, 3.0, 4.0], w).y0)(jax.numpy.asarray([0.1, float("nan"), 1.0])))
+        momentum_jacobian([0.1, float("nan"), 1.0])
