@@ -197,7 +197,7 @@ def test_saveat_t1_and_steps():
     assert n == int(steps.stats["num_accepted_steps"])
     assert bool(jnp.all(jnp.isinf(steps.ts[n:]))) and bool(jnp.all(jnp.isnan(steps.R[n:])))
     assert float(steps.ts[n - 1]) == T
-    assert frob(steps.R[n - 1], sol.R[0]) == 0.0
+    assert frob(steps.R[n - 1], sol.R[0]) < 1e-14  # to the bit: tests/test_last_bits.py
     R_nodes = lierk.exact.free_rigid_body(TEE, OMEGA_GENERIC, steps.ts[:n])[0]
     assert float(jnp.max(jnp.linalg.norm(steps.R[:n] - R_nodes, axis=(1, 2)))) < 100 * 1e-9
 

@@ -298,8 +298,12 @@ _TWO_DEVICES = textwrap.dedent(
 )
 
 
+# Added to the caller's XLA flags (make test's quick compile settings).
+_TWO_HOST_DEVICES = " ".join([*os.environ.get("XLA_FLAGS", "").split(), "--xla_force_host_platform_device_count=2"])
+
+
 def test_sweep_sharded_over_two_host_devices_equals_unsharded():
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=_TWO_HOST_DEVICES, JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", _TWO_DEVICES], env=env, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-3000:]
     assert proc.stdout.strip().startswith("OK 2"), proc.stdout
@@ -335,7 +339,7 @@ def test_a_failed_member_on_one_device_raises_its_error():
     """A run-time check that fails on one device raises the solve's error,
     promptly: under the SPMD partitioner the other device waited for it in
     an all-reduce, and XLA aborted the process after a minute."""
-    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2", JAX_PLATFORMS="cpu")
+    env = dict(os.environ, XLA_FLAGS=_TWO_HOST_DEVICES, JAX_PLATFORMS="cpu")
     proc = subprocess.run(
         [sys.executable, "-c", _FAILURE_ON_ONE_DEVICE], env=env, capture_output=True, text=True, timeout=300
     )
