@@ -65,27 +65,21 @@ def _float(x: ArrayLike) -> Array:
 
 
 def _one_program(f=None, *, static: tuple[str, ...] = ()):
-    """``f`` as one compiled program when called on concrete values; traced
-    (inside a caller's `jax.jit`, `jax.vmap` or autodiff) it is ``f`` itself,
-    inlined into the caller's program as before.
+    """``f`` as one jitted function, called eagerly or traced.
 
-    Called eagerly, each `jax.numpy` operation of ``f`` is a small program of
-    its own, compiled on first use: ``log`` of a concrete rotation compiled
-    about 40 of them (a tenth of a second each on a 2-core machine), where
-    one program of the whole function compiles once per shape and dtype.
-    ``static``: the arguments that select the program (checked by ``f``'s
-    caller first)."""
+    Called eagerly, each `jax.numpy` operation of ``f`` would be a small
+    program of its own, compiled on first use: ``log`` of a concrete rotation
+    compiled about 40 of them (a tenth of a second each on a 2-core machine),
+    where one program of the whole function compiles once per shape and
+    dtype.  Traced (inside a caller's `jax.jit`, `jax.vmap` or autodiff), JAX
+    traces ``f`` once per shape and dtype and reuses that for every later call
+    in the caller's trace, and XLA inlines it: a solver calls these in every
+    stage, and a first DOP853 solve of a heavy top traced and lowered in 0.34 s
+    instead of 0.56 s, to the same optimized program.  ``static``: the
+    arguments that select the program (checked by ``f``'s caller first)."""
     if f is None:
         return functools.partial(_one_program, static=static)
-    compiled = jax.jit(f, static_argnames=static)
-
-    @functools.wraps(f)
-    def call(*args, **kwargs):
-        if validation.is_traced(args, kwargs):
-            return f(*args, **kwargs)
-        return compiled(*args, **kwargs)
-
-    return call
+    return jax.jit(f, static_argnames=static)
 
 
 @_one_program
@@ -177,7 +171,7 @@ def _horner(coef, x2):
     return acc
 
 
-@jax.custom_jvp
+@_one_program
 def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``:
     ``(...) -> 3 x (...)``.
@@ -202,6 +196,11 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     ``(sin x / x - cos x)/x^2`` are taken in ``x^2`` itself: no square root,
     and no cancellation at small angles.
     """
+    return _exp_coefficients(theta2)
+
+
+@jax.custom_jvp
+def _exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     x2 = 0.25 * theta2
     near = x2 <= (0.25 * math.pi) ** 2
     # Each branch sees only its own inputs, so neither divides by zero and
@@ -234,14 +233,14 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     return A, B, D
 
 
-@exp_coefficients.defjvp
+@_exp_coefficients.defjvp
 def _exp_coefficients_jvp(primals, tangents):
     # The derivatives with respect to theta^2 are computed once per angle, as
     # primal values; each tangent direction then costs one product per
     # coefficient.  Left to JAX, forward mode carried every direction through
     # the polynomial chains, and XLA re-derived them inside each consumer.
     (theta2,), (dtheta2,) = primals, tangents
-    values, slopes = jax.jvp(exp_coefficients.fun, (theta2,), (jnp.ones_like(theta2),))
+    values, slopes = jax.jvp(_exp_coefficients.fun, (theta2,), (jnp.ones_like(theta2),))
     return values, tuple(s * dtheta2 for s in slopes)
 
 

@@ -46,17 +46,20 @@ _SEEN: list[tuple[str, int, float, float]] = []
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs(request):
     """Count the module's compilations against its budget, then drop every
-    compiled program.  The suite compiles hundreds of solves (the splittings'
-    elliptic-function drift is a large program); kept for the whole session
-    they grew the process past 5 GB at a fifth of the suite, and a full run
-    was killed mid-compile."""
+    compiled program when other modules run in the same process.  The suite
+    compiles hundreds of solves (the splittings' elliptic-function drift is a
+    large program); kept for the whole session they grew the process past
+    5 GB at a fifth of the suite, and a full run was killed mid-compile.  A
+    process with one module (``make test``) ends instead: clearing cost a
+    second or more a module."""
     name = Path(str(request.path)).stem
     start = time.perf_counter()
     with lierk.app.compilations.counting() as seen:
         yield
     _SEEN.append((name, seen.count, seen.seconds, time.perf_counter() - start))
-    jax.clear_caches()
-    gc.collect()
+    if len({item.path for item in request.session.items}) > 1:
+        jax.clear_caches()
+        gc.collect()
     budget = _BUDGET.get(name)
     if budget is not None and seen.count > budget:
         pytest.fail(f"{name} built {seen.count} programs, over its budget of {budget} (tests/compile_budget.json)")
