@@ -75,6 +75,9 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
     "first_result-jacfwd-eager": ("Time to first Jacobian, jitted and eager",
                                   "A later run of the first Jacobians alone: jax.jit(jax.jacfwd(f)) and an eager "
                                   "jax.jacfwd(f), as most code calls it, lierk beside diffrax."),
+    "first_result-solve-jacfwd": ("Time to first solve and first Jacobian, a later run",
+                                  "The first solves and first jax.jit(jax.jacfwd(f)) alone, after lierk.so3's "
+                                  "functions became nested jits, lierk beside diffrax."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
