@@ -42,7 +42,7 @@ demo: $(STAMP)
 #
 # Most of the suite's time is XLA compiling small problems that then run for
 # milliseconds.  XLA's quick settings (no LLVM optimisation passes, the older
-# loop emitters) halve that (the suite: 19-21 -> about 10.5 min) and move
+# loop emitters) halve that (the suite on a fresh clone: 18.9 -> 11.3 min) and move
 # results by a few units in the last place.  Modules whose claims are those
 # last bits, or the numbers users see printed, keep XLA's defaults: the
 # manual's pages and tests/test_last_bits.py.  Running pytest directly uses

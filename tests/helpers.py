@@ -31,6 +31,12 @@ TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])
 # A non-commuting test problem: the T-handle off its axes.
 OMEGA_GENERIC = np.array([1.0, 0.05, 0.3])
 
+# A piecewise-linear torque profile along body z (N m) at its sample times (s),
+# and its impulse, the area under it (N m s: 0.1 + 0.4 + 0.1).
+TORQUE_TIMES = [0.0, 0.5, 1.5, 2.0]
+TORQUE_SAMPLES = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.4], [0.0, 0.0, 0.4], [0.0, 0.0, 0.0]]
+TORQUE_IMPULSE = 0.6
+
 
 _exact_R = jax.jit(lambda inertia, omega0, t1, R0: lierk.exact.free_rigid_body(inertia, omega0, t1, R0)[0])
 

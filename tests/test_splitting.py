@@ -14,7 +14,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from helpers import SPLITTING_SOLVERS, derivatives_and_differences, fd_jacobian, final_attitudes, order_fit, write
+from helpers import (
+    SPLITTING_SOLVERS,
+    TORQUE_IMPULSE,
+    TORQUE_SAMPLES,
+    TORQUE_TIMES,
+    derivatives_and_differences,
+    fd_jacobian,
+    final_attitudes,
+    order_fit,
+    write,
+)
 
 import lierk
 from lierk import exact, so3
@@ -333,9 +343,7 @@ def test_effect_reading_momentum_without_a_kick_is_refused():
 
 # --- TimedTorque -------------------------------------------------------------
 
-TIMES = [0.0, 0.5, 1.5, 2.0]
-SAMPLES = [[0.0, 0.0, 0.0], [0.0, 0.0, 0.4], [0.0, 0.0, 0.4], [0.0, 0.0, 0.0]]
-IMPULSE = 0.6  # N m s: the area under the piecewise-linear profile (0.1 + 0.4 + 0.1)
+TIMES, SAMPLES, IMPULSE = TORQUE_TIMES, TORQUE_SAMPLES, TORQUE_IMPULSE
 
 
 @pytest.mark.parametrize("solver,kw,tol", [
