@@ -279,11 +279,10 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     drift of the energy over many drifts; its derivative is that of the
     closed form's ``inertia omega(h)``.
     """
-    # Called on concrete values, one compiled program rather than one per
-    # operation; traced (a solver's step), inline.
-    if not is_traced(inertia, m, h):
-        return _free_flow_program(inertia, m, h)
-    return _free_flow(inertia, m, h)
+    # One jitted function, like `free_rigid_body`'s: called on concrete values,
+    # one compiled program rather than one per operation; traced (a solver's
+    # step), traced once per shape and inlined by XLA.
+    return _free_flow_program(inertia, m, h)
 
 
 def _free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
@@ -381,10 +380,7 @@ def symmetric_flow(I_a: Array, I_3: Array, k: int, m: Array, h: Array) -> tuple[
     columns (`so3.axis_turn`), which is cheaper than a second `so3.exp` and a
     3x3 product (a Blanes-Moan step on a heavy top has ten such drifts).
     """
-    k = so3._axis_index(k, "symmetric_flow")
-    if not is_traced(I_a, I_3, m, h):  # as in `free_flow`
-        return _symmetric_flow_program(I_a, I_3, k, m, h)
-    return _symmetric_flow(I_a, I_3, k, m, h)
+    return _symmetric_flow_program(I_a, I_3, so3._axis_index(k, "symmetric_flow"), m, h)  # as in `free_flow`
 
 
 def _symmetric_flow(I_a, I_3, k: int, m, h):
