@@ -37,10 +37,18 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import tableaux, _validation as validation
+from . import so3, tableaux, _validation as validation
 from ._solvers.base import field_at
 
 __all__ = ["AbstractStepController", "Controller", "ConstantStep", "Decision"]
+
+
+def frozen(tree):
+    """A pytree (a problem, a controller, times) with its array leaves out of
+    the gradient: an error estimate's finer solve is a diagnostic and would
+    double the cost of a backward pass, and DirectAdjoint's deciding solve is
+    not differentiated at all."""
+    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
 
 
 def _leaves(tree) -> list[Array]:
@@ -316,9 +324,12 @@ class Controller(AbstractStepController):
 
     def _initial_step(self, problem, q: int, t0, t1, f0, modes=None):
         """Hairer-Norsett-Wanner's starting step (II.4), in the algebra about ``R0``."""
-        R0, y0 = problem.R0, problem.y0
-        omega0, ydot0 = f0
         sg = jax.lax.stop_gradient
+        # The step is a decision, never differentiated: cut the tangents at
+        # the inputs, so that a differentiated solve does not trace the trial
+        # point's derivative only to drop it.
+        problem, (omega0, ydot0), t0, t1 = frozen((problem, f0, t0, t1))
+        R0, y0 = problem.R0, problem.y0
         tol = problem.error_tolerance(y0, y0, self.rtol, self.atol)
         # The attitude's size is 1 (entries of R are O(1)); y's is its own.
         d0 = sg(self.norm(jnp.ones_like(omega0), y0, tol))
@@ -326,7 +337,15 @@ class Controller(AbstractStepController):
         big = (d0 > 1e-5) & (d1 > 1e-5)
         h0 = jnp.where(big, 0.01 * d0 / jnp.where(big, d1, 1.0), 1e-6)
         y1 = jax.tree_util.tree_map(lambda a, b: a + h0 * b, y0, ydot0)
-        omega1, ydot1 = problem.local(problem.base(t0, R0, y0), t0 + h0, h0 * omega0, y1)
+        # The trial point turns by h0 |omega0|, about 0.01 rad (or less): the
+        # exponential's coefficients to second order in the angle serve the
+        # estimate, and keep a copy of `so3.exp_coefficients`' series (about
+        # 200 instructions) out of every adaptive program.  (Clipped: finite
+        # and bounded whatever the angle.)
+        u = h0 * omega0
+        theta2 = jnp.minimum(so3._sq(u), 1.0)
+        coefficients = (1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0, 1.0 / 12.0 + theta2 / 720.0)
+        omega1, ydot1 = problem.local(problem.base(t0, R0, y0), t0 + h0, u, y1, coefficients)
         d2 = sg(self.norm(omega1 - omega0, jax.tree_util.tree_map(lambda a, b: a - b, ydot1, ydot0), tol) / h0)
         dmax = jnp.maximum(d1, d2)
         safe = jnp.where(dmax > 0, dmax, 1.0)

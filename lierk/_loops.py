@@ -34,7 +34,7 @@ from . import _event as event_lib
 from . import _validation as validation
 from ._adjoint import ForwardMode
 from ._interpolation import DenseInterpolation
-from ._controller import AbstractStepController
+from ._controller import AbstractStepController, frozen
 from ._solution import RESULTS, SaveAt, Solution
 
 __all__ = ["solve_fixed", "solve_fixed_at", "solve_adaptive", "num_steps", "step_count", "frozen"]
@@ -42,14 +42,6 @@ __all__ = ["solve_fixed", "solve_fixed_at", "solve_adaptive", "num_steps", "step
 # Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`solve_fixed`).
 _CHECKPOINT_BLOCK_MIN = 16
-
-
-def frozen(tree):
-    """A pytree (a problem, a controller, times) with its array leaves out of
-    the gradient: an error estimate's finer solve is a diagnostic and would
-    double the cost of a backward pass, and DirectAdjoint's deciding solve is
-    not differentiated at all."""
-    return jax.tree_util.tree_map(lambda x: jax.lax.stop_gradient(x) if eqx.is_array(x) else x, tree)
 
 
 def num_steps(t0, t1, dt, max_steps=None) -> int:

@@ -376,8 +376,33 @@ def _power_of_ten(x: float) -> str:
 def rigid_body_state(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None):
     """`rigid_body_inputs` and the inverse inertia: ``(inertia (3, 3),
     inertia_inv (3, 3), omega0 (3,), R0 (3, 3))``."""
-    inertia, omega0, R0 = rigid_body_inputs(inertia, omega0, R0)
-    return inertia, jnp.linalg.inv(inertia), omega0, R0
+    checked, omega0, R0 = rigid_body_inputs(inertia, omega0, R0)
+    return checked, inverse_inertia(checked, inertia), omega0, R0
+
+
+def inverse_inertia(inertia: Array, given: ArrayLike | None = None) -> Array:
+    """``I^-1`` ``(3, 3)`` in ``inertia``'s dtype, for a checked ``inertia``
+    (`check_inertia`, `rigid_body_inputs`) and, if it differs, the argument
+    as ``given`` (``(3,)`` or ``(3, 3)``).
+
+    A concrete inertia is inverted by NumPy (in float64, then rounded).
+    Inside `jax.jit` the checked copy is traced even when the argument is a
+    constant (JAX stages every array it makes), and a traced inverse is an
+    LU factorisation: a while loop that XLA compiled into every program that
+    builds a body (about 100 of the heavy top's adaptive solve's 2,400
+    instructions).  A traced inertia is inverted in one compiled program
+    (`_inverse`)."""
+    source = inertia if given is None or is_traced(given) else given
+    if is_traced(source):
+        return _inverse(inertia)
+    I = np.asarray(source, np.float64)
+    I = np.diag(I) if I.shape == (3,) else I
+    return as_jax(np.linalg.inv(I).astype(inertia.dtype))
+
+
+@jax.jit
+def _inverse(inertia: Array) -> Array:
+    return jnp.linalg.inv(inertia)
 
 
 def check_inertia(inertia: ArrayLike) -> Array:

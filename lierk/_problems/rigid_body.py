@@ -120,7 +120,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
             )
         self.wheel_index = wheels[0] if wheels else None
         self.inertia, omega0, self.R0 = validation.rigid_body_inputs(inertia, omega0, R0)
-        self.inertia_inv, m0 = _inverse_and_momentum(self.inertia, omega0)
+        self.inertia_inv, m0 = validation.inverse_inertia(self.inertia, inertia), _momentum(self.inertia, omega0)
         self.effects = tuple(e._cast(self.inertia.dtype) for e in effects)
         if self.wheel_index is None:
             self.y0 = m0
@@ -590,12 +590,12 @@ def _frobenius(A: Array) -> Array:
 
 
 @jax.jit
-def _inverse_and_momentum(inertia: Array, omega0: Array) -> tuple[Array, Array]:
-    """``(I^-1, I omega0)`` as one compiled program: eager ``jax.numpy``
-    would compile one per operation, for concrete values and for the values
-    an eager `jax.jacfwd` or `jax.grad` traces; inside `jax.jit` it is
+def _momentum(inertia: Array, omega0: Array) -> Array:
+    """``I omega0`` ``(3,)`` as one compiled program: eager ``jax.numpy``
+    compiles one per operation, for concrete values and for the values an
+    eager `jax.jacfwd` or `jax.grad` traces; inside `jax.jit` it is
     inlined."""
-    return jnp.linalg.inv(inertia), inertia @ omega0
+    return inertia @ omega0
 
 
 def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
