@@ -180,7 +180,8 @@ def test_blitted_frames_are_the_pixels_of_full_draws(flip, parts):
 
     problem, sol = flip
     parts = lierk.inertia.tee_handle_parts() if parts == "tee" else None
-    make = lambda: plot._animation(sol, parts, problem.L, frames=4, title="t", inertia=None, origin=None,  # noqa: E731
+    ts, R, _ = sol.trajectory()
+    make = lambda: plot._animation(ts, R, parts, problem.L, frames=4, title="t", inertia=None, origin=None,  # noqa: E731
                                    trail=True)
     blitted = plot._frames(make())
     full = make()

@@ -25,7 +25,8 @@ from matplotlib.figure import Figure
 from lierk import so3
 from ..inertia import Part, composite
 
-__all__ = ["components", "euler_angles", "invariants", "omega_sweep", "animate", "GIF_DPI", "GIF_SIZE"]
+__all__ = ["components", "euler_angles", "invariants", "omega_sweep", "animate", "animation_frames", "write_gif", "GIF_DPI",
+           "GIF_SIZE"]
 
 # Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
 GIF_SIZE = (5.0, 5.0)
@@ -418,11 +419,16 @@ def animate(
     Returns:
         ``path`` as a `Path`.  The GIF is ``GIF_SIZE * GIF_DPI`` pixels.
     """
-    animation = _animation(sol, parts, L, frames=frames, title=title, inertia=inertia, origin=origin, trail=trail)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    _write_gif(_frames(animation), path, fps)
-    return path
+    images = animation_frames(sol, parts, L, frames=frames, title=title, inertia=inertia, origin=origin, trail=trail)
+    return write_gif(images, path, fps)
+
+
+def animation_frames(sol, parts, L=None, *, frames: int = 120, title: str | None = None, inertia=None, origin=None,
+                     trail: bool = True) -> list[np.ndarray]:
+    """The frames of `animate`'s GIF (same arguments), RGB ``(h, w, 3)``
+    uint8 each, ``GIF_SIZE * GIF_DPI`` pixels; `write_gif` writes them."""
+    ts, R, _ = sol.trajectory()
+    return _frames(_animation(ts, R, parts, L, frames=frames, title=title, inertia=inertia, origin=origin, trail=trail))
 
 
 class _Animation(NamedTuple):
@@ -436,12 +442,11 @@ class _Animation(NamedTuple):
     n_frames: int
 
 
-def _animation(sol, parts, L, *, frames, title, inertia, origin, trail) -> _Animation:
+def _animation(ts, R, parts, L, *, frames, title, inertia, origin, trail) -> _Animation:
     """The figure of `animate` and how to move it from frame to frame."""
     from matplotlib.ticker import MaxNLocator
     from mpl_toolkits.mplot3d.art3d import Poly3DCollection
 
-    ts, R, _ = sol.trajectory()
     if len(ts) == 0:
         raise ValueError("the solution has no saved states to animate")
     idx = np.unique(np.linspace(0, len(ts) - 1, max(int(frames), 1)).round().astype(int))
@@ -567,8 +572,9 @@ def _frames(animation: _Animation) -> list[np.ndarray]:
     return images
 
 
-def _write_gif(images: list[np.ndarray], path: Path, fps: int) -> None:
-    """A looping GIF of RGB frames ``(h, w, 3)`` (uint8), ``fps`` per second.
+def write_gif(images: list[np.ndarray], path, fps: int = 20) -> Path:
+    """Write a looping GIF of RGB frames ``(h, w, 3)`` (uint8), ``fps`` per
+    second, to ``path`` (its folder is made if needed); returns it as a `Path`.
 
     One 256-colour palette serves every frame: it is fitted (median cut) to
     eight frames spread over the run and each frame is mapped to it, which
@@ -580,5 +586,8 @@ def _write_gif(images: list[np.ndarray], path: Path, fps: int) -> None:
     sample = images[:: max(1, len(images) // 8)]
     palette = Image.fromarray(np.concatenate(sample, axis=1)).quantize(256, method=Image.Quantize.MEDIANCUT)
     frames = [Image.fromarray(im).quantize(palette=palette, dither=Image.Dither.NONE) for im in images]
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(path, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
+    return path
 

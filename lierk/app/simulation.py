@@ -56,11 +56,9 @@ class Simulation:
     @property
     def flip_interval(self) -> float | None:
         """`lierk.exact.flip_interval` of a torque-free body (``inf``: it
-        never flips); None for a body with effects."""
-        from ..exact import flip_interval
-
-        problem = self.scene.problem
-        return float(flip_interval(problem.inertia, problem.omega0)) if problem.torque_free else None
+        never flips); None for a body with effects
+        (`lierk.app.diagnostics.Diagnostics.flip_interval`)."""
+        return self.diagnostics.flip_interval
 
     @property
     def event_times(self) -> dict[str, np.ndarray]:
