@@ -55,6 +55,7 @@ prints its JSON (what the runs above call).
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import os
 import statistics
@@ -252,15 +253,24 @@ def main(argv=None):
     meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
             "rtol": RTOL, "batch": BATCH}
     rows = []
-    for cell in cells(quick, works):
-        runs = [_fresh(cell) for _ in range(repeats)]
-        row = dict(cell, **{k: statistics.median(r[k] for r in runs) for k in runs[0] if k != "method"})
-        if "method" in runs[0]:
-            row["method"] = runs[0]["method"]
-        rows.append(row)
-        value = row.get("first", row.get("steady"))
-        print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
-              f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
+    for _, group in itertools.groupby(cells(quick, works), key=lambda c: (c["body"], c["solver"], c["work"])):
+        # The cells compared with each other (lierk, compact, diffrax) take
+        # turns, repeat by repeat: this 2-core machine's speed drifts by a
+        # third over minutes, and a ratio of cells timed minutes apart drifted
+        # with it.
+        group = list(group)
+        runs = [[] for _ in group]
+        for _ in range(repeats):
+            for cell, done in zip(group, runs):
+                done.append(_fresh(cell))
+        for cell, done in zip(group, runs):
+            row = dict(cell, **{k: statistics.median(r[k] for r in done) for k in done[0] if k != "method"})
+            if "method" in done[0]:
+                row["method"] = done[0]["method"]
+            rows.append(row)
+            value = row.get("first", row.get("steady"))
+            print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
+                  f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
     meta["machine"]["load_average_at_end"] = os.getloadavg()
     common.write_results(out, name, {"meta": meta, "rows": rows}, markdown(meta, rows))
 
@@ -288,7 +298,7 @@ def markdown(meta, rows) -> list[str]:
         "# Time to first result: lierk beside diffrax",
         "",
         f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}; jax {m['jax']}, lierk {m['lierk']}, commit {meta['commit']}.  Every cell in a "
-        f"fresh process without the persistent cache, median of {meta['repeats']}; float64; {meta['steps']} fixed steps or "
+        f"fresh process without the persistent cache, median of {meta['repeats']} (the cells of one comparison in turn); float64; {meta['steps']} fixed steps or "
         f"rtol = atol = {meta['rtol']:g}.  First call = trace (and lower) + XLA compile + first run, seconds; size: "
         f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "
         f"average at start {tuple(round(x, 1) for x in m['load_average_at_start'])}, at end "

@@ -77,7 +77,8 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                                   "jax.jacfwd(f), as most code calls it, lierk beside diffrax."),
     "first_result-solve-jacfwd": ("Time to first solve and first Jacobian, a later run",
                                   "The first solves and first jax.jit(jax.jacfwd(f)) alone, after lierk.so3's "
-                                  "functions became nested jits, lierk beside diffrax."),
+                                  "functions became nested jits and constant bodies stopped compiling an LU "
+                                  "factorisation, lierk beside diffrax."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
