@@ -246,7 +246,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
     def at(self, base, t, y):
         if self.wheel_index is not None:
             return self._at_with_wheels(base, t, y)
-        omega = jnp.diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
+        omega = _diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
         return omega, self._add_torques(so3.cross(y, omega), base, t, y, omega)
 
     def _add_torques(self, dm, base, t, m, omega):
@@ -275,7 +275,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         g``, then ``m' = I omega'`` and ``Omega' = u / Js - g . omega'``."""
         m, speeds = y
         w = self.wheels
-        omega = jnp.diagonal(self.inertia_inv) * m if self.diagonal else self.inertia_inv @ m
+        omega = _diagonal(self.inertia_inv) * m if self.diagonal else self.inertia_inv @ m
         with jax.named_scope("lierk_effect_ReactionWheels"):
             u = w.motor_torque(t)
             u = None if u is None else u.astype(m.dtype)
@@ -289,7 +289,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
             # it) then turns the body as it should.  A 3x3 solve by cofactors
             # is a few dozen products that fuse with the rest of the stage.
             domega = _solve3(self.inertia - _spin_matrix(w.spin_inertia, w.axes), rhs)
-            dm = jnp.diagonal(self.inertia) * domega if self.diagonal else self.inertia @ domega
+            dm = _diagonal(self.inertia) * domega if self.diagonal else self.inertia @ domega
             dspeeds = -_along(w.axes, domega)
             if u is not None:
                 dspeeds = dspeeds + u / w.spin_inertia
@@ -326,7 +326,14 @@ class RigidBodyWithEffects(AbstractRigidBody):
             base = self.base(t, R, y)
 
             def torque(u, m):
-                omega, dm = self.local(base, t, u, self._state_with_momentum(y, m))
+                # The point turned to first order in u (`turn_tangent`): its
+                # value and derivative at u = 0, all that is asked of it, are
+                # those of the exact turn (`local`), without the derivative of
+                # the exponential's series (a third of a differentiated
+                # adaptive step's trace, which the loop's transformations
+                # process again and again).
+                point = base + self.turn_tangent(base, u)
+                omega, dm = self.at(point, t, self._state_with_momentum(y, m))
                 return self._body_momenta(R, dm) - so3.cross(m, omega)
 
             K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, m0.dtype), m0)
@@ -377,7 +384,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         stiffness = _frobenius(IK_u)
         turning = _frobenius(0.5 * (K_m - K_m.T))
         sym = 0.5 * (K_m + K_m.T)
-        growth = jnp.maximum(0.0, jnp.max(jnp.diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(jnp.diagonal(sym))))
+        growth = jnp.maximum(0.0, jnp.max(_diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(_diagonal(sym))))
         frequency = 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth + turned
         return frequency, _frobenius(sym)
 
@@ -400,7 +407,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         k = self.symmetry_axis
         if k is None:
             return exact.free_flow(self.inertia, m, h)
-        moments = jnp.diagonal(self.inertia)
+        moments = _diagonal(self.inertia)
         return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], k, m, h)
 
     @property
@@ -581,6 +588,13 @@ def _check_wheels(inertia: Array, axes: Array, spin_inertia: Array, path: str) -
             f"{np.array2string(moments, precision=6, separator=', ')}"
         )
     return inertia, axes, spin_inertia
+
+
+def _diagonal(A: Array) -> Array:
+    """The diagonal ``(3,)`` of a ``(3, 3)`` matrix, as three entries:
+    ``jnp.diagonal`` traces a gather behind a per-platform ``cond``, about
+    20 equations a call, and every stage calls it."""
+    return jnp.stack([A[0, 0], A[1, 1], A[2, 2]])
 
 
 def _frobenius(A: Array) -> Array:
