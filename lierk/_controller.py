@@ -337,11 +337,12 @@ class Controller(AbstractStepController):
         big = (d0 > 1e-5) & (d1 > 1e-5)
         h0 = jnp.where(big, 0.01 * d0 / jnp.where(big, d1, 1.0), 1e-6)
         y1 = jax.tree_util.tree_map(lambda a, b: a + h0 * b, y0, ydot0)
-        # The trial point turns by h0 |omega0|, about 0.01 rad (or less): the
+        # The trial point turns by h0 |omega0|: with h0 = 0.01 d0/d1, a few
+        # hundredths of a radian at most (else h0 = 1e-6 s).  The
         # exponential's coefficients to second order in the angle serve the
         # estimate, and keep a copy of `so3.exp_coefficients`' series (about
-        # 200 instructions) out of every adaptive program.  (Clipped: finite
-        # and bounded whatever the angle.)
+        # 200 instructions) out of every adaptive program.  (The angle is
+        # clipped: finite and bounded coefficients whatever it is.)
         u = h0 * omega0
         theta2 = jnp.minimum(so3._sq(u), 1.0)
         coefficients = (1.0 - theta2 / 6.0, 0.5 - theta2 / 24.0, 1.0 / 12.0 + theta2 / 720.0)
