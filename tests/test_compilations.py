@@ -146,3 +146,23 @@ def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
     # The checks still run: a NaN in omega0 is refused, by name.
     with pytest.raises(Exception, match="omega0 has NaN or inf entries"):
         momentum_jacobian([0.1, float("nan"), 1.0])
+
+
+@pytest.mark.parametrize("inertia", [(2.0, 3.0, 4.0), ((2.0, 0.1, 0.0), (0.1, 3.0, 0.2), (0.0, 0.2, 4.0))],
+                         ids=["diagonal", "full"])
+def test_a_body_of_constants_inside_jit_inverts_its_inertia_on_the_host(inertia):
+    # Inside jit the checked inertia is staged (a tracer) even when given as
+    # constants; its inverse was an LU factorisation, a while loop in every
+    # program that builds a body.
+    import numpy as np
+
+    def inverse(w):
+        return lierk.RigidBodyWithEffects(inertia, w).inertia_inv
+
+    text = jax.jit(inverse).lower(jax.numpy.ones(3)).as_text()
+    assert "while" not in text and "getrf" not in text, text
+    expected = np.linalg.inv(np.diag(inertia) if np.ndim(inertia) == 1 else np.asarray(inertia))
+    np.testing.assert_allclose(np.asarray(jax.jit(inverse)(jax.numpy.ones(3))), expected, rtol=1e-15)
+    # A traced inertia is still inverted, in the program.
+    traced = jax.jit(lambda I: lierk.RigidBodyWithEffects(I, [1.0, 0.0, 0.0]).inertia_inv)(np.asarray(inertia))
+    np.testing.assert_allclose(np.asarray(traced), expected, rtol=1e-14)

@@ -313,6 +313,34 @@ def test_mode_frequency_counts_the_effects_modes():
                                float(_mode_frequency(free)), rtol=1e-12)
 
 
+@pytest.mark.parametrize("which", ["top", "spacecraft"])
+def test_effects_linearisation_is_the_torques_derivative(which):
+    """The mode bounds' linearisation (`RigidBodyWithEffects._effects_linearisation`,
+    which turns the point to first order) against central differences of the
+    field at attitudes ``R exp(hat(eps e_i))`` and momenta ``m + eps e_i``: a
+    gravity vector, and a spacecraft whose effects read the whole attitude
+    (a magnetic dipole in a turning field, gravity gradient, a rotor)."""
+    I = np.array([2.0, 3.0, 1.5])
+    if which == "top":
+        effects = (lierk.Gravity([0.1, -0.2, 0.5], 1.0, 9.81),)
+    else:
+        field = lierk.dipole_field(0.0011, tilt=1.2)
+        effects = (lierk.GravityGradient(I, mean_motion=0.0011), lierk.MagneticTorque(field, dipole=[0.3, -0.1, 0.2]),
+                   lierk.Rotor([0.0, 0.5, 0.1]))
+    R = np.asarray(lierk.so3.exp(np.array([0.4, -1.1, 0.7])))
+    body = lierk.RigidBodyWithEffects(I, [0.3, -0.2, 0.9], R, effects=effects)
+    t, m = 7.0, np.asarray(body.y0)
+    IK_u, K_m, _ = eqx.filter_jit(lambda b: b._effects_linearisation(t, b.R0, b.y0))(body)
+    field = jax.jit(lambda R, m: body.field(t, R, m)[1] - lierk.so3.cross(m, body.inertia_inv @ m))
+    eps = 1e-6
+    du = np.stack([(np.asarray(field(R @ np.asarray(lierk.so3.exp(eps * e)), m))
+                    - np.asarray(field(R @ np.asarray(lierk.so3.exp(-eps * e)), m))) / (2 * eps) for e in np.eye(3)], -1)
+    dm = np.stack([(np.asarray(field(R, m + eps * e)) - np.asarray(field(R, m - eps * e))) / (2 * eps) for e in np.eye(3)], -1)
+    np.testing.assert_allclose(np.asarray(IK_u), np.linalg.inv(np.diag(I)) @ du, rtol=1e-6, atol=1e-5 * np.abs(du).max())
+    np.testing.assert_allclose(np.asarray(K_m), dm, rtol=1e-6, atol=1e-5 * np.abs(dm).max())
+    assert np.abs(du).max() > 0
+
+
 def test_mode_frequency_is_the_nutation_frequency():
     """``omega_k sqrt(|(I_k - I_i)(I_k - I_j)|/(I_i I_j))`` for a spin about
     principal axis k (real growth about the intermediate one), 0 for a sphere
