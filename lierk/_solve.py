@@ -15,7 +15,7 @@ from jax.typing import ArrayLike
 from . import _validation as validation
 from . import _global_error as global_error
 from ._adjoint import AbstractAdjoint, ForwardSensitivity, _may_capture_tracer
-from ._controller import AbstractStepController, ConstantStep, Controller
+from ._controller import AbstractStepController, ConstantStep, Controller, frozen
 from ._event import Event, events_tuple, with_closures_converted
 from ._problems import AbstractProblem
 from ._loops import num_steps, solve_adaptive, solve_fixed, solve_fixed_at
@@ -448,8 +448,11 @@ def _flag_drift(problem, sol: Solution) -> Solution:
     keys = problem.conserved()
     if not keys:
         return sol
+    # A result code, never differentiated: a differentiated solve traced the
+    # invariants' derivative at every saved point only to drop it.
+    problem, R, y = frozen((problem, sol.R, sol.y))
     q0 = problem.invariants(problem.R0, problem.y0)
-    q = problem.invariants(sol.R, sol.y)
+    q = problem.invariants(R, y)
     scales = problem.invariant_scales()
     worst = jnp.zeros((), sol.R.dtype)
     for k in keys:
