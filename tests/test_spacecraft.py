@@ -334,3 +334,21 @@ def test_the_example_satellite_detumbles():
     sol = lierk.solve(scene.problem, lierk.DOP853(), scene.t1, rtol=1e-6, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, scene.t1, 7)))
     E = np.asarray(sol.invariants(scene.problem)["energy"])
     assert E[-1] < 1e-2 * E[0]
+
+
+def test_moment_spread_is_the_eigenvalues_spread():
+    # Gravity gradient's energy scale takes I_max - I_min in closed form
+    # (no LAPACK call in the program): against eigvalsh on rotated inertias,
+    # distinct, double, triple and 1e12 apart.
+    from lierk._problems.spacecraft import _moment_spread
+
+    rng = np.random.default_rng(3)
+    cases = []
+    for lam in ([1.0, 2.0, 3.5], [2.0, 2.0, 5.0], [4.0, 1.0, 1.0], [3.0, 3.0, 3.0], [1e-6, 1.0, 1e6]):
+        Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+        cases.append(Q @ np.diag(lam) @ Q.T)
+    got = np.asarray(jax.jit(jax.vmap(_moment_spread))(np.stack(cases)))
+    for I, g in zip(cases, got):
+        e = np.linalg.eigvalsh(I)
+        assert abs(g - (e[-1] - e[0])) <= 1e-7 * e[-1], (g, e)
+    assert got[3] <= 1e-7 * 3.0
