@@ -191,3 +191,7 @@ def test_stiff_needle_is_solved_to_its_tolerance():
 def test_nearly_singular_inertia_warns():
     with pytest.warns(UserWarning, match="nearly singular"):
         lierk.FreeRigidBody([1e-18, 1e-3, 1e-3], [0.3, 1.0, 0.5])
+    # Inside jit too, where the checked copy of a constant is staged: the
+    # warning reads the argument as given.
+    with pytest.warns(UserWarning, match="nearly singular"):
+        jax.jit(lambda w: lierk.FreeRigidBody([1e-18, 1e-3, 1e-3], w).y0).trace(jnp.asarray([0.3, 1.0, 0.5]))
