@@ -249,7 +249,7 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
     inertia = check_inertia(inertia)
     dtype = jnp.result_type(inertia.dtype, asarray(omega0, name="omega0").dtype, float)
     inertia = _remember(as_jax(inertia, dtype))
-    known = _concrete_inertia(inertia, given)
+    known = concrete_inertia(inertia, given)
     if known is not None and not _warned(given):
         text = nearly_singular_inertia(known, dtype)
         if text is not None:
@@ -386,29 +386,29 @@ def inverse_inertia(inertia: Array, given: ArrayLike | None = None) -> Array:
     (`check_inertia`, `rigid_body_inputs`) and, if it differs, the argument
     as ``given`` (``(3,)`` or ``(3, 3)``).
 
-    A known inertia (`_concrete_inertia`) is inverted by NumPy (in float64,
+    A known inertia (`concrete_inertia`) is inverted by NumPy (in float64,
     then rounded).  Inside `jax.jit` the checked copy is traced even when the
     argument is a constant (JAX stages every array it makes), and a traced
     inverse is an LU factorisation: a while loop that XLA compiled into every
     program that builds a body (about 100 of the heavy top's adaptive
     solve's 2,400 instructions).  A traced inertia is inverted in one
     compiled program (`_inverse`)."""
-    known = _concrete_inertia(inertia, given)
+    known = concrete_inertia(inertia, given)
     if known is None:
         return _inverse(inertia)
     return as_jax(np.linalg.inv(known).astype(inertia.dtype))
 
 
-def _concrete_inertia(inertia: Array, given: ArrayLike | None) -> np.ndarray | None:
-    """The checked ``inertia`` as a float64 NumPy ``(3, 3)`` when its value is
-    known: itself if concrete, else the argument as ``given`` (``(3,)`` or
-    ``(3, 3)``) if that is.  Inside `jax.jit` the checked copy is staged
-    even when the argument is a constant.  None when neither is known."""
-    source = inertia if not is_traced(inertia) or given is None or is_traced(given) else given
-    if is_traced(source):
-        return None
-    I = np.asarray(source, np.float64)
-    return np.diag(I) if I.shape == (3,) else I
+def concrete_inertia(inertia: ArrayLike, given: ArrayLike | None = None) -> np.ndarray | None:
+    """An inertia (``(3,)`` or ``(3, 3)``) as a float64 NumPy ``(3, 3)`` when
+    its value is known: itself if concrete, else the argument as ``given``
+    if that is.  Inside `jax.jit` a checked copy is staged even when the
+    argument is a constant.  None when neither is known."""
+    for source in (inertia, given):
+        if source is not None and not is_traced(source):
+            I = np.asarray(source, np.float64)
+            return np.diag(I) if I.shape == (3,) else I
+    return None
 
 
 @jax.jit

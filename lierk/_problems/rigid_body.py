@@ -615,11 +615,9 @@ def _momentum(inertia: Array, omega0: Array) -> Array:
 def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
     """The diagonal ``(3,)`` of a concrete inertia with zero off-diagonal
     entries (given as ``(3,)`` or ``(3, 3)``); None if traced or not diagonal."""
-    if validation.is_traced(inertia):
+    I = validation.concrete_inertia(inertia)
+    if I is None:
         return None
-    I = np.asarray(inertia, float)
-    if I.shape == (3,):
-        return I
     d = np.diagonal(I)
     return None if np.any(I - np.diag(d)) else d
 

@@ -166,12 +166,12 @@ def _moment_spread(inertia: Array) -> Array:
     double, triple and 1e12-apart moments included; about sqrt(eps) near a
     double moment): ample for a scale."""
     I = jax.lax.stop_gradient(0.5 * (inertia + inertia.T))
-    q = (I[0, 0] + I[1, 1] + I[2, 2]) / 3.0
-    d = jnp.stack([I[0, 0], I[1, 1], I[2, 2]]) - q
+    diagonal = jnp.stack([I[0, 0], I[1, 1], I[2, 2]])
+    q = jnp.mean(diagonal)
+    d = diagonal - q
     p = jnp.sqrt((jnp.sum(d * d) + 2.0 * (I[0, 1] ** 2 + I[0, 2] ** 2 + I[1, 2] ** 2)) / 6.0)
     B = (I - q * jnp.eye(3, dtype=I.dtype)) / jnp.where(p > 0, p, 1.0)
-    det = (B[0, 0] * (B[1, 1] * B[2, 2] - B[1, 2] * B[2, 1]) - B[0, 1] * (B[1, 0] * B[2, 2] - B[1, 2] * B[2, 0])
-           + B[0, 2] * (B[1, 0] * B[2, 1] - B[1, 1] * B[2, 0]))
+    det = jnp.dot(B[0], so3.cross(B[1], B[2]))
     phi = jnp.arccos(jnp.clip(0.5 * det, -1.0, 1.0)) / 3.0
     # lambda_max - lambda_min = 2 p (cos(phi) - cos(phi + 2 pi/3)).
     return jnp.where(p > 0, 2.0 * math.sqrt(3.0) * p * jnp.sin(phi + math.pi / 3.0), 0.0)

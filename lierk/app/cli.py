@@ -212,22 +212,25 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
     stem, settings = scene.file_stem, scene.describe_run(sol)
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     np.savez(tmp / f"{stem}.npz", **sim.record())
-    if args.no_gif:
-        return [f"{stem}.npz"] + _write_figures(sim, tmp, args, plot, title)
-    images = plot.animation_frames(sol, scene.body_parts, L=sim.diagnostics.L, frames=args.frames,
-                                   title=f"{scene.name} — {settings}", inertia=problem.inertia, origin=scene.fixed_point)
     # Pillow quantizes and encodes the GIF mostly without the GIL, beside the
     # figures' drawing, which holds it: the part of the GIF's 1.05 s that
     # overlaps (a warm T-handle simulate, 2 cores, 2.78 -> 2.61 s with the
     # flip interval in the diagnostics' program).
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
-        gif = pool.submit(plot.write_gif, images, tmp / f"{stem}.gif", args.fps)
-        names = [f"{stem}.npz"] + _write_figures(sim, tmp, args, plot, title)
-        return names + [gif.result().name]
+        gif = None
+        if not args.no_gif:
+            images = plot.animation_frames(sol, scene.body_parts, L=sim.diagnostics.L, frames=args.frames,
+                                           title=f"{scene.name} — {settings}", inertia=problem.inertia,
+                                           origin=scene.fixed_point)
+            gif = pool.submit(plot.write_gif, images, tmp / f"{stem}.gif", args.fps)
+        names = [f"{stem}.npz"] + _write_figures(sim, tmp, args, title)
+        return names if gif is None else names + [gif.result().name]
 
 
-def _write_figures(sim, tmp: Path, args, plot, title: str) -> list[str]:
+def _write_figures(sim, tmp: Path, args, title: str) -> list[str]:
     """The figures of ``sim`` as PNGs in ``tmp``: the names written."""
+    from . import plot
+
     scene, sol, problem, diag = sim.scene, sim.solution, sim.scene.problem, sim.diagnostics
     stem, names = scene.file_stem, []
     figures = {
