@@ -48,7 +48,8 @@ most 2x diffrax's first ``jit(jacfwd)``.
 Run: ``python benchmarks/first_result.py [--quick] [--repeats N] [--out DIR]
 [--works W,...]`` (``--quick``: the heavy top with DOP853, one repeat;
 ``--works``: only those cells, written to first_result-W-....{json,md});
-writes first_result.{json,md}.  ``--one CELL`` runs one cell in this process and
+writes first_result.{json,md} after each comparison, so a run stopped part-way
+keeps what it measured.  ``--one CELL`` runs one cell in this process and
 prints its JSON (what the runs above call).
 """
 
@@ -218,8 +219,7 @@ def _fresh(cell: dict) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def cells(quick: bool, works=WORKS):
-    pairs = QUICK if quick else [(b, s) for b in BODIES for s in SOLVERS]
+def cells(pairs, works=WORKS):
     for body, solver in pairs:
         for work in works:
             yield dict(body=body, solver=solver, work=work, peer="lierk", compact=None)
@@ -237,6 +237,8 @@ def main(argv=None):
         parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
         parser.add_argument("--works", default=None,
                             help=f"comma-separated subset of {','.join(WORKS)}; writes first_result-<works>.{{json,md}}")
+        parser.add_argument("--bodies", default=None, help=f"comma-separated subset of {','.join(BODIES)}")
+        parser.add_argument("--solvers", default=None, help=f"comma-separated subset of {','.join(SOLVERS)}")
 
     quick, out, args = common.cli(__doc__, "the heavy top with DOP853, one repeat, into a temp dir", extra=extra,
                                   argv=argv)
@@ -249,11 +251,21 @@ def main(argv=None):
     if unknown:
         raise SystemExit(f"--works: unknown {', '.join(unknown)}; choose from {', '.join(WORKS)}")
     name = "first_result" if works == WORKS else "first_result-" + "-".join(works)
+    pairs = QUICK if quick else [(b, s) for b in BODIES for s in SOLVERS]
+    for option, known, i in ((args.bodies, BODIES, 0), (args.solvers, tuple(SOLVERS), 1)):
+        if option:
+            chosen = option.split(",")
+            unknown = [c for c in chosen if c not in known]
+            if unknown:
+                raise SystemExit(f"unknown {', '.join(unknown)}; choose from {', '.join(known)}")
+            pairs = [p for p in pairs if p[i] in chosen]
 
     meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
             "rtol": RTOL, "batch": BATCH}
     rows = []
-    for _, group in itertools.groupby(cells(quick, works), key=lambda c: (c["body"], c["solver"], c["work"])):
+    todo = len(list(cells(pairs, works)))
+    meta.update(cells=todo, measured=0)
+    for _, group in itertools.groupby(cells(pairs, works), key=lambda c: (c["body"], c["solver"], c["work"])):
         # The cells compared with each other (lierk, compact, diffrax) take
         # turns, repeat by repeat: this 2-core machine's speed drifts by a
         # third over minutes, and a ratio of cells timed minutes apart drifted
@@ -271,8 +283,11 @@ def main(argv=None):
             value = row.get("first", row.get("steady"))
             print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
                   f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
-    meta["machine"]["load_average_at_end"] = os.getloadavg()
-    common.write_results(out, name, {"meta": meta, "rows": rows}, markdown(meta, rows))
+        # After every comparison: a run stopped part-way (a time limit on a
+        # lent machine) keeps what it measured, and says how much that is.
+        meta["measured"] = len(rows)
+        meta["machine"]["load_average_at_end"] = os.getloadavg()
+        common.write_results(out, name, {"meta": meta, "rows": rows}, markdown(meta, rows))
 
 
 def _find(rows, **kw):
@@ -302,7 +317,9 @@ def markdown(meta, rows) -> list[str]:
         f"rtol = atol = {meta['rtol']:g}.  First call = trace (and lower) + XLA compile + first run, seconds; size: "
         f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "
         f"average at start {tuple(round(x, 1) for x in m['load_average_at_start'])}, at end "
-        f"{tuple(round(x, 1) for x in m['load_average_at_end'])}.",
+        f"{tuple(round(x, 1) for x in m['load_average_at_end'])}."
+        + ("" if meta.get("measured") == meta.get("cells") else
+           f"  Stopped part-way: {meta['measured']} of {meta['cells']} cells measured."),
         "",
         "## First solve and first Jacobian",
         "",

@@ -89,7 +89,7 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                        "A scene without effects against FreeRigidBody solved directly."),
 }
 SUBFOLDERS = {"h100": ("On an H100 GPU",
-                        "Three benchmarks run on one NVIDIA H100 (JAX's default backend there, jax 0.11.2; "
+                        "Benchmarks run on one NVIDIA H100 (JAX's default backend there, jax 0.11.2; "
                         "the native anchors of the sweep on the machine's 16 Intel Xeon cores): each file names "
                         "its commit and device.")}
 
