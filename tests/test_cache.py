@@ -6,7 +6,9 @@ again, never loaded, and the run's results are unchanged; a cache directory
 that cannot be written costs one warning line and nothing else; the
 directory is keyed by a machine fingerprint; `lierk.app.cache.using_cache`
 (what each command runs in) turns JAX's cache off or on for one block,
-counts what it did, and puts the settings back after it.
+counts what it did, and puts the settings back after it; an executable kept
+whole (`lierk.app.cache.compiled`) is loaded in a later call without tracing,
+under a key that changes with every value the program depends on.
 """
 
 import os
@@ -63,19 +65,23 @@ def counts(stderr):
 
 
 def entries(root):
-    return [p for p in (root / lierk.app.cache.machine_fingerprint()).iterdir() if p.is_file() and not p.name.startswith(".")]
+    """JAX's entries and the kept executables (`lierk.app.cache.compiled`)."""
+    return [p for p in (root / lierk.app.cache.machine_fingerprint()).rglob("*") if p.is_file() and not p.name.startswith(".")]
 
 
 def test_a_second_run_compiles_nothing_and_corrupted_entries_are_compiled_again(tmp_path):
-    """Cold, warm, then with every entry overwritten by random bytes.  (One
-    test: JAX's keys depend on the cache directory, so a copied cache would
-    not be read at all.)"""
+    """Cold, warm, then with every entry overwritten by random bytes, the
+    kept executables too.  (One test: JAX's keys depend on the cache
+    directory, so a copied cache would not be read at all.)"""
     root = tmp_path / "cache"
     stderr, R = simulate(tmp_path, root, "cold")
     loaded, compiled = counts(stderr)
     # Every program is kept, the solve too (a run-time check in it, a host
     # callback, kept it out of the cache and cost a compilation every run).
     assert compiled >= 4 and len(entries(root)) >= compiled and "not saved" not in stderr, stderr
+
+    # The scene's solve is kept whole, keyed without tracing.
+    assert len(list((root / lierk.app.cache.machine_fingerprint() / "executables").iterdir())) == 1
 
     stderr, R_warm = simulate(tmp_path, root, "warm")
     loaded_warm, compiled_warm = counts(stderr)
@@ -122,6 +128,103 @@ def test_no_cache_turns_jax_s_cache_off_for_the_block_only(monkeypatch):
     with lierk.app.cache.using_cache() as use:
         assert jax.config.jax_enable_compilation_cache is False
     assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
+
+
+TRACED = []
+
+LAPACK_PROGRAM = """
+import sys
+import jax
+import numpy as np
+jax.config.update("jax_enable_x64", True)
+import lierk.app.cache as cache
+a = np.diag([1.0, 2.0, 3.0]) + 0.1
+with cache.using_cache() as use:
+    w = cache.compiled(lambda a: jax.numpy.linalg.eigh(a)[0], a)(a)
+np.testing.assert_allclose(w, np.linalg.eigvalsh(a), rtol=1e-14)
+print(use.counts["hits"], use.counts["misses"])
+"""
+
+
+def test_a_kept_executable_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
+    """JAX sets LAPACK up when it lowers a LAPACK call: a process that loads
+    such an executable without lowering it must set it up itself (it
+    crashed)."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}
+    env["LIERK_CACHE_DIR"] = str(tmp_path)
+    runs = [subprocess.run([sys.executable, "-c", LAPACK_PROGRAM], env=env, capture_output=True, text=True, timeout=300)
+            for _ in range(2)]
+    assert [p.returncode for p in runs] == [0, 0], runs[-1].stderr[-2000:]
+    assert [p.stdout.split() for p in runs] == [["0", "1"], ["1", "0"]]
+
+
+@pytest.fixture
+def own_cache_dir(tmp_path):
+    """JAX's cache directory set to an empty one for the test."""
+    before = jax.config.jax_compilation_cache_dir
+    jax.config.update("jax_compilation_cache_dir", str(tmp_path / "jax"))
+    yield tmp_path / "jax"
+    jax.config.update("jax_compilation_cache_dir", before)
+
+
+def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(own_cache_dir):
+    """`compiled` twice with equal values: the second loads the kept
+    executable without tracing the function (a counter the trace bumps) and
+    returns the same bits.  A different value anywhere (a number the function
+    closes over, an inertia) is another key; an object the key cannot
+    describe compiles as before, unkept."""
+    traced = TRACED
+    traced.clear()
+
+    def scaled(scale):
+        def f(problem, t1):
+            TRACED.append(scale)  # a global: what the function closes over is part of the key
+            # No run-time checks: a host callback cannot be kept (below).
+            with lierk.checked_on_host():
+                return scale * lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
+
+        return f
+
+    def body(inertia):
+        return lierk.FreeRigidBody(np.asarray(inertia), np.array([1.0, 0.05, 0.3]))
+
+    t1 = jax.numpy.asarray(0.4)
+    with lierk.app.cache.using_cache() as use:
+        first = lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
+        again = lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)
+        assert len(traced) == 1 and (use.counts["misses"], use.counts["hits"]) == (1, 1), use.counts
+        np.testing.assert_array_equal(again(body([2.0, 3.0, 4.0]), t1), first)
+        # Arguments of the same shapes run through a loaded executable too.
+        R = again(body([2.0, 3.0, 5.0]), jax.numpy.asarray(0.3))
+        np.testing.assert_allclose(R, 2.0 * lierk.exact.free_rigid_body(np.diag([2.0, 3.0, 5.0]), [1.0, 0.05, 0.3], 0.3)[0],
+                                   atol=1e-8)
+        other = lierk.app.cache.compiled(scaled(3.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
+        lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.5]), t1)
+        assert len(traced) == 3 and use.counts["misses"] == 3, use.counts
+        np.testing.assert_allclose(other, 1.5 * first, rtol=1e-15)
+
+        class Opaque:  # no lierk class, no dataclass: not described exactly
+            pass
+
+        opaque = Opaque()
+
+        def g(problem, t1):
+            assert opaque is not None
+            return scaled(1.0)(problem, t1)
+
+        for _ in range(2):
+            np.testing.assert_array_equal(lierk.app.cache.compiled(g, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
+                                          first / 2.0)
+        assert len(traced) == 4  # compiled once through equinox's own jit (it keeps g's trace)
+
+        def checked(problem, t1):  # t1's run-time check is a host callback
+            return lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
+
+        unsaved = use.counts["unsaved"]
+        np.testing.assert_array_equal(lierk.app.cache.compiled(checked, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
+                                      first / 2.0)
+        assert use.counts["unsaved"] == unsaved + 1
+    assert len(list((own_cache_dir / "executables").iterdir())) == 3
 
 
 @pytest.fixture

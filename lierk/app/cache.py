@@ -28,6 +28,12 @@ backend, but on a CPU not the instruction-set features, so a cache shared
 between machines (a home directory on a cluster) could otherwise hand a
 program built for one CPU to another.  JAX reads a corrupted entry as a miss
 and compiles again.
+
+JAX finds a program in its cache by the lowered program, so a warm run still
+traces and lowers it.  `compiled` keeps a whole executable instead, under a
+key made without tracing (what the function closes over, the arguments'
+values, lierk's source, the machine, JAX's settings): the command line's
+scene solves go through it, and a warm run loads them without tracing.
 """
 
 from __future__ import annotations
@@ -38,11 +44,12 @@ import os
 import platform
 import sys
 import tempfile
+import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["CacheUse", "compilation_cache_dir", "default_cache_root", "machine_fingerprint", "using_cache"]
+__all__ = ["CacheUse", "compilation_cache_dir", "compiled", "default_cache_root", "machine_fingerprint", "using_cache"]
 
 
 def default_cache_root() -> Path:
@@ -128,16 +135,30 @@ class CacheUse:
     def __init__(self):
         self.path: str | None = None
         self.counts = {"hits": 0, "misses": 0, "unsaved": 0, "unreadable": 0, "unwritable": 0}
-        self._requests = 0
+        # JAX's events, and `compiled`'s own executables, counted apart.
+        self._jax = {"requests": 0, "hits": 0, "misses": 0}
+        self._own = {"hits": 0, "misses": 0, "unsaved": 0}
 
     def _listen(self, event: str, **_) -> None:
-        if event == "/jax/compilation_cache/compile_requests_use_cache":
-            self._requests += 1
-        elif event == "/jax/compilation_cache/cache_hits":
-            self.counts["hits"] += 1
-        elif event == "/jax/compilation_cache/cache_misses":
-            self.counts["misses"] += 1
-        self.counts["unsaved"] = self._requests - self.counts["hits"] - self.counts["misses"]
+        for name, key in (("compile_requests_use_cache", "requests"), ("cache_hits", "hits"),
+                          ("cache_misses", "misses")):
+            if event == f"/jax/compilation_cache/{name}":
+                self._jax[key] += 1
+        self._tally()
+
+    def _count(self, key: str) -> None:
+        """One of `compiled`'s executables: ``"hits"``, ``"misses"``,
+        ``"unsaved"`` or ``"unreadable"``."""
+        if key == "unreadable":
+            self.counts[key] += 1
+        else:
+            self._own[key] += 1
+        self._tally()
+
+    def _tally(self) -> None:
+        j, o = self._jax, self._own
+        self.counts.update(hits=j["hits"] + o["hits"], misses=j["misses"] + o["misses"],
+                           unsaved=j["requests"] - j["hits"] - j["misses"] + o["unsaved"])
 
     def _count_warning(self, message) -> bool:
         """Count JAX's warning about one entry it could not read or write;
@@ -192,6 +213,7 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
 
     before = {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}
     use = CacheUse()
+    _active.append(use)
     listening = False
     try:
         with warnings.catch_warnings():
@@ -216,6 +238,7 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
             reset_cache()
             yield use
     finally:
+        _active.remove(use)
         if listening:
             jax.monitoring.unregister_event_listener(use._listen)
         for name, value in before.items():
@@ -237,3 +260,268 @@ def _cache_path(given: str | None) -> str | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return str(path)
+
+
+# --------------------------------------------------------------------------
+# Whole executables, keyed without tracing
+
+# JAX's cache is keyed by the lowered program, so a warm run still traces and
+# lowers every program to find its entry (0.65 s of a warm T-handle simulate's
+# 2.5).  `compiled` keys a program by what determines it instead (the function
+# with everything it closes over, the arguments, lierk's source, the machine
+# and JAX's settings) and keeps the executable itself.
+
+_EXECUTABLES = "executables"
+_active: list[CacheUse] = []
+
+
+class _Slot:
+    """Where an output array goes in a kept executable's output."""
+
+    def __init__(self, index: int):
+        self.index = index
+
+
+class _Unkeyable(Exception):
+    """A value `_fingerprint` cannot describe exactly: no key, no cache."""
+
+
+def _source_hash() -> str:
+    """The hash of lierk's Python sources: any change to the library is a new key."""
+    if not hasattr(_source_hash, "value"):
+        h = hashlib.sha256()
+        root = Path(__file__).resolve().parents[1]
+        for path in sorted(root.rglob("*.py")):
+            h.update(str(path.relative_to(root)).encode())
+            h.update(path.read_bytes())
+        _source_hash.value = h.hexdigest()
+    return _source_hash.value
+
+
+def _fingerprint(x, h, memo: dict, depth: int = 0) -> None:
+    """Feed ``h`` a description of ``x`` that another process gives for an
+    equal value: arrays by dtype, shape and bytes; functions by code,
+    defaults and closure; modules, dataclasses and plain objects by class and
+    fields.  Raises `_Unkeyable` for anything else."""
+    import dataclasses
+    import enum
+    import functools
+    import types
+
+    import numpy as np
+
+    if depth > 60:
+        raise _Unkeyable("too deep")
+    if id(x) in memo:
+        h.update(f"@{memo[id(x)][0]}".encode())
+        return
+    if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+        h.update(f"{type(x).__name__}:{x!r};".encode())
+        return
+    # The value is held with its number: a temporary freed during the walk
+    # could otherwise lend its id to a later, different value.
+    memo[id(x)] = (len(memo), x)
+    down = functools.partial(_fingerprint, h=h, memo=memo, depth=depth + 1)
+    if hasattr(x, "__array__") and hasattr(x, "dtype") and hasattr(x, "shape"):
+        a = np.asarray(x)
+        h.update(f"array:{a.dtype.str}:{a.shape}:{type(x).__name__};".encode())
+        h.update(np.ascontiguousarray(a).tobytes())
+    elif isinstance(x, (np.generic,)):
+        h.update(f"{x.dtype.str}:{x!r};".encode())
+    elif isinstance(x, (tuple, list, frozenset, set)):
+        items = sorted(x, key=repr) if isinstance(x, (set, frozenset)) else x
+        h.update(f"{type(x).__name__}[{len(items)}];".encode())
+        for item in items:
+            down(item)
+    elif isinstance(x, dict):
+        h.update(f"dict[{len(x)}];".encode())
+        for k in sorted(x, key=repr):
+            down(k)
+            down(x[k])
+    elif isinstance(x, type):
+        h.update(f"type:{x.__module__}.{x.__qualname__};".encode())
+    elif isinstance(x, types.CodeType):
+        h.update(f"code:{x.co_qualname if hasattr(x, 'co_qualname') else x.co_name}:{x.co_names}:{x.co_varnames};".encode())
+        h.update(x.co_code)
+        for c in x.co_consts:
+            down(c)
+    elif isinstance(x, types.FunctionType):
+        h.update(f"function:{x.__module__}.{x.__qualname__};".encode())
+        down(x.__code__)
+        down(x.__defaults__)
+        down(x.__kwdefaults__)
+        down(tuple(c.cell_contents for c in (x.__closure__ or ())))
+    elif isinstance(x, types.MethodType):
+        h.update(b"method;")
+        down(x.__func__)
+        down(x.__self__)
+    elif isinstance(x, functools.partial):
+        h.update(b"partial;")
+        down(x.func)
+        down(x.args)
+        down(x.keywords)
+    elif isinstance(x, (types.BuiltinFunctionType, types.ModuleType, np.ufunc)):
+        # Library code, whose versions are in the key.
+        h.update(f"named:{getattr(x, '__module__', '')}.{getattr(x, '__qualname__', x.__name__)};".encode())
+    elif isinstance(getattr(x, "__wrapped__", None), types.FunctionType) and x.__module__.startswith("lierk."):
+        # lierk's jitted functions: their options are in lierk's source.
+        h.update(f"wrapped:{type(x).__name__};".encode())
+        down(x.__wrapped__)
+    elif isinstance(x, enum.Enum):
+        h.update(f"enum:{type(x).__qualname__}.{x.name};".encode())
+    elif dataclasses.is_dataclass(x):
+        # equinox Modules among them: every field, static or not.
+        h.update(f"dataclass:{type(x).__module__}.{type(x).__qualname__};".encode())
+        for f in dataclasses.fields(x):
+            h.update(f.name.encode())
+            down(getattr(x, f.name, None))
+    elif hasattr(x, "__dict__") and type(x).__module__.startswith("lierk"):
+        h.update(f"object:{type(x).__module__}.{type(x).__qualname__};".encode())
+        down(vars(x))
+    else:
+        raise _Unkeyable(f"{type(x).__module__}.{type(x).__qualname__}")
+
+
+@contextlib.contextmanager
+def _jax_cache_off():
+    """JAX's persistent cache off for the block (it decides once per process
+    whether to use it: `reset_cache` makes it read the setting anew)."""
+    import jax
+    from jax.experimental.compilation_cache.compilation_cache import reset_cache
+
+    jax.config.update("jax_enable_compilation_cache", False)
+    reset_cache()
+    try:
+        yield
+    finally:
+        jax.config.update("jax_enable_compilation_cache", True)
+        reset_cache()
+
+
+def _executable_key(fun, args) -> str | None:
+    """The key of ``fun(*args)``'s executable, or None where some value in
+    them cannot be described exactly."""
+    import jax
+
+    import equinox as eqx
+    import numpy as np
+
+    h = hashlib.sha256()
+    settings = {name: getattr(jax.config, name) for name in ("jax_enable_x64", "jax_default_matmul_precision",
+                                                              "jax_numpy_rank_promotion", "jax_debug_nans",
+                                                              "jax_numpy_dtype_promotion")}
+    # XLA's flags, equinox's error mode and JAX's own settings in the environment.
+    env = sorted((k, v) for k, v in os.environ.items()
+                 if k.startswith(("XLA_", "JAX_", "EQX_")) and "CACHE" not in k)
+    h.update(f"{_source_hash()} {machine_fingerprint()} equinox {eqx.__version__} numpy {np.__version__} "
+             f"{jax.default_backend()} "
+             f"{[d.device_kind for d in jax.devices()]} {env} {settings}".encode())
+    try:
+        _fingerprint((fun, args), h, {})
+    except _Unkeyable:
+        return None
+    return h.hexdigest()[:32]
+
+
+def compiled(fun, *args):
+    """``eqx.filter_jit(fun).lower(*args).compile()``: a callable of arguments
+    like ``args`` (the same structure and non-array values, arrays of the
+    same shapes and dtypes) returning what ``fun`` returns.
+
+    Inside a `using_cache` block with the cache on, the executable is kept
+    in the cache directory (``executables/``) under a key made without
+    tracing: ``fun``'s code and everything it closes over, every value in
+    ``args``, lierk's source, the versions of jax, jaxlib, equinox and NumPy,
+    the machine, JAX's settings and its ``XLA_``, ``JAX_`` and ``EQX_``
+    environment.  A later process with the same key loads it without tracing
+    or lowering (counted as loaded in `CacheUse`).  Module globals that
+    ``fun`` reads are not in the key: only lierk's own, through its source.
+    A value the key cannot describe exactly (an object of a class outside
+    lierk that is no dataclass), an executable that cannot be kept (a host
+    callback, a custom call other than LAPACK's) and an entry that cannot be
+    read compile as usual, through JAX's cache."""
+    import pickle
+
+    import equinox as eqx
+    import jax
+
+    jitted = eqx.filter_jit(fun)
+    directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
+    key = _executable_key(fun, args) if directory else None
+    if key is None:
+        return jitted.lower(*args).compile()
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    leaves, tree = jax.tree_util.tree_flatten(dynamic)
+    path = Path(directory) / _EXECUTABLES / f"{key}.bin"
+    start = time.time()
+    try:
+        data = path.read_bytes()
+        # The checksum first: a damaged executable must never reach XLA.
+        if hashlib.sha256(data[32:]).digest() != data[:32]:
+            raise ValueError("checksum")
+        payload, in_tree, out_tree, skeleton, lapack = pickle.loads(data[32:])
+        from jax.experimental.serialize_executable import deserialize_and_load
+
+        if lapack:
+            # JAX sets LAPACK's function table up when it lowers a LAPACK
+            # call; an executable loaded without lowering finds it empty
+            # (a segmentation fault).
+            from jaxlib import lapack as jaxlib_lapack
+
+            jaxlib_lapack._lapack.initialize()
+
+        executable = deserialize_and_load(payload, in_tree, out_tree)
+        _active[-1]._count("hits")
+        from .compilations import LOADED
+
+        jax.monitoring.record_event_time_span(LOADED, start, time.time(), fun_name=f"jit({fun.__name__})")
+    except FileNotFoundError:
+        executable = None
+    except Exception:  # noqa: BLE001 - a damaged entry is a miss
+        _active[-1]._count("unreadable")
+        executable = None
+    if executable is None:
+        shapes = {}
+
+        def flat(leaves):
+            out = fun(*eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static))
+            out_dynamic, shapes["static"] = eqx.partition(out, eqx.is_array)
+            out_leaves, shapes["tree"] = jax.tree_util.tree_flatten(out_dynamic)
+            return out_leaves
+
+        # Compiled here, not loaded from JAX's cache: an executable that JAX
+        # loaded from its cache serializes without its kernels' code (jax
+        # 0.10: "Function ... not found" when the copy runs).
+        with _jax_cache_off():
+            executable = jax.jit(flat).lower(leaves).compile()
+        # The output's structure travels as the output itself with a slot
+        # for each array: a pickled PyTreeDef of equinox Modules does not
+        # unflatten in another process.
+        slots = [_Slot(i) for i in range(shapes["tree"].num_leaves)]
+        skeleton = eqx.combine(jax.tree_util.tree_unflatten(shapes["tree"], slots), shapes["static"])
+        try:
+            import re
+
+            from jax.experimental.serialize_executable import serialize
+
+            # Kept only with the custom calls a load can set up (LAPACK's),
+            # or none: others may need set-up that only lowering does.
+            targets = set(re.findall(r'custom_call_target="([^"]+)"', executable.as_text()))
+            if any(not t.startswith("lapack_") for t in targets):
+                raise ValueError(f"custom calls {sorted(targets)}")
+            payload, in_tree, out_tree = serialize(executable)
+            blob = pickle.dumps((payload, in_tree, out_tree, skeleton, bool(targets)))
+            path.parent.mkdir(parents=True, exist_ok=True)
+            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp.write_bytes(hashlib.sha256(blob).digest() + blob)
+            os.replace(tmp, path)
+            _active[-1]._count("misses")
+        except Exception:  # noqa: BLE001 - not serializable or not writable: compiled, not kept
+            _active[-1]._count("unsaved")
+
+    def call(*call_args):
+        call_leaves = jax.tree_util.tree_leaves(eqx.filter(call_args, eqx.is_array))
+        out = executable(call_leaves)
+        return jax.tree_util.tree_map(lambda x: out[x.index] if isinstance(x, _Slot) else x, skeleton)
+
+    return call

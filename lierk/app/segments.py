@@ -14,6 +14,7 @@ from lierk import EventRecord
 from lierk import RESULTS, SaveAt, Solution
 from lierk import checked_on_host, num_steps, solve
 from ._device import to_device
+from .cache import compiled
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -38,9 +39,9 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         # The save times are made here, concrete, so they are checked now
         # rather than by a run-time check in the program.
         saveat = scene.saveat()
-        run = eqx.filter_jit(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs))
         with bar.compiling():
-            run = run.lower(problem).compile()
+            run = compiled(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs),
+                           problem)
         sol = jax.block_until_ready(run(problem))
         code = int(sol.result)
         if throw and code == RESULTS.target_error_not_reached:
@@ -65,7 +66,6 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         times = [min(b * dt, t1) for b in bounds]
         times[-1] = t1
 
-        @eqx.filter_jit
         def piece(problem, ta, tb):
             # Padding steps past tb are exact no-ops, so every piece has the
             # same static length and compiles once.  The times are this
@@ -80,7 +80,6 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         size = math.ceil(len(rest) / n_pieces)
         max_steps = scene.solve_kwargs.get("max_steps")
 
-        @eqx.filter_jit
         def piece(problem, ta, tb, ts):
             with checked_on_host():
                 return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
@@ -98,7 +97,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         return args if group is None else args + (to_device(group, dtype),)
 
     with bar.compiling():
-        piece = piece.lower(*arguments(problem, *pieces[0])).compile()
+        piece = compiled(piece, *arguments(problem, *pieces[0]))
 
     # Host-side bookkeeping is NumPy: an eager jax.numpy operation would
     # compile a program of its own.
