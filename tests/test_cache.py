@@ -224,7 +224,14 @@ def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(ow
         np.testing.assert_array_equal(lierk.app.cache.compiled(checked, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
                                       first / 2.0)
         assert use.counts["unsaved"] == unsaved + 1
-    assert len(list((own_cache_dir / "executables").iterdir())) == 3
+    kept = own_cache_dir / "executables"
+    assert len(list(kept.iterdir())) == 3
+    # The least recently used go first.
+    for k, p in enumerate(sorted(kept.iterdir())):
+        os.utime(p, (1e9 + k, 1e9 + k))
+    newest = sorted(kept.iterdir())[-1]
+    lierk.app.cache._prune(kept, keep=1)
+    assert list(kept.iterdir()) == [newest]
 
 
 @pytest.fixture

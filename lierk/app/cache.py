@@ -272,6 +272,8 @@ def _cache_path(given: str | None) -> str | None:
 # and JAX's settings) and keeps the executable itself.
 
 _EXECUTABLES = "executables"
+# Executables kept at most (a few MB each; every change to lierk's source makes new keys): the least recently used go.
+_KEEP = 64
 _active: list[CacheUse] = []
 
 
@@ -398,6 +400,17 @@ def _jax_cache_off():
         reset_cache()
 
 
+def _prune(directory: Path, keep: int = _KEEP) -> None:
+    """Delete all but the ``keep`` most recently used executables in ``directory``."""
+    entries = []
+    for p in directory.glob("*.bin"):
+        with contextlib.suppress(OSError):
+            entries.append((p.stat().st_mtime, p))
+    for _, p in sorted(entries, reverse=True)[keep:]:
+        with contextlib.suppress(OSError):
+            p.unlink()
+
+
 def _executable_key(fun, args) -> str | None:
     """The key of ``fun(*args)``'s executable, or None where some value in
     them cannot be described exactly."""
@@ -472,6 +485,8 @@ def compiled(fun, *args):
 
         executable = deserialize_and_load(payload, in_tree, out_tree)
         _active[-1]._count("hits")
+        with contextlib.suppress(OSError):
+            os.utime(path)  # recently used: the last to be pruned
         from .compilations import LOADED
 
         jax.monitoring.record_event_time_span(LOADED, start, time.time(), fun_name=f"jit({fun.__name__})")
@@ -516,6 +531,7 @@ def compiled(fun, *args):
             tmp.write_bytes(hashlib.sha256(blob).digest() + blob)
             os.replace(tmp, path)
             _active[-1]._count("misses")
+            _prune(path.parent)
         except Exception:  # noqa: BLE001 - not serializable or not writable: compiled, not kept
             _active[-1]._count("unsaved")
 
