@@ -11,6 +11,7 @@ whole (`lierk.app.cache.compiled`) is loaded in a later call without tracing,
 under a key that changes with every value the program depends on.
 """
 
+import collections
 import os
 import re
 import subprocess
@@ -130,10 +131,11 @@ def test_no_cache_turns_jax_s_cache_off_for_the_block_only(monkeypatch):
     assert jax.config.jax_enable_compilation_cache == before and use.summary() is None
 
 
-TRACED = []
+OFFSET = 1.0  # a module global the function under test reads
 
 LAPACK_PROGRAM = """
-import sys
+import os
+os.environ["XLA_FLAGS"] = "--xla_force_host_platform_device_count=2"
 import jax
 import numpy as np
 jax.config.update("jax_enable_x64", True)
@@ -149,7 +151,8 @@ print(use.counts["hits"], use.counts["misses"])
 def test_a_kept_executable_with_lapack_calls_runs_in_a_fresh_process(tmp_path):
     """JAX sets LAPACK up when it lowers a LAPACK call: a process that loads
     such an executable without lowering it must set it up itself (it
-    crashed)."""
+    crashed).  With two devices, it is loaded onto the one it was compiled
+    for (loaded onto both, it refused its arguments)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith(("JAX_COMPILATION_CACHE", "JAX_PERSISTENT_CACHE"))}
     env["LIERK_CACHE_DIR"] = str(tmp_path)
     runs = [subprocess.run([sys.executable, "-c", LAPACK_PROGRAM], env=env, capture_output=True, text=True, timeout=300)
@@ -167,65 +170,90 @@ def own_cache_dir(tmp_path):
     jax.config.update("jax_compilation_cache_dir", before)
 
 
-def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(own_cache_dir):
+def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(own_cache_dir, monkeypatch):
     """`compiled` twice with equal values: the second loads the kept
-    executable without tracing the function (a counter the trace bumps) and
+    executable without tracing anything (JAX's trace events, counted) and
     returns the same bits.  A different value anywhere (a number the function
-    closes over, an inertia) is another key; an object the key cannot
-    describe compiles as before, unkept."""
-    traced = TRACED
-    traced.clear()
+    closes over, a module global it names, an inertia, a weak type, the
+    order of an OrderedDict) is another key; an object the key cannot
+    describe compiles as before, unkept; other non-array arguments at call
+    time are refused."""
+    traces = []
+
+    def listen(event, *_, **__):
+        if event == "/jax/core/compile/jaxpr_trace_duration":
+            traces.append(event)
+
+    jax.monitoring.register_event_time_span_listener(listen)
 
     def scaled(scale):
         def f(problem, t1):
-            TRACED.append(scale)  # a global: what the function closes over is part of the key
             # No run-time checks: a host callback cannot be kept (below).
             with lierk.checked_on_host():
-                return scale * lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
+                return scale * OFFSET * lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
 
         return f
 
     def body(inertia):
         return lierk.FreeRigidBody(np.asarray(inertia), np.array([1.0, 0.05, 0.3]))
 
-    t1 = jax.numpy.asarray(0.4)
-    with lierk.app.cache.using_cache() as use:
-        first = lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
-        again = lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)
-        assert len(traced) == 1 and (use.counts["misses"], use.counts["hits"]) == (1, 1), use.counts
-        np.testing.assert_array_equal(again(body([2.0, 3.0, 4.0]), t1), first)
-        # Arguments of the same shapes run through a loaded executable too.
-        R = again(body([2.0, 3.0, 5.0]), jax.numpy.asarray(0.3))
-        np.testing.assert_allclose(R, 2.0 * lierk.exact.free_rigid_body(np.diag([2.0, 3.0, 5.0]), [1.0, 0.05, 0.3], 0.3)[0],
-                                   atol=1e-8)
-        other = lierk.app.cache.compiled(scaled(3.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
-        lierk.app.cache.compiled(scaled(2.0), body([2.0, 3.0, 4.5]), t1)
-        assert len(traced) == 3 and use.counts["misses"] == 3, use.counts
-        np.testing.assert_allclose(other, 1.5 * first, rtol=1e-15)
+    compiled, t1 = lierk.app.cache.compiled, jax.numpy.asarray(0.4)
+    try:
+        with lierk.app.cache.using_cache() as use:
+            first = compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
+            assert traces and use.counts["misses"] == 1
+            del traces[:]
+            again = compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)
+            np.testing.assert_array_equal(again(body([2.0, 3.0, 4.0]), t1), first)
+            # Arguments of the same shapes run through a loaded executable too.
+            R = again(body([2.0, 3.0, 5.0]), jax.numpy.asarray(0.3))
+            assert not traces and use.counts["hits"] == 1, use.counts
+            exact = lierk.exact.free_rigid_body(np.diag([2.0, 3.0, 5.0]), [1.0, 0.05, 0.3], 0.3)[0]
+            np.testing.assert_allclose(R, 2.0 * exact, atol=1e-8)
+            with pytest.raises(ValueError, match="other non-array values"):
+                again(body([2.0, 3.0, 4.0]), 0.4)
 
-        class Opaque:  # no lierk class, no dataclass: not described exactly
-            pass
+            other = compiled(scaled(3.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1)
+            np.testing.assert_allclose(other, 1.5 * first, rtol=1e-15)
+            compiled(scaled(2.0), body([2.0, 3.0, 4.5]), t1)
+            monkeypatch.setattr(sys.modules[__name__], "OFFSET", 2.0)
+            np.testing.assert_allclose(compiled(scaled(2.0), body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
+                                       2.0 * first, rtol=1e-15)
+            assert use.counts["misses"] == 4 and use.counts["hits"] == 1, use.counts
 
-        opaque = Opaque()
+            def pair(d):
+                return d["a"] - 2.0 * d["b"]
 
-        def g(problem, t1):
-            assert opaque is not None
-            return scaled(1.0)(problem, t1)
+            x, y = jax.numpy.asarray([1.0, 2.0]), jax.numpy.asarray([5.0, 7.0])
+            for d in (collections.OrderedDict(a=x, b=y), collections.OrderedDict(b=y, a=x)):
+                np.testing.assert_array_equal(compiled(pair, d)(d), x - 2.0 * y)
+            # A weak type promotes otherwise (1/3 * float16 is float16 or float64): the same bytes, other keys.
+            weak, strong = jax.numpy.asarray(1.0 / 3.0), jax.numpy.asarray(np.float64(1.0 / 3.0))
+            assert weak.weak_type and not strong.weak_type
+            key = lierk.app.cache._executable_key
+            assert key(pair, (weak,)) != key(pair, (strong,)) and key(pair, (weak,)) == key(pair, (weak,))
+            assert use.counts["misses"] == 6, use.counts
 
-        for _ in range(2):
-            np.testing.assert_array_equal(lierk.app.cache.compiled(g, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
+            class Opaque:  # a class of one's own: its methods could be anything
+                scale = 1.0
+
+            def g(problem, t1, opaque=Opaque()):
+                return opaque.scale * scaled(1.0)(problem, t1)
+
+            np.testing.assert_array_equal(compiled(g, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1), first)  # OFFSET 2
+            assert use.counts["misses"] == 6
+
+            def checked(problem, t1):  # t1's run-time check is a host callback
+                return lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
+
+            unsaved = use.counts["unsaved"]
+            np.testing.assert_array_equal(compiled(checked, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
                                           first / 2.0)
-        assert len(traced) == 4  # compiled once through equinox's own jit (it keeps g's trace)
-
-        def checked(problem, t1):  # t1's run-time check is a host callback
-            return lierk.solve(problem, lierk.RKMK4(), t1, dt=0.01, max_steps=40, throw=False).R[-1]
-
-        unsaved = use.counts["unsaved"]
-        np.testing.assert_array_equal(lierk.app.cache.compiled(checked, body([2.0, 3.0, 4.0]), t1)(body([2.0, 3.0, 4.0]), t1),
-                                      first / 2.0)
-        assert use.counts["unsaved"] == unsaved + 1
+            assert use.counts["unsaved"] > unsaved  # and not kept: six files below
+    finally:
+        jax.monitoring.unregister_event_time_span_listener(listen)
     kept = own_cache_dir / "executables"
-    assert len(list(kept.iterdir())) == 3
+    assert len(list(kept.iterdir())) == 6
     # The least recently used go first.
     for k, p in enumerate(sorted(kept.iterdir())):
         os.utime(p, (1e9 + k, 1e9 + k))

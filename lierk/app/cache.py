@@ -44,6 +44,7 @@ import os
 import platform
 import sys
 import tempfile
+import threading
 import time
 import warnings
 from collections.abc import Iterator
@@ -266,15 +267,18 @@ def _cache_path(given: str | None) -> str | None:
 # Whole executables, keyed without tracing
 
 # JAX's cache is keyed by the lowered program, so a warm run still traces and
-# lowers every program to find its entry (0.65 s of a warm T-handle simulate's
-# 2.5).  `compiled` keys a program by what determines it instead (the function
-# with everything it closes over, the arguments, lierk's source, the machine
-# and JAX's settings) and keeps the executable itself.
+# lowers every program to find its entry.  `compiled` keys a program by what
+# determines it instead (the function with everything it reads, the
+# arguments, lierk's source, the machine and JAX's settings) and keeps the
+# executable itself.  A stale key would return another program's numbers
+# without a word, so whatever the key cannot describe exactly means no key.
 
 _EXECUTABLES = "executables"
 # Executables kept at most (a few MB each; every change to lierk's source makes new keys): the least recently used go.
 _KEEP = 64
 _active: list[CacheUse] = []
+# Classes whose objects are described by their fields: their methods are in these packages' source or versions.
+_KNOWN = ("lierk.", "equinox.")
 
 
 class _Slot:
@@ -300,88 +304,153 @@ def _source_hash() -> str:
     return _source_hash.value
 
 
+def _known(cls) -> bool:
+    return cls.__module__.startswith(_KNOWN) or cls.__module__ in ("lierk", "equinox")
+
+
 def _fingerprint(x, h, memo: dict, depth: int = 0) -> None:
     """Feed ``h`` a description of ``x`` that another process gives for an
-    equal value: arrays by dtype, shape and bytes; functions by code,
-    defaults and closure; modules, dataclasses and plain objects by class and
-    fields.  Raises `_Unkeyable` for anything else."""
+    equal value: arrays by dtype, weak type, shape, placement and bytes;
+    functions by their code object, defaults, closure and the module globals
+    they name; containers in the order JAX flattens them; lierk's and
+    equinox's dataclasses and objects by class and fields.  Raises
+    `_Unkeyable` for anything else (a class of a user's own, whose methods the
+    key cannot see; a tracer)."""
+    import builtins
+    import collections
     import dataclasses
     import enum
     import functools
+    import marshal
     import types
 
+    import jax
     import numpy as np
 
     if depth > 60:
         raise _Unkeyable("too deep")
     if id(x) in memo:
-        h.update(f"@{memo[id(x)][0]}".encode())
+        h.update(f"@{memo[id(x)][0]};".encode())
         return
-    if x is None or isinstance(x, (bool, int, float, complex, str, bytes)):
+    if x is None or type(x) in (bool, int, float, complex, str, bytes):
         h.update(f"{type(x).__name__}:{x!r};".encode())
         return
     # The value is held with its number: a temporary freed during the walk
     # could otherwise lend its id to a later, different value.
     memo[id(x)] = (len(memo), x)
     down = functools.partial(_fingerprint, h=h, memo=memo, depth=depth + 1)
-    if hasattr(x, "__array__") and hasattr(x, "dtype") and hasattr(x, "shape"):
+    if isinstance(x, jax.core.Tracer):
+        raise _Unkeyable("a tracer")
+    if isinstance(x, (np.ndarray, np.generic, jax.Array)):
         a = np.asarray(x)
-        h.update(f"array:{a.dtype.str}:{a.shape}:{type(x).__name__};".encode())
+        placed = f"{x.committed}:{x.sharding}" if isinstance(x, jax.Array) else ""
+        h.update(f"array:{type(x).__name__}:{a.dtype.str}:{getattr(x, 'weak_type', False)}:{a.shape}:{placed};".encode())
         h.update(np.ascontiguousarray(a).tobytes())
-    elif isinstance(x, (np.generic,)):
-        h.update(f"{x.dtype.str}:{x!r};".encode())
-    elif isinstance(x, (tuple, list, frozenset, set)):
-        items = sorted(x, key=repr) if isinstance(x, (set, frozenset)) else x
-        h.update(f"{type(x).__name__}[{len(items)}];".encode())
-        for item in items:
+    elif type(x) in (tuple, list) or (isinstance(x, tuple) and hasattr(type(x), "_fields")):
+        fields = getattr(type(x), "_fields", ())
+        h.update(f"{type(x).__module__}.{type(x).__qualname__}{fields}[{len(x)}];".encode())
+        for item in x:
             down(item)
-    elif isinstance(x, dict):
-        h.update(f"dict[{len(x)}];".encode())
-        for k in sorted(x, key=repr):
+    elif type(x) in (set, frozenset):
+        # JAX does not flatten sets: only their members' values matter.
+        h.update(f"{type(x).__name__}[{len(x)}];".encode())
+        for item in sorted(x, key=repr):
+            down(item)
+    elif type(x) in (dict, collections.OrderedDict, collections.defaultdict):
+        # A dict flattens in sorted key order, the others in insertion order.
+        keys = sorted(x, key=repr) if type(x) is not collections.OrderedDict else list(x)
+        h.update(f"{type(x).__qualname__}[{len(x)}];".encode())
+        if type(x) is collections.defaultdict:
+            down(x.default_factory)
+        for k in keys:
             down(k)
             down(x[k])
-    elif isinstance(x, type):
-        h.update(f"type:{x.__module__}.{x.__qualname__};".encode())
     elif isinstance(x, types.CodeType):
-        h.update(f"code:{x.co_qualname if hasattr(x, 'co_qualname') else x.co_name}:{x.co_names}:{x.co_varnames};".encode())
-        h.update(x.co_code)
-        for c in x.co_consts:
-            down(c)
+        # Every field of the code, nested code objects included.
+        h.update(b"code;")
+        h.update(marshal.dumps(x))
     elif isinstance(x, types.FunctionType):
         h.update(f"function:{x.__module__}.{x.__qualname__};".encode())
         down(x.__code__)
         down(x.__defaults__)
         down(x.__kwdefaults__)
-        down(tuple(c.cell_contents for c in (x.__closure__ or ())))
+        try:
+            down(tuple(c.cell_contents for c in (x.__closure__ or ())))
+        except ValueError:  # an empty cell
+            raise _Unkeyable("an empty closure cell") from None
+        if not (x.__module__ or "").startswith(_KNOWN):
+            # A global named in the code (an attribute name too: they share
+            # co_names) is part of the program: lierk's own are in its source.
+            for name in sorted(_names(x.__code__)):
+                if name in x.__globals__:
+                    h.update(f"global:{name};".encode())
+                    down(x.__globals__[name])
+                elif not hasattr(builtins, name):
+                    h.update(f"unbound:{name};".encode())
     elif isinstance(x, types.MethodType):
         h.update(b"method;")
         down(x.__func__)
         down(x.__self__)
     elif isinstance(x, functools.partial):
-        h.update(b"partial;")
+        h.update(f"partial:{type(x).__qualname__};".encode())
         down(x.func)
         down(x.args)
         down(x.keywords)
-    elif isinstance(x, (types.BuiltinFunctionType, types.ModuleType, np.ufunc)):
-        # Library code, whose versions are in the key.
-        h.update(f"named:{getattr(x, '__module__', '')}.{getattr(x, '__qualname__', x.__name__)};".encode())
-    elif isinstance(getattr(x, "__wrapped__", None), types.FunctionType) and x.__module__.startswith("lierk."):
+    elif isinstance(x, types.ModuleType):
+        h.update(f"module:{x.__name__};".encode())
+    elif isinstance(x, (types.BuiltinFunctionType, np.ufunc)):
+        # Library code, whose versions are in the key; a bound builtin's object too.
+        h.update(f"builtin:{getattr(x, '__module__', None)}.{getattr(x, '__qualname__', x.__name__)};".encode())
+        owner = getattr(x, "__self__", None)
+        if owner is not None and not isinstance(owner, types.ModuleType):
+            down(owner)
+    elif isinstance(x, type):
+        if not _known(x) and x.__module__ not in ("builtins", "numpy", "jax.numpy"):
+            raise _Unkeyable(f"class {x.__module__}.{x.__qualname__}")
+        h.update(f"type:{x.__module__}.{x.__qualname__};".encode())
+    elif isinstance(x, enum.Enum) and _known(type(x)):
+        h.update(f"enum:{type(x).__module__}.{type(x).__qualname__}.{x.name};".encode())
+    elif isinstance(getattr(x, "__wrapped__", None), types.FunctionType) and _known(x.__wrapped__):
         # lierk's jitted functions: their options are in lierk's source.
         h.update(f"wrapped:{type(x).__name__};".encode())
         down(x.__wrapped__)
-    elif isinstance(x, enum.Enum):
-        h.update(f"enum:{type(x).__qualname__}.{x.name};".encode())
-    elif dataclasses.is_dataclass(x):
+    elif dataclasses.is_dataclass(x) and _known(type(x)):
         # equinox Modules among them: every field, static or not.
         h.update(f"dataclass:{type(x).__module__}.{type(x).__qualname__};".encode())
         for f in dataclasses.fields(x):
-            h.update(f.name.encode())
+            h.update(f"{f.name}=".encode())
             down(getattr(x, f.name, None))
-    elif hasattr(x, "__dict__") and type(x).__module__.startswith("lierk"):
+    elif hasattr(x, "__dict__") and _known(type(x)):
         h.update(f"object:{type(x).__module__}.{type(x).__qualname__};".encode())
         down(vars(x))
     else:
         raise _Unkeyable(f"{type(x).__module__}.{type(x).__qualname__}")
+
+
+def _names(code) -> set:
+    """The global (and attribute) names a code object and those nested in it use."""
+    import types
+
+    names = set(code.co_names)
+    for c in code.co_consts:
+        if isinstance(c, types.CodeType):
+            names |= _names(c)
+    return names
+
+
+def _prune(directory: Path, keep: int = _KEEP) -> None:
+    """Delete all but the ``keep`` most recently used executables in
+    ``directory``, and temporary files a writer left over an hour ago."""
+    entries = []
+    for p in directory.iterdir():
+        with contextlib.suppress(OSError):
+            if p.suffix == ".bin":
+                entries.append((p.stat().st_mtime, p))
+            elif p.suffix == ".tmp" and time.time() - p.stat().st_mtime > 3600:
+                p.unlink()
+    for _, p in sorted(entries, reverse=True)[keep:]:
+        with contextlib.suppress(OSError):
+            p.unlink()
 
 
 @contextlib.contextmanager
@@ -400,38 +469,39 @@ def _jax_cache_off():
         reset_cache()
 
 
-def _prune(directory: Path, keep: int = _KEEP) -> None:
-    """Delete all but the ``keep`` most recently used executables in ``directory``."""
-    entries = []
-    for p in directory.glob("*.bin"):
-        with contextlib.suppress(OSError):
-            entries.append((p.stat().st_mtime, p))
-    for _, p in sorted(entries, reverse=True)[keep:]:
-        with contextlib.suppress(OSError):
-            p.unlink()
+def _settings() -> str:
+    """JAX's settings that are part of its own jit key (x64, the default
+    device, PRNG, dtype promotion, ...) and lierk's host-checking context."""
+    import re
+
+    import jax
+    from jax._src import config
+
+    from .. import _validation
+
+    # Object reprs carry addresses, which differ in every process.
+    text = re.sub(r" at 0x[0-9a-f]+", "", repr(config.trace_context()))
+    return f"{text} {jax.config.jax_enable_x64} {_validation._CHECKED_ON_HOST.get()}"
 
 
 def _executable_key(fun, args) -> str | None:
     """The key of ``fun(*args)``'s executable, or None where some value in
     them cannot be described exactly."""
-    import jax
-
     import equinox as eqx
+    import jax
     import numpy as np
 
     h = hashlib.sha256()
-    settings = {name: getattr(jax.config, name) for name in ("jax_enable_x64", "jax_default_matmul_precision",
-                                                              "jax_numpy_rank_promotion", "jax_debug_nans",
-                                                              "jax_numpy_dtype_promotion")}
-    # XLA's flags, equinox's error mode and JAX's own settings in the environment.
-    env = sorted((k, v) for k, v in os.environ.items()
-                 if k.startswith(("XLA_", "JAX_", "EQX_")) and "CACHE" not in k)
-    h.update(f"{_source_hash()} {machine_fingerprint()} equinox {eqx.__version__} numpy {np.__version__} "
-             f"{jax.default_backend()} "
-             f"{[d.device_kind for d in jax.devices()]} {env} {settings}".encode())
     try:
+        # XLA's flags, equinox's error mode and JAX's own settings in the environment.
+        env = sorted((k, v) for k, v in os.environ.items() if k.startswith(("XLA_", "JAX_", "EQX_")) and "CACHE" not in k)
+        h.update(f"{_source_hash()} {machine_fingerprint()} {sys.version} equinox {eqx.__version__} "
+                 f"numpy {np.__version__} {jax.default_backend()} {jax.devices()} {env} {_settings()}".encode())
+        # The order in which the arguments' arrays reach the executable.
+        paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(args)[0]]
+        h.update(repr(paths).encode())
         _fingerprint((fun, args), h, {})
-    except _Unkeyable:
+    except Exception:  # noqa: BLE001 - _Unkeyable, or anything else the walk meets: no key, no cache
         return None
     return h.hexdigest()[:32]
 
@@ -443,16 +513,22 @@ def compiled(fun, *args):
 
     Inside a `using_cache` block with the cache on, the executable is kept
     in the cache directory (``executables/``) under a key made without
-    tracing: ``fun``'s code and everything it closes over, every value in
-    ``args``, lierk's source, the versions of jax, jaxlib, equinox and NumPy,
-    the machine, JAX's settings and its ``XLA_``, ``JAX_`` and ``EQX_``
-    environment.  A later process with the same key loads it without tracing
-    or lowering (counted as loaded in `CacheUse`).  Module globals that
-    ``fun`` reads are not in the key: only lierk's own, through its source.
-    A value the key cannot describe exactly (an object of a class outside
-    lierk that is no dataclass), an executable that cannot be kept (a host
-    callback, a custom call other than LAPACK's) and an entry that cannot be
-    read compile as usual, through JAX's cache."""
+    tracing: ``fun``'s code, everything it closes over and the module
+    globals it names, every value in ``args``, lierk's source, the versions
+    of Python, jax, jaxlib, equinox and NumPy, the machine and its devices,
+    JAX's settings and its ``XLA_``, ``JAX_`` and ``EQX_`` environment.  A
+    later process with the same key loads it without tracing or lowering
+    (counted as loaded in `CacheUse`).  A value the key cannot describe
+    exactly (an object of a class of one's own, which may have any methods),
+    an executable that cannot be kept (a host callback, a custom call other
+    than LAPACK's) and an entry that cannot be read compile as usual,
+    through JAX's cache.  The entries are pickles: the cache directory must
+    not be writable by anyone the user does not trust.
+
+    Raises:
+        ValueError: the callable was given arguments of another structure or
+            other non-array values than ``args``.
+    """
     import pickle
 
     import equinox as eqx
@@ -460,19 +536,21 @@ def compiled(fun, *args):
 
     jitted = eqx.filter_jit(fun)
     directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
-    key = _executable_key(fun, args) if directory else None
+    key = _executable_key(fun, args) if directory and "://" not in str(directory) else None
     if key is None:
         return jitted.lower(*args).compile()
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, tree = jax.tree_util.tree_flatten(dynamic)
     path = Path(directory) / _EXECUTABLES / f"{key}.bin"
+    name = f"jit({getattr(fun, '__name__', type(fun).__name__)})"
     start = time.time()
+    executable = None
     try:
         data = path.read_bytes()
         # The checksum first: a damaged executable must never reach XLA.
         if hashlib.sha256(data[32:]).digest() != data[:32]:
             raise ValueError("checksum")
-        payload, in_tree, out_tree, skeleton, lapack = pickle.loads(data[32:])
+        payload, in_tree, out_tree, skeleton, lapack, device_ids = pickle.loads(data[32:])
         from jax.experimental.serialize_executable import deserialize_and_load
 
         if lapack:
@@ -482,20 +560,23 @@ def compiled(fun, *args):
             from jaxlib import lapack as jaxlib_lapack
 
             jaxlib_lapack._lapack.initialize()
-
-        executable = deserialize_and_load(payload, in_tree, out_tree)
-        _active[-1]._count("hits")
-        with contextlib.suppress(OSError):
-            os.utime(path)  # recently used: the last to be pruned
+        by_id = {d.id: d for d in jax.devices()}
+        # On the devices it was compiled for (by default it would be loaded
+        # onto every device: a one-device program then refused its arguments).
+        executable = deserialize_and_load(payload, in_tree, out_tree,
+                                          execution_devices=[by_id[i] for i in device_ids])
+    except FileNotFoundError:
+        pass
+    except Exception:  # noqa: BLE001 - a damaged or foreign entry is a miss
+        _active[-1]._count("unreadable")
+    if executable is not None:
         from .compilations import LOADED
 
-        jax.monitoring.record_event_time_span(LOADED, start, time.time(), fun_name=f"jit({fun.__name__})")
-    except FileNotFoundError:
-        executable = None
-    except Exception:  # noqa: BLE001 - a damaged entry is a miss
-        _active[-1]._count("unreadable")
-        executable = None
-    if executable is None:
+        with contextlib.suppress(OSError):
+            os.utime(path)  # recently used: the last to be pruned
+        jax.monitoring.record_event_time_span(LOADED, start, time.time(), fun_name=name)
+        _active[-1]._count("hits")
+    else:
         shapes = {}
 
         def flat(leaves):
@@ -508,7 +589,13 @@ def compiled(fun, *args):
         # loaded from its cache serializes without its kernels' code (jax
         # 0.10: "Function ... not found" when the copy runs).
         with _jax_cache_off():
-            executable = jax.jit(flat).lower(leaves).compile()
+            lowered = jax.jit(flat).lower(leaves)
+            if "callback" in lowered.as_text():
+                # A host callback (an equinox run-time check) cannot be kept,
+                # and its errors read as equinox's only through its own jit.
+                _active[-1]._count("unsaved")
+                return jitted.lower(*args).compile()
+            executable = lowered.compile()
         # The output's structure travels as the output itself with a slot
         # for each array: a pickled PyTreeDef of equinox Modules does not
         # unflatten in another process.
@@ -524,10 +611,12 @@ def compiled(fun, *args):
             targets = set(re.findall(r'custom_call_target="([^"]+)"', executable.as_text()))
             if any(not t.startswith("lapack_") for t in targets):
                 raise ValueError(f"custom calls {sorted(targets)}")
+            shardings = jax.tree_util.tree_leaves((executable.input_shardings, executable.output_shardings))
+            device_ids = sorted({d.id for s in shardings for d in s.device_set})
             payload, in_tree, out_tree = serialize(executable)
-            blob = pickle.dumps((payload, in_tree, out_tree, skeleton, bool(targets)))
+            blob = pickle.dumps((payload, in_tree, out_tree, skeleton, bool(targets), device_ids))
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.tmp")
+            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
             tmp.write_bytes(hashlib.sha256(blob).digest() + blob)
             os.replace(tmp, path)
             _active[-1]._count("misses")
@@ -536,7 +625,11 @@ def compiled(fun, *args):
             _active[-1]._count("unsaved")
 
     def call(*call_args):
-        call_leaves = jax.tree_util.tree_leaves(eqx.filter(call_args, eqx.is_array))
+        call_dynamic, call_static = eqx.partition(call_args, eqx.is_array)
+        call_leaves, call_tree = jax.tree_util.tree_flatten(call_dynamic)
+        if call_tree != tree or not eqx.tree_equal(call_static, static):
+            raise ValueError(f"{name}: called with arguments of another structure or other non-array values than it "
+                             "was compiled for")
         out = executable(call_leaves)
         return jax.tree_util.tree_map(lambda x: out[x.index] if isinstance(x, _Slot) else x, skeleton)
 
