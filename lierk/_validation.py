@@ -113,6 +113,13 @@ def checked_on_host():
         _CHECKED_ON_HOST.reset(token)
 
 
+def checking_on_host() -> bool:
+    """True inside `lierk.checked_on_host`: a solve traced now leaves out its
+    run-time checks of traced inputs, so its program differs from one traced
+    outside (a cache keyed without tracing must tell them apart)."""
+    return _CHECKED_ON_HOST.get()
+
+
 def check(x, ok: Callable, message: str, *, reads=()):
     """Return ``x``, raising ``ValueError(message)`` if ``ok(x)`` is false.
 

@@ -13,6 +13,8 @@ build the problem inside `inertia_warned` so that nothing is warned twice.
 - `state_range_error`: why a body's state does not fit a float type.
 - `inertia_warned`: build bodies without repeating those warnings.
 - `show`: a value on one line, as lierk's messages print them.
+- `checking_on_host`: whether solves traced now skip their run-time checks
+  (inside `lierk.checked_on_host`).
 
 They are host checks, of concrete values (NumPy arrays or numbers):
 `check_attitude` also accepts a traced attitude, which it then checks at
@@ -20,10 +22,12 @@ run time.
 """
 
 from ._validation import check_attitude as check_attitude
+from ._validation import checking_on_host as checking_on_host
 from ._validation import impossible_inertia as impossible_inertia
 from ._validation import inertia_warned as inertia_warned
 from ._validation import nearly_singular_inertia as nearly_singular_inertia
 from ._validation import show as show
 from ._validation import state_range_error as state_range_error
 
-__all__ = ["check_attitude", "impossible_inertia", "nearly_singular_inertia", "state_range_error", "inertia_warned", "show"]
+__all__ = ["check_attitude", "impossible_inertia", "nearly_singular_inertia", "state_range_error", "inertia_warned", "show",
+           "checking_on_host"]

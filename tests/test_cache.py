@@ -232,6 +232,11 @@ def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(ow
             assert weak.weak_type and not strong.weak_type
             key = lierk.app.cache._executable_key
             assert key(pair, (weak,)) != key(pair, (strong,)) and key(pair, (weak,)) == key(pair, (weak,))
+            # Inside checked_on_host a solve leaves its run-time checks out: another program.
+            with lierk.checked_on_host():
+                assert lierk.checks.checking_on_host() and key(pair, (weak,)) != key(pair, (strong,))
+                inside = key(pair, (weak,))
+            assert not lierk.checks.checking_on_host() and inside != key(pair, (weak,))
             assert use.counts["misses"] == 6, use.counts
 
             class Opaque:  # a class of one's own: its methods could be anything

@@ -477,11 +477,11 @@ def _settings() -> str:
     import jax
     from jax._src import config
 
-    from .. import _validation
+    from ..checks import checking_on_host
 
     # Object reprs carry addresses, which differ in every process.
     text = re.sub(r" at 0x[0-9a-f]+", "", repr(config.trace_context()))
-    return f"{text} {jax.config.jax_enable_x64} {_validation._CHECKED_ON_HOST.get()}"
+    return f"{text} {jax.config.jax_enable_x64} {checking_on_host()}"
 
 
 def _executable_key(fun, args) -> str | None:
