@@ -453,20 +453,26 @@ def _prune(directory: Path, keep: int = _KEEP) -> None:
             p.unlink()
 
 
+_CACHE_OFF = threading.Lock()
+
+
 @contextlib.contextmanager
 def _jax_cache_off():
     """JAX's persistent cache off for the block (it decides once per process
-    whether to use it: `reset_cache` makes it read the setting anew)."""
+    whether to use it: `reset_cache` makes it read the setting anew).  One
+    block at a time: a thread leaving it must not turn the cache back on
+    under another's compilation."""
     import jax
     from jax.experimental.compilation_cache.compilation_cache import reset_cache
 
-    jax.config.update("jax_enable_compilation_cache", False)
-    reset_cache()
-    try:
-        yield
-    finally:
-        jax.config.update("jax_enable_compilation_cache", True)
+    with _CACHE_OFF:
+        jax.config.update("jax_enable_compilation_cache", False)
         reset_cache()
+        try:
+            yield
+        finally:
+            jax.config.update("jax_enable_compilation_cache", True)
+            reset_cache()
 
 
 def _settings() -> str:
