@@ -248,6 +248,13 @@ def _sq(u: Array) -> Array:
     return u[..., 0] ** 2 + u[..., 1] ** 2 + u[..., 2] ** 2
 
 
+def _diagonal(A: Array) -> Array:
+    """The diagonal ``(3,)`` of a ``(3, 3)`` matrix, as three entries:
+    ``jnp.diagonal`` traces a gather behind a per-platform ``cond``, about
+    20 equations a call, and every stage calls it."""
+    return jnp.stack([A[0, 0], A[1, 1], A[2, 2]])
+
+
 @_one_program
 def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     """Exponential map ``so(3) -> SO(3)`` (Rodrigues): ``(..., 3) -> (..., 3, 3)``.

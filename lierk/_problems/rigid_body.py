@@ -246,7 +246,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
     def at(self, base, t, y):
         if self.wheel_index is not None:
             return self._at_with_wheels(base, t, y)
-        omega = _diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
+        omega = so3._diagonal(self.inertia_inv) * y if self.diagonal else self.inertia_inv @ y
         return omega, self._add_torques(so3.cross(y, omega), base, t, y, omega)
 
     def _add_torques(self, dm, base, t, m, omega):
@@ -275,7 +275,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         g``, then ``m' = I omega'`` and ``Omega' = u / Js - g . omega'``."""
         m, speeds = y
         w = self.wheels
-        omega = _diagonal(self.inertia_inv) * m if self.diagonal else self.inertia_inv @ m
+        omega = so3._diagonal(self.inertia_inv) * m if self.diagonal else self.inertia_inv @ m
         with jax.named_scope("lierk_effect_ReactionWheels"):
             u = w.motor_torque(t)
             u = None if u is None else u.astype(m.dtype)
@@ -289,7 +289,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
             # it) then turns the body as it should.  A 3x3 solve by cofactors
             # is a few dozen products that fuse with the rest of the stage.
             domega = _solve3(self.inertia - _spin_matrix(w.spin_inertia, w.axes), rhs)
-            dm = _diagonal(self.inertia) * domega if self.diagonal else self.inertia @ domega
+            dm = so3._diagonal(self.inertia) * domega if self.diagonal else self.inertia @ domega
             dspeeds = -_along(w.axes, domega)
             if u is not None:
                 dspeeds = dspeeds + u / w.spin_inertia
@@ -384,7 +384,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
         stiffness = _frobenius(IK_u)
         turning = _frobenius(0.5 * (K_m - K_m.T))
         sym = 0.5 * (K_m + K_m.T)
-        growth = jnp.maximum(0.0, jnp.max(_diagonal(sym) + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(_diagonal(sym))))
+        d = so3._diagonal(sym)
+        growth = jnp.maximum(0.0, jnp.max(d + jnp.sum(jnp.abs(sym), axis=1) - jnp.abs(d)))
         frequency = 0.5 * (rho + jnp.sqrt(rho**2 + 4.0 * stiffness)) + turning + growth + turned
         return frequency, _frobenius(sym)
 
@@ -407,7 +408,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
         k = self.symmetry_axis
         if k is None:
             return exact.free_flow(self.inertia, m, h)
-        moments = _diagonal(self.inertia)
+        moments = so3._diagonal(self.inertia)
         return exact.symmetric_flow(moments[(k + 1) % 3], moments[k], k, m, h)
 
     @property
@@ -588,13 +589,6 @@ def _check_wheels(inertia: Array, axes: Array, spin_inertia: Array, path: str) -
             f"{np.array2string(moments, precision=6, separator=', ')}"
         )
     return inertia, axes, spin_inertia
-
-
-def _diagonal(A: Array) -> Array:
-    """The diagonal ``(3,)`` of a ``(3, 3)`` matrix, as three entries:
-    ``jnp.diagonal`` traces a gather behind a per-platform ``cond``, about
-    20 equations a call, and every stage calls it."""
-    return jnp.stack([A[0, 0], A[1, 1], A[2, 2]])
 
 
 def _frobenius(A: Array) -> Array:

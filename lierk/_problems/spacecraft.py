@@ -166,7 +166,7 @@ def _moment_spread(inertia: Array) -> Array:
     double, triple and 1e12-apart moments included; about sqrt(eps) near a
     double moment): ample for a scale."""
     I = jax.lax.stop_gradient(0.5 * (inertia + inertia.T))
-    diagonal = jnp.stack([I[0, 0], I[1, 1], I[2, 2]])
+    diagonal = so3._diagonal(I)
     q = jnp.mean(diagonal)
     d = diagonal - q
     p = jnp.sqrt((jnp.sum(d * d) + 2.0 * (I[0, 1] ** 2 + I[0, 2] ** 2 + I[1, 2] ** 2)) / 6.0)
