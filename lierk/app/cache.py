@@ -596,12 +596,13 @@ def compiled(fun, *args):
         # 0.10: "Function ... not found" when the copy runs).
         with _jax_cache_off():
             lowered = jax.jit(flat).lower(leaves)
-            if "callback" in lowered.as_text():
-                # A host callback (an equinox run-time check) cannot be kept,
-                # and its errors read as equinox's only through its own jit.
-                _active[-1]._count("unsaved")
-                return jitted.lower(*args).compile()
-            executable = lowered.compile()
+            keepable = "callback" not in lowered.as_text()
+            executable = lowered.compile() if keepable else None
+        if not keepable:
+            # A host callback (an equinox run-time check) cannot be kept: the
+            # program is compiled as without a key, through JAX's cache.
+            _active[-1]._count("unsaved")
+            return jitted.lower(*args).compile()
         # The output's structure travels as the output itself with a slot
         # for each array: a pickled PyTreeDef of equinox Modules does not
         # unflatten in another process.
