@@ -254,6 +254,36 @@ def test_the_dipole_field_takes_the_orbit_as_the_gravity_gradient_does():
         np.testing.assert_allclose(np.stack([np.asarray(field(t)) for t in ts]), expected, rtol=1e-13, atol=0)
 
 
+def test_a_field_with_other_numbers_runs_the_compiled_solve():
+    """`dipole_field`'s numbers are traced: a satellite in another orbit
+    (tilt, mean motion) reuses the program, and the field it solves with is
+    the new one (SciPy's solution with it)."""
+    from lierk.app.compilations import counting
+
+    omega0 = [0.05, 0.02, -0.03]
+
+    def final(n, tilt):
+        field = lierk.dipole_field(n, tilt=tilt)
+        body = lierk.RigidBodyWithEffects(I_SAT, omega0, R0, effects=(lierk.MagneticTorque(field, bdot_gain=BDOT),))
+        return np.asarray(lierk.solve(body, lierk.RKMK4(), 100.0, dt=0.5).R[-1])
+
+    final(N_ORBIT, 1.2)
+    with counting() as seen:
+        R = final(N_ORBIT, 0.4)
+    assert seen.count == 0, seen.names
+
+    def bdot(tilt):
+        def torque(t, R, m, w):
+            B = R.T @ field_np(t, tilt=tilt)
+            return BDOT * np.cross(np.cross(w, B), B)
+
+        return torque
+
+    # RKMK4's error at this step is about 3e-9; the first field's solution is 1e-4 away.
+    assert np.abs(R - scipy_solve(I_SAT, omega0, R0, bdot(0.4), 100.0)[0]).max() < 1e-8
+    assert np.abs(R - scipy_solve(I_SAT, omega0, R0, bdot(1.2), 100.0)[0]).max() > 1e-4
+
+
 def test_splittings_refuse_a_dipole_law_without_an_exact_kick():
     law = lambda t, B, w: 1e3 * jnp.cross(w, B)  # noqa: E731
     body = lierk.RigidBodyWithEffects(I_SAT, [0.01, 0.0, 0.0], effects=(lierk.MagneticTorque(FIELD, dipole=law),))

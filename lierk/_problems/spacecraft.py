@@ -202,7 +202,9 @@ def dipole_field(
         mu: the planet's gravitational parameter (m^3/s^2), Earth's by default.
 
     Returns:
-        A function ``t -> (3,)`` that JAX traces.
+        A function ``t -> (3,)`` that JAX traces, whose numbers are traced
+        too: a `MagneticTorque` with another field from `dipole_field`
+        reuses a compiled solve.
     """
     if mean_motion is None and radius is None:
         raise ValueError("give the orbit as mean_motion= (rad/s), radius= (m), or both")
@@ -214,15 +216,30 @@ def dipole_field(
     a = (float(mu) / n**2) ** (1.0 / 3.0) if radius is None else float(radius)
     strength = float(B0) * (float(planet_radius) / a) ** 3
     d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
+    return _DipoleField(*(validation.asarray(x, name=name) for x, name in (
+        (n, "mean_motion"), (phase, "phase"), (strength, "B0"), (d, "tilt"))))
 
-    def field(t):
-        u = circular_orbit(t, n, phase)
-        dd = jnp.asarray(d, u.dtype)
+
+class _DipoleField(eqx.Module):
+    """`dipole_field`'s ``B(t)``: its numbers are arrays, so a field with
+    other numbers (another orbit, tilt or strength) runs the program that
+    solves with this one (a function of one's own is part of the program:
+    a new one compiles again)."""
+
+    mean_motion: Array  # rad/s
+    phase: Array  # rad
+    strength: Array  # T, B0 (R_p/a)^3
+    direction: Array  # (3,) the dipole's, space frame
+
+    def __call__(self, t):
+        t = jnp.asarray(t)
+        dtype = t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else jnp.result_type(float)
+        n, phase, strength, dd = (jnp.asarray(x, dtype) for x in (self.mean_motion, self.phase, self.strength,
+                                                                  self.direction))
+        u = circular_orbit(t.astype(dtype), n, phase)
         # d . u by components: jnp.dot is a reduction, a kernel of its own at
         # every stage, where the products fuse with what reads the field.
         return strength * (3.0 * (dd[0] * u[0] + dd[1] * u[1] + dd[2] * u[2]) * u - dd)
-
-    return field
 
 
 class MagneticTorque(AbstractEffect):
@@ -250,7 +267,10 @@ class MagneticTorque(AbstractEffect):
         bdot_gain: ``k >= 0`` (A m^2 s/T), instead of ``dipole``.
     """
 
-    field: Callable = eqx.field(static=True)
+    # dipole_field's field (a Module of arrays) is traced; a function of
+    # one's own is part of the program.
+    _field_numbers: eqx.Module | None
+    _field_function: Callable | None = eqx.field(static=True)
     dipole: Array | None
     law: Callable | None = eqx.field(static=True)
     bdot_gain: Array | None
@@ -261,7 +281,8 @@ class MagneticTorque(AbstractEffect):
         out = jax.eval_shape(field, jax.ShapeDtypeStruct((), jnp.result_type(float)))
         if getattr(out, "shape", None) != (3,):
             raise ValueError(f"field must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}")
-        self.field = field
+        module = isinstance(field, eqx.Module)
+        self._field_numbers, self._field_function = (field, None) if module else (None, field)
         if (dipole is None) == (bdot_gain is None):
             raise ValueError("give exactly one of dipole= (A m^2, constant or a function) and bdot_gain= (B-dot law)")
         self.dipole, self.law, self.bdot_gain = None, None, None
@@ -271,6 +292,11 @@ class MagneticTorque(AbstractEffect):
             self.law = dipole
         else:
             self.dipole = validation.check_vector(dipole, "dipole", jnp.result_type(float))
+
+    @property
+    def field(self) -> Callable:
+        """``t -> B(t)`` (T, space frame), as given."""
+        return self._field_function if self._field_numbers is None else self._field_numbers
 
     @property
     def reads_momentum(self) -> bool:  # type: ignore[override]
