@@ -45,6 +45,7 @@ from ._controller import Controller
 from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from ._solution import RESULTS, SaveAt, raise_if_failed
 from ._global_error import finer_options, richardson
+from ._own_programs import OwnProgram
 from ._solve import num_steps, solve
 from ._solvers import AbstractSplitting
 from ._solvers.base import AbstractSolver
@@ -358,7 +359,7 @@ def _variational(problem, wrt: str):
 # One program for the solve, its Jacobian and the estimate's: traced op by op,
 # the few array operations around the solve would each be compiled on its own.
 # A `wrt` function is static: pass the same function to reuse the compilation.
-@eqx.filter_jit
+@OwnProgram
 def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options) -> Sensitivity:
     p0, rebuild = _input(problem, wrt)
     jac = jax.jacfwd if mode == "forward" else jax.jacrev

@@ -4,6 +4,7 @@ when asked, to a global-error estimate (`lierk._global_error`)."""
 from __future__ import annotations
 
 import contextlib
+import functools
 from typing import Sequence
 
 import equinox as eqx
@@ -14,6 +15,7 @@ from jax.typing import ArrayLike
 
 from . import _validation as validation
 from . import _global_error as global_error
+from ._own_programs import OwnProgram
 from ._adjoint import AbstractAdjoint, ForwardSensitivity, _may_capture_tracer
 from ._controller import AbstractStepController, ConstantStep, Controller, frozen
 from ._event import Event, events_tuple, with_closures_converted
@@ -197,7 +199,7 @@ def solve(
         # A function in the problem that closes over a value being
         # differentiated is seen only by the adjoints' own rules, which
         # closure-convert it (`lierk._adjoint`): those calls take `_program`.
-        sol = _program(*args) if _may_capture_tracer(args) else _differentiable_program(args)
+        sol = _program.default(*args) if _may_capture_tracer(args) else _differentiable_program(args)
     except TypeError as e:
         if dt is not None or eps is not None or "custom_vjp" not in str(e):
             raise
@@ -211,7 +213,7 @@ def solve(
     return raise_if_failed(sol, throw)
 
 
-@eqx.filter_jit
+@OwnProgram
 def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked):
     """The solve `solve` has checked: ``eps`` (``target_error``), ``dt``
     (fixed steps, ``n`` of them) or ``controller`` (adaptive, at most ``n``
@@ -255,7 +257,7 @@ def _differentiable_program_jvp(primals, tangents):
     return _program_jvp(primals[0], tangents[0])
 
 
-@eqx.filter_jit
+@functools.partial(OwnProgram, tangents=1)
 def _program_jvp(args, t_args):
     """``(solution, tangent)`` of `_program` at ``args`` in the direction
     ``t_args`` (None: not perturbed), as one program."""

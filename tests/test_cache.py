@@ -237,6 +237,9 @@ def test_a_kept_executable_is_loaded_without_tracing_and_keyed_by_every_value(ow
                 assert lierk.checks.checking_on_host() and key(pair, (weak,)) != key(pair, (strong,))
                 inside = key(pair, (weak,))
             assert not lierk.checks.checking_on_host() and inside != key(pair, (weak,))
+            # XLA's options are part of the program.
+            options = {"xla_cpu_use_fusion_emitters": False}
+            assert key(pair, (weak,), options) != key(pair, (weak,)) == key(pair, (weak,), {})
             assert use.counts["misses"] == 6, use.counts
 
             class Opaque:  # a class of one's own: its methods could be anything

@@ -12,6 +12,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import jax
+import numpy as np
 import pytest
 
 import lierk
@@ -166,3 +167,45 @@ def test_a_body_of_constants_inside_jit_inverts_its_inertia_on_the_host(inertia)
     # A traced inertia is still inverted, in the program.
     traced = jax.jit(lambda I: lierk.RigidBodyWithEffects(I, [1.0, 0.0, 0.0]).inertia_inv)(np.asarray(inertia))
     np.testing.assert_allclose(np.asarray(traced), expected, rtol=1e-14)
+
+
+def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transformed_one_with_the_defaults(monkeypatch):
+    """`lierk.solve` and `lierk.sensitivity` called from Python compile with
+    `lierk.one_body_compiler_options` (XLA's older CPU emitters, which
+    compile one body sooner); traced (``jax.vmap``, ``jax.jit``) they keep
+    XLA's defaults, which run batches faster, and so does every call when
+    ``XLA_FLAGS`` chooses the emitters itself (``make test`` does)."""
+    from lierk import _sensitivity, _solve
+
+    monkeypatch.setenv("XLA_FLAGS", "")
+    assert lierk.one_body_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
+    calls = []
+    for name, program in (("solve", _solve._program), ("jvp", _solve._program_jvp), ("sensitivity", _sensitivity._sensitivity)):
+        for kind in ("default", "_one_body"):
+            def spy(*args, _f=getattr(program, kind), _tag=(name, kind), **kwargs):
+                calls.append(_tag)
+                return _f(*args, **kwargs)
+
+            monkeypatch.setattr(program, kind, spy)
+    body = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), np.array([1.0, 0.05, 0.3]))
+
+    def solve(w):
+        return lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 0.2, dt=0.1).R[-1]
+
+    expected = np.asarray(solve(np.array([1.0, 0.05, 0.3])))
+    assert calls == [("solve", "_one_body")]
+    batched = jax.vmap(solve)(np.array([[1.0, 0.05, 0.3], [1.0, 0.05, 0.3]]))
+    jitted = jax.jit(solve)(np.array([1.0, 0.05, 0.3]))
+    assert calls[1:] == [("solve", "default")] * 2
+    np.testing.assert_allclose(batched[0], expected, rtol=1e-14)
+    np.testing.assert_allclose(jitted, expected, rtol=1e-14)
+    lierk.sensitivity(body, lierk.RKMK4(), 0.2, dt=0.1, estimate_error=False)
+    # (Its solve's derivative is traced inside its program.)
+    assert calls[3:] == [("sensitivity", "_one_body"), ("jvp", "default")]
+    # An eager jax.jacfwd: one body, its three directions batched.
+    jax.jacfwd(solve)(np.array([1.0, 0.05, 0.3]))
+    assert calls[5:] == [("jvp", "_one_body")]
+    monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
+    assert lierk.one_body_compiler_options() == {}
+    solve(np.array([1.0, 0.05, 0.3]))
+    assert calls[6:] == [("solve", "default")]

@@ -546,7 +546,7 @@ class _Programs:
     def _jitted(self, key):
         import equinox as eqx
 
-        from lierk import SaveAt, checked_on_host, solve
+        from lierk import SaveAt, checked_on_host, one_body_compiler_options, solve
 
         m, kind, steps = key
         if kind == "fixed":
@@ -562,7 +562,8 @@ class _Programs:
                     return solve(problem, m.solver, t1, t0=t0, controller=controller, saveat=SaveAt(ts=ts),
                                  max_steps=steps, throw=False)
 
-        return eqx.filter_jit(run)
+        # One body per program: XLA's one-body settings compile it sooner.
+        return eqx.filter_jit(run, compiler_options=one_body_compiler_options())
 
 
 @dataclasses.dataclass(frozen=True)

@@ -490,9 +490,10 @@ def _settings() -> str:
     return f"{text} {jax.config.jax_enable_x64} {checking_on_host()}"
 
 
-def _executable_key(fun, args) -> str | None:
-    """The key of ``fun(*args)``'s executable, or None where some value in
-    them cannot be described exactly."""
+def _executable_key(fun, args, compiler_options=None) -> str | None:
+    """The key of ``fun(*args)``'s executable compiled with
+    ``compiler_options``, or None where some value in them cannot be
+    described exactly."""
     import equinox as eqx
     import jax
     import numpy as np
@@ -502,7 +503,8 @@ def _executable_key(fun, args) -> str | None:
         # XLA's flags, equinox's error mode and JAX's own settings in the environment.
         env = sorted((k, v) for k, v in os.environ.items() if k.startswith(("XLA_", "JAX_", "EQX_")) and "CACHE" not in k)
         h.update(f"{_source_hash()} {machine_fingerprint()} {sys.version} equinox {eqx.__version__} "
-                 f"numpy {np.__version__} {jax.default_backend()} {jax.devices()} {env} {_settings()}".encode())
+                 f"numpy {np.__version__} {jax.default_backend()} {jax.devices()} {env} {_settings()} "
+                 f"{sorted((compiler_options or {}).items())}".encode())
         # The order in which the arguments' arrays reach the executable.
         paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(args)[0]]
         h.update(repr(paths).encode())
@@ -512,8 +514,8 @@ def _executable_key(fun, args) -> str | None:
     return h.hexdigest()[:32]
 
 
-def compiled(fun, *args):
-    """``eqx.filter_jit(fun).lower(*args).compile()``: a callable of arguments
+def compiled(fun, *args, compiler_options: dict | None = None):
+    """``eqx.filter_jit(fun).lower(*args).compile(compiler_options)``: a callable of arguments
     like ``args`` (the same structure and non-array values, arrays of the
     same shapes and dtypes) returning what ``fun`` returns.
 
@@ -531,6 +533,9 @@ def compiled(fun, *args):
     through JAX's cache.  The entries are pickles: the cache directory must
     not be writable by anyone the user does not trust.
 
+    ``compiler_options``: XLA's options for this compilation (part of the
+    key), e.g. `lierk.one_body_compiler_options` for one body's solve.
+
     Raises:
         ValueError: the callable was given arguments of another structure or
             other non-array values than ``args``.
@@ -542,9 +547,9 @@ def compiled(fun, *args):
 
     jitted = eqx.filter_jit(fun)
     directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
-    key = _executable_key(fun, args) if directory and "://" not in str(directory) else None
+    key = _executable_key(fun, args, compiler_options) if directory and "://" not in str(directory) else None
     if key is None:
-        return jitted.lower(*args).compile()
+        return jitted.lower(*args).compile(compiler_options)
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, tree = jax.tree_util.tree_flatten(dynamic)
     path = Path(directory) / _EXECUTABLES / f"{key}.bin"
@@ -597,12 +602,12 @@ def compiled(fun, *args):
         with _jax_cache_off():
             lowered = jax.jit(flat).lower(leaves)
             keepable = "callback" not in lowered.as_text()
-            executable = lowered.compile() if keepable else None
+            executable = lowered.compile(compiler_options) if keepable else None
         if not keepable:
             # A host callback (an equinox run-time check) cannot be kept: the
             # program is compiled as without a key, through JAX's cache.
             _active[-1]._count("unsaved")
-            return jitted.lower(*args).compile()
+            return jitted.lower(*args).compile(compiler_options)
         # The output's structure travels as the output itself with a slot
         # for each array: a pickled PyTreeDef of equinox Modules does not
         # unflatten in another process.

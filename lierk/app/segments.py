@@ -12,7 +12,7 @@ import numpy as np
 from lierk import Progress
 from lierk import EventRecord
 from lierk import RESULTS, SaveAt, Solution
-from lierk import checked_on_host, num_steps, solve
+from lierk import checked_on_host, num_steps, one_body_compiler_options, solve
 from ._device import to_device
 from .cache import compiled
 
@@ -41,7 +41,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         saveat = scene.saveat()
         with bar.compiling():
             run = compiled(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs),
-                           problem)
+                           problem, compiler_options=one_body_compiler_options())
         sol = jax.block_until_ready(run(problem))
         code = int(sol.result)
         if throw and code == RESULTS.target_error_not_reached:
@@ -97,7 +97,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         return args if group is None else args + (to_device(group, dtype),)
 
     with bar.compiling():
-        piece = compiled(piece, *arguments(problem, *pieces[0]))
+        piece = compiled(piece, *arguments(problem, *pieces[0]), compiler_options=one_body_compiler_options())
 
     # Host-side bookkeeping is NumPy: an eager jax.numpy operation would
     # compile a program of its own.

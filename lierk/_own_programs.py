@@ -1,0 +1,95 @@
+"""XLA's settings for the programs lierk compiles on its own.
+
+A call of `lierk.solve` or `lierk.sensitivity` from Python, outside any JAX
+transform, compiles a program of lierk's own; inside a caller's `jax.jit`
+the solve is part of the caller's program, compiled with the caller's
+settings.  Such a call solves one body, and for one body XLA's older CPU
+loop emitters compile the program in about 60% of the time of the default
+fusion emitters and run it as fast; for a batch (``jax.vmap``) they run 1.2
+to 1.6x slower (docs/guides/contributing.md, "Time to first result").  So a
+program called with traced arguments keeps XLA's defaults.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+from typing import Callable
+
+import equinox as eqx
+import jax
+
+__all__ = ["one_body_compiler_options"]
+
+# A CPU setting: other backends keep their defaults.
+_ONE_BODY = {"xla_cpu_use_fusion_emitters": False}
+
+
+def one_body_compiler_options() -> dict:
+    """XLA's compile options for a program that solves one body: what lierk
+    passes when it compiles `lierk.solve` or `lierk.sensitivity` called from
+    Python (no transform), and what a caller's own ``jax.jit`` of one body's
+    solve can pass too: ``jax.jit(f, compiler_options=lierk.one_body_compiler_options())``.
+
+    On the CPU these are XLA's older loop emitters
+    (``xla_cpu_use_fusion_emitters=False``): a heavy top's first adaptive
+    DOP853 solve compiles in 0.90 s instead of 1.52 and runs in 4.3 ms
+    instead of 4.7 (2 cores).  Not for a batch: a ``jax.vmap`` of 64 bodies
+    runs 1.2 to 1.6x slower with them.  Empty (XLA's defaults) on other
+    backends, and where ``XLA_FLAGS`` chooses the emitters itself.
+
+    Returns:
+        A new ``dict`` of option names and values for ``jax.jit``'s or
+        ``Lowered.compile``'s ``compiler_options``.
+    """
+    if "xla_cpu_use_fusion_emitters" in os.environ.get("XLA_FLAGS", "") or jax.default_backend() != "cpu":
+        return {}
+    return dict(_ONE_BODY)
+
+
+# Directions of an eager `jax.jacfwd` that still compile with the one-body
+# settings: a heavy top's DOP853 sensitivity to its inertia (9 directions)
+# compiled in 2.2 s instead of 2.9 and ran in 47 ms instead of 64, where a
+# `jax.vmap` of 8 bodies ran as fast or 24% slower (the primal, one body,
+# is most of a Jacobian's program).
+_MOST_DIRECTIONS = 12
+
+
+def _directions(tree) -> int | None:
+    """1 for concrete values; under one eager `jax.vmap` of concrete values
+    (`jax.jacfwd`'s directions), their count; None under anything else."""
+    counts = set()
+    for x in jax.tree_util.tree_leaves(tree):
+        if not isinstance(x, jax.core.Tracer):
+            continue
+        val, axis = getattr(x, "val", None), getattr(x, "batch_dim", None)
+        if type(x).__name__ != "BatchTracer" or isinstance(val, jax.core.Tracer) or not isinstance(axis, int):
+            return None
+        counts.add(val.shape[axis])
+    return max(counts, default=1) if len(counts) <= 1 else None
+
+
+class OwnProgram:
+    """``eqx.filter_jit(fun)``, compiled with `one_body_compiler_options`
+    when called with no traced argument (one body, no transform), with
+    XLA's defaults otherwise (``.default``: always).  ``tangents``: the
+    position of an argument that an eager `jax.jacfwd` may batch (its
+    directions) while the others stay concrete, which keeps the one-body
+    settings for up to 12 directions.  ``.__wrapped__`` is ``fun``, to be
+    traced inside another program."""
+
+    def __init__(self, fun: Callable, tangents: int | None = None):
+        self.__wrapped__ = fun
+        self.default = eqx.filter_jit(fun)
+        self._one_body = eqx.filter_jit(fun, compiler_options=_ONE_BODY)
+        self._tangents = tangents
+        functools.update_wrapper(self, fun)
+
+    def __call__(self, *args, **kwargs):
+        rest = [a for i, a in enumerate(args) if i != self._tangents]
+        one_body = _directions((rest, kwargs)) == 1
+        if one_body and self._tangents is not None and self._tangents < len(args):
+            directions = _directions(args[self._tangents])
+            one_body = directions is not None and directions <= _MOST_DIRECTIONS
+        one_body = one_body and one_body_compiler_options()
+        return (self._one_body if one_body else self.default)(*args, **kwargs)
