@@ -11,6 +11,11 @@ each first call pays the whole cost once, as a user's new script does:
   ``R(T)`` with respect to ``omega0`` (diffrax with
   ``adjoint=ForwardMode()``, which `jax.jacfwd` needs: its default adjoint
   is a ``custom_vjp``, fixed steps included);
+- ``call``: ``lierk.solve(problem, solver, T, ...)`` called from Python
+  beside ``diffrax.diffeqsolve(...)`` called from Python, each its
+  library's own program (lierk's compiled with
+  `lierk.one_body_compiler_options`), problem built outside the timer
+  (total time only);
 - ``eager``: ``jax.jacfwd(f)(omega0, s)`` called from Python with no
   ``jit``, as most users write it (total time only: the transform runs the
   operations around the solve one at a time, each its own program);
@@ -67,7 +72,7 @@ import time
 BODIES = ("free", "top", "spacecraft")
 # name: (fixed, diffrax peer)
 SOLVERS = {"RKMK4": (True, "Tsit5"), "RKMK(DOP853)": (True, "Dopri8"), "DP54": (False, "Dopri5"), "DOP853": (False, "Dopri8")}
-WORKS = ("solve", "jacfwd", "eager", "sensitivity", "steady")
+WORKS = ("solve", "call", "jacfwd", "eager", "sensitivity", "steady")
 STEPS, RTOL, BATCH = 100, 1e-8, 64
 QUICK = (("top", "DOP853"),)
 
@@ -177,6 +182,24 @@ def run_cell(cell: dict) -> dict:
         jax.block_until_ready(sens.jacobian)
         out.update(first=time.perf_counter() - t, method=lierk.sensitivity_method(
             lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, method="derivative"))
+        return out
+    if work == "call":
+        inertia, _, _, _, torque = _setup(body)
+        if peer == "lierk":
+            import lierk
+
+            kw = dict(dt=T / STEPS, max_steps=STEPS) if fixed else dict(rtol=RTOL, atol=RTOL)
+            problem = lierk.RigidBodyWithEffects(inertia, omega0, effects=effects())
+            t = time.perf_counter()
+            jax.block_until_ready(lierk.solve(problem, solver, T, throw=False, **kw).R)
+        else:
+            import peers
+
+            kw = dict(dt=T / STEPS, max_steps=STEPS + 1) if fixed else dict(rtol=RTOL)
+            field, y0 = peers.rigid_body_field(inertia, torque), peers.initial_state(inertia, omega0, xp=np)
+            t = time.perf_counter()
+            jax.block_until_ready(peers.diffrax_solution(field, SOLVERS[solver_name][1], T, y0, **kw).ys)
+        out.update(first=time.perf_counter() - t)
         return out
     if work == "steady":
         rng = np.random.default_rng(0)
@@ -328,28 +351,34 @@ def markdown(meta, rows) -> list[str]:
     ]
     for body in BODIES:
         for solver, (_, peer) in SOLVERS.items():
-            for work, target in (("solve", 1.5), ("jacfwd", 2.0)):
-                a = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None)
-                b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
-                if a is None or b is None:
-                    continue
-                lines.append(f"| {body} | {solver} vs {peer} | {work} | {_first(a)} | {a['size']} | {_first(b)} | {b['size']} "
-                             f"| {_verdict(a, b, target)} |")
-                if work == "solve":
-                    c = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=True)
-                    if c is not None:
-                        lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
-                                     f"{_verdict(c, b, target)} |")
-                if work == "jacfwd":
-                    e = _find(rows, body=body, solver=solver, work="eager", peer="lierk")
-                    f = _find(rows, body=body, solver=solver, work="eager", peer="diffrax")
-                    if e is not None and f is not None:
-                        lines.append(f"| {body} | {solver} vs {peer} | eager `jax.jacfwd` | {e['first']:.2f} | | "
-                                     f"{f['first']:.2f} | | {_verdict(e, f, target)} |")
-                    s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
-                    if s is not None:
-                        lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
-                                     f"| {s['first']:.2f} | | | | {_verdict(s, b, target)} |")
+            def pair(work, **kw):
+                return (_find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None, **kw),
+                        _find(rows, body=body, solver=solver, work=work, peer="diffrax"))
+
+            a, b = pair("solve")
+            if a is not None and b is not None:
+                lines.append(f"| {body} | {solver} vs {peer} | solve | {_first(a)} | {a['size']} | {_first(b)} | "
+                             f"{b['size']} | {_verdict(a, b, 1.5)} |")
+                c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=True)
+                if c is not None:
+                    lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
+                                 f"{_verdict(c, b, 1.5)} |")
+            e, f = pair("call")
+            if e is not None and f is not None:
+                lines.append(f"| {body} | {solver} vs {peer} | `lierk.solve` from Python | {e['first']:.2f} | | "
+                             f"{f['first']:.2f} | | {_verdict(e, f, 1.5)} |")
+            a, b = pair("jacfwd")
+            if a is not None and b is not None:
+                lines.append(f"| {body} | {solver} vs {peer} | jacfwd | {_first(a)} | {a['size']} | {_first(b)} | "
+                             f"{b['size']} | {_verdict(a, b, 2.0)} |")
+            e, f = pair("eager")
+            if e is not None and f is not None:
+                lines.append(f"| {body} | {solver} vs {peer} | eager `jax.jacfwd` | {e['first']:.2f} | | "
+                             f"{f['first']:.2f} | | {_verdict(e, f, 2.0)} |")
+            s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
+            if s is not None and b is not None:
+                lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
+                             f"| {s['first']:.2f} | | | | {_verdict(s, b, 2.0)} |")
     if not any(r["work"] == "steady" for r in rows):
         return lines
     lines += ["", "## Steady state (after compilation)", "",
