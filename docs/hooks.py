@@ -79,6 +79,10 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                                   "The first solves and first jax.jit(jax.jacfwd(f)) alone, after lierk.so3's "
                                   "functions became nested jits and constant bodies stopped compiling an LU "
                                   "factorisation, lierk beside diffrax."),
+    "first_result-call-jacfwd-eager-sensitivity": ("Time to first result from Python",
+                                                   "lierk.solve and lierk.sensitivity called from Python (lierk's own "
+                                                   "programs, compiled with lierk.one_body_compiler_options), an eager "
+                                                   "jax.jacfwd and jax.jit(jax.jacfwd(f)), lierk beside diffrax."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
