@@ -81,8 +81,8 @@ def test_a_second_run_compiles_nothing_and_corrupted_entries_are_compiled_again(
     # callback, kept it out of the cache and cost a compilation every run).
     assert compiled >= 4 and len(entries(root)) >= compiled and "not saved" not in stderr, stderr
 
-    # The scene's solve is kept whole, keyed without tracing.
-    assert len(list((root / lierk.app.cache.machine_fingerprint() / "executables").iterdir())) == 1
+    # The scene's solve and its diagnostics are kept whole, keyed without tracing.
+    assert len(list((root / lierk.app.cache.machine_fingerprint() / "executables").iterdir())) == 2
 
     stderr, R_warm = simulate(tmp_path, root, "warm")
     loaded_warm, compiled_warm = counts(stderr)

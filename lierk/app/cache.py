@@ -514,6 +514,17 @@ def _executable_key(fun, args, compiler_options=None) -> str | None:
     return h.hexdigest()[:32]
 
 
+def keeps_executables() -> bool:
+    """Whether `compiled` keeps and loads executables now: inside a
+    `using_cache` block with JAX's cache on, in a local directory.
+    Elsewhere it compiles on every call, so a function called more than
+    once is better jitted."""
+    import jax
+
+    directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
+    return bool(directory) and "://" not in str(directory)
+
+
 def compiled(fun, *args, compiler_options: dict | None = None):
     """``eqx.filter_jit(fun).lower(*args).compile(compiler_options)``: a callable of arguments
     like ``args`` (the same structure and non-array values, arrays of the
@@ -546,8 +557,8 @@ def compiled(fun, *args, compiler_options: dict | None = None):
     import jax
 
     jitted = eqx.filter_jit(fun)
-    directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
-    key = _executable_key(fun, args, compiler_options) if directory and "://" not in str(directory) else None
+    directory = jax.config.jax_compilation_cache_dir
+    key = _executable_key(fun, args, compiler_options) if keeps_executables() else None
     if key is None:
         return jitted.lower(*args).compile(compiler_options)
     dynamic, static = eqx.partition(args, eqx.is_array)
