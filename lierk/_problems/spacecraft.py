@@ -202,9 +202,12 @@ def dipole_field(
         mu: the planet's gravitational parameter (m^3/s^2), Earth's by default.
 
     Returns:
-        A function ``t -> (3,)`` that JAX traces, whose numbers are traced
-        too: a `MagneticTorque` with another field from `dipole_field`
-        reuses a compiled solve.
+        A function ``t -> (3,)`` that JAX traces.  It is a module whose
+        numbers (orbit rate, phase, strength, the dipole's direction) are
+        array fields, traced by a solve: a `MagneticTorque` with another
+        field from `dipole_field` reuses the compiled solve, and a
+        sensitivity can select them (``wrt=lambda p: p.effects[0].field``).
+        The arguments themselves must be concrete numbers (checked here).
     """
     if mean_motion is None and radius is None:
         raise ValueError("give the orbit as mean_motion= (rad/s), radius= (m), or both")

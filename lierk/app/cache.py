@@ -490,6 +490,16 @@ def _settings() -> str:
     return f"{text} {jax.config.jax_enable_x64} {checking_on_host()}"
 
 
+def _aval(a) -> str:
+    """What an executable sees of an array argument: its type, dtype, weak
+    type, shape and placement."""
+    import jax
+    import numpy as np
+
+    placed = f"{a.committed}:{a.sharding}" if isinstance(a, jax.Array) else ""
+    return f"{type(a).__name__}:{np.dtype(a.dtype).str}:{getattr(a, 'weak_type', False)}:{np.shape(a)}:{placed}"
+
+
 def _executable_key(fun, args, compiler_options=None) -> str | None:
     """The key of ``fun(*args)``'s executable compiled with
     ``compiler_options``, or None where some value in them cannot be
@@ -508,7 +518,12 @@ def _executable_key(fun, args, compiler_options=None) -> str | None:
         # The order in which the arguments' arrays reach the executable.
         paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(args)[0]]
         h.update(repr(paths).encode())
-        _fingerprint((fun, args), h, {})
+        # The arguments' arrays are the executable's inputs: their values are
+        # not in it, so another trajectory or inertia of the same shapes is
+        # the same key (keyed by bytes, every new value compiled again).
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        h.update(repr([_aval(a) for a in jax.tree_util.tree_leaves(dynamic)]).encode())
+        _fingerprint((fun, static), h, {})
     except Exception:  # noqa: BLE001 - _Unkeyable, or anything else the walk meets: no key, no cache
         return None
     return h.hexdigest()[:32]
@@ -533,7 +548,9 @@ def compiled(fun, *args, compiler_options: dict | None = None):
     Inside a `using_cache` block with the cache on, the executable is kept
     in the cache directory (``executables/``) under a key made without
     tracing: ``fun``'s code, everything it closes over and the module
-    globals it names, every value in ``args``, lierk's source, the versions
+    globals it names, the non-array values in ``args`` and the types,
+    shapes, dtypes and placement of its arrays (their values are the
+    executable's inputs, not part of it), lierk's source, the versions
     of Python, jax, jaxlib, equinox and NumPy, the machine and its devices,
     JAX's settings and its ``XLA_``, ``JAX_`` and ``EQX_`` environment.  A
     later process with the same key loads it without tracing or lowering
@@ -561,6 +578,10 @@ def compiled(fun, *args, compiler_options: dict | None = None):
     key = _executable_key(fun, args, compiler_options) if keeps_executables() else None
     if key is None:
         return jitted.lower(*args).compile(compiler_options)
+    if key in _in_process:
+        # Called again in this process (a loop of diagnostics): as a jitted
+        # function's second call, no reading and loading again.
+        return _in_process[key]
     dynamic, static = eqx.partition(args, eqx.is_array)
     leaves, tree = jax.tree_util.tree_flatten(dynamic)
     path = Path(directory) / _EXECUTABLES / f"{key}.bin"
@@ -656,4 +677,9 @@ def compiled(fun, *args, compiler_options: dict | None = None):
         out = executable(call_leaves)
         return jax.tree_util.tree_map(lambda x: out[x.index] if isinstance(x, _Slot) else x, skeleton)
 
+    _in_process[key] = call
     return call
+
+
+# Executables `compiled` loaded or compiled in this process, by key.
+_in_process: dict = {}
