@@ -6,8 +6,9 @@ the solve is part of the caller's program, compiled with the caller's
 settings.  Such a call solves one body, and for one body XLA's older CPU
 loop emitters compile the program in about 60% of the time of the default
 fusion emitters and run it as fast; for a batch (``jax.vmap``) they run 1.2
-to 1.6x slower (docs/guides/contributing.md, "Time to first result").  So a
-program called with traced arguments keeps XLA's defaults.
+to 1.6x slower (docs/guides/contributing.md, "One body compiles with XLA's
+older emitters").  So a program called with traced arguments keeps XLA's
+defaults.
 """
 
 from __future__ import annotations

@@ -639,7 +639,8 @@ def compiled(fun, *args, compiler_options: dict | None = None):
             # A host callback (an equinox run-time check) cannot be kept: the
             # program is compiled as without a key, through JAX's cache.
             _active[-1]._count("unsaved")
-            return jitted.lower(*args).compile(compiler_options)
+            _in_process[key] = jitted.lower(*args).compile(compiler_options)
+            return _in_process[key]
         # The output's structure travels as the output itself with a slot
         # for each array: a pickled PyTreeDef of equinox Modules does not
         # unflatten in another process.
