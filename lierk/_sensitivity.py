@@ -212,7 +212,10 @@ def sensitivity(
             ``"R0"`` (a body-frame turn ``R0 exp(hat(p))`` of the initial
             attitude, ``(3,)`` rad, with ``omega0`` held fixed), ``"inertia"``
             (the ``(3, 3)`` tensor, kg m^2, every entry on its own, with
-            ``omega0`` held fixed), or a function selecting array fields of the
+            ``omega0`` held fixed; the tensor is read through its symmetric
+            part, so the derivatives along ``I[i, j]`` and ``I[j, i]`` are
+            equal, each half the derivative along the symmetric change of
+            both), or a function selecting array fields of the
             problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``.
         mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs) or
             ``"reverse"`` (`jax.jacrev`: with the default adjoint,
