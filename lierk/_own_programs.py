@@ -1,7 +1,7 @@
 """XLA's settings for the programs lierk compiles on its own.
 
-A call of `lierk.solve` or `lierk.sensitivity` from Python, outside any JAX
-transform, compiles a program of lierk's own; inside a caller's `jax.jit`
+A call of `lierk.solve`, `lierk.sensitivity` or `lierk.exact`'s closed forms
+from Python, outside any JAX transform, compiles a program of lierk's own; inside a caller's `jax.jit`
 the solve is part of the caller's program, compiled with the caller's
 settings.  Such a call solves one body, and for one body XLA's older CPU
 loop emitters compile the program in about 60% of the time of the default
@@ -76,13 +76,14 @@ class OwnProgram:
     XLA's defaults otherwise (``.default``: always).  ``tangents``: the
     position of an argument that an eager `jax.jacfwd` may batch (its
     directions) while the others stay concrete, which keeps the one-body
-    settings for up to 12 directions.  ``.__wrapped__`` is ``fun``, to be
-    traced inside another program."""
+    settings for up to 12 directions.  ``jit`` (``jax.jit`` or equinox's)
+    builds both programs, with ``jit_kwargs``.  ``.__wrapped__`` is
+    ``fun``, to be traced inside another program."""
 
-    def __init__(self, fun: Callable, tangents: int | None = None):
+    def __init__(self, fun: Callable, tangents: int | None = None, jit: Callable = eqx.filter_jit, **jit_kwargs):
         self.__wrapped__ = fun
-        self.default = eqx.filter_jit(fun)
-        self._one_body = eqx.filter_jit(fun, compiler_options=_ONE_BODY)
+        self.default = jit(fun, **jit_kwargs)
+        self._one_body = jit(fun, compiler_options=_ONE_BODY, **jit_kwargs)
         self._tangents = tangents
         functools.update_wrapper(self, fun)
 

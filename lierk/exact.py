@@ -77,6 +77,7 @@ from jax.typing import ArrayLike
 
 from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
+from lierk._own_programs import OwnProgram
 from lierk._validation import is_traced, rigid_body_inputs
 
 __all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "sphere", "principal_frame"]
@@ -297,7 +298,7 @@ def _free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     return Q, _value_with_tangent_of(sg(m) + _momentum_change(sg(inertia), sg(m), sg(h)), inertia @ omega_h)
 
 
-_free_flow_program = jax.jit(_free_flow)
+_free_flow_program = OwnProgram(_free_flow, jit=jax.jit)
 
 
 @jax.custom_jvp
@@ -389,7 +390,7 @@ def _symmetric_flow(I_a, I_3, k: int, m, h):
     return so3.reorthonormalize(Q), so3.axis_turn(m, k, phi)
 
 
-_symmetric_flow_program = jax.jit(_symmetric_flow, static_argnums=2)
+_symmetric_flow_program = OwnProgram(_symmetric_flow, jit=jax.jit, static_argnums=2)
 
 
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
@@ -397,7 +398,7 @@ def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Ar
     return _free_motion_ad(inertia, omega0, jnp.asarray(t, dtype=inertia.dtype), R0)
 
 
-_free_motion_program = jax.jit(_free_motion)
+_free_motion_program = OwnProgram(_free_motion, jit=jax.jit)
 
 
 @jax.custom_jvp
@@ -697,7 +698,7 @@ def _flip_interval(inertia: Array, omega0: Array) -> Array:
     return jnp.where(flips, 2.0 * K / lam, jnp.inf)
 
 
-_flip_interval_program = jax.jit(_flip_interval)
+_flip_interval_program = OwnProgram(_flip_interval, jit=jax.jit)
 
 
 def sphere(omega0: ArrayLike, t: ArrayLike, R0: ArrayLike | None = None) -> tuple[Array, Array]:

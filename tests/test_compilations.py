@@ -170,17 +170,20 @@ def test_a_body_of_constants_inside_jit_inverts_its_inertia_on_the_host(inertia)
 
 
 def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transformed_one_with_the_defaults(monkeypatch):
-    """`lierk.solve` and `lierk.sensitivity` called from Python compile with
+    """`lierk.solve`, `lierk.sensitivity` and `lierk.exact` called from Python compile with
     `lierk.one_body_compiler_options` (XLA's older CPU emitters, which
-    compile one body sooner); traced (``jax.vmap``, ``jax.jit``) they keep
-    XLA's defaults, which run batches faster, and so does every call when
-    ``XLA_FLAGS`` chooses the emitters itself (``make test`` does)."""
+    compile one body sooner), and so does an eager ``jax.jacfwd`` (its
+    directions are no batch of bodies); traced (``jax.vmap``, ``jax.jit``)
+    they keep XLA's defaults, which run batches faster, and so does every
+    call when ``XLA_FLAGS`` chooses the emitters itself (``make test``
+    does)."""
     from lierk import _sensitivity, _solve
 
     monkeypatch.setenv("XLA_FLAGS", "")
     assert lierk.one_body_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
     calls = []
-    for name, program in (("solve", _solve._program), ("jvp", _solve._program_jvp), ("sensitivity", _sensitivity._sensitivity)):
+    for name, program in (("solve", _solve._program), ("jvp", _solve._program_jvp), ("sensitivity", _sensitivity._sensitivity),
+                          ("exact", lierk.exact._free_motion_program)):
         for kind in ("default", "_one_body"):
             def spy(*args, _f=getattr(program, kind), _tag=(name, kind), **kwargs):
                 calls.append(_tag)
@@ -205,7 +208,9 @@ def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transforme
     # An eager jax.jacfwd: one body, its three directions batched.
     jax.jacfwd(solve)(np.array([1.0, 0.05, 0.3]))
     assert calls[5:] == [("jvp", "_one_body")]
+    lierk.exact.free_rigid_body(np.array([2.0, 3.0, 4.0]), np.array([1.0, 0.05, 0.3]), 0.2)
+    assert calls[6:] == [("exact", "_one_body")]
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
     assert lierk.one_body_compiler_options() == {}
     solve(np.array([1.0, 0.05, 0.3]))
-    assert calls[6:] == [("solve", "default")]
+    assert calls[7:] == [("solve", "default")]
