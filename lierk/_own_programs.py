@@ -1,9 +1,9 @@
 """XLA's settings for the programs lierk compiles on its own.
 
-A call of `lierk.solve`, `lierk.sensitivity` or `lierk.exact`'s closed forms
-from Python, outside any JAX transform, compiles a program of lierk's own; inside a caller's `jax.jit`
-the solve is part of the caller's program, compiled with the caller's
-settings.  Such a call solves one body, and for one body XLA's older CPU
+A call of `lierk.solve`, `lierk.sensitivity` or `lierk.exact`'s closed
+forms from Python, outside any JAX transform, compiles a program of lierk's
+own; inside a caller's `jax.jit` the solve is part of the caller's program,
+compiled with the caller's settings.  Such a call solves one body, and for one body XLA's older CPU
 loop emitters compile the program in about 60% of the time of the default
 fusion emitters and run it as fast; for a batch (``jax.vmap``) they run 1.2
 to 1.6x slower (docs/guides/contributing.md, "One body compiles with XLA's

@@ -151,6 +151,17 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
             raise ValueError(
                 f"wrt= must select floating-point arrays of the problem (e.g. lambda p: p.effects[0].mass), got {p0!r}"
             )
+        held = [n for n in ("inertia", "inertia_inv") if isinstance(problem, AbstractRigidBody)
+                and any(x is getattr(problem, n) for x in leaves)]
+        if held:
+            # The constructor derives the inverse, the initial momentum and
+            # the diagonal path from the inertia: replaced alone it gave a
+            # Jacobian with none of that (as large an error as the Jacobian).
+            raise ValueError(
+                f"wrt= selects the body's {held[0]}, from which the problem derives other fields (the inverse "
+                "inertia, the initial momentum): perturbed alone it would give a wrong Jacobian; use "
+                "wrt='inertia' (omega0 held fixed)"
+            )
         try:
             eqx.tree_at(wrt, problem, p0)
         except (ValueError, TypeError):  # a derived value: tree_at finds no leaf, or a property fails on its wrappers
@@ -216,7 +227,9 @@ def sensitivity(
             part, so the derivatives along ``I[i, j]`` and ``I[j, i]`` are
             equal, each half the derivative along the symmetric change of
             both), or a function selecting array fields of the
-            problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``.
+            problem, any pytree of them, e.g. ``lambda p: p.effects[0].mass``
+            (not a body's ``inertia`` or ``inertia_inv``, from which it
+            derives other fields: that is ``"inertia"``).
         mode: ``"forward"`` (`jax.jacfwd`: cheapest for a few inputs) or
             ``"reverse"`` (`jax.jacrev`: with the default adjoint,
             `ForwardSensitivity`, the same forward pass for a few inputs, and
@@ -249,7 +262,8 @@ def sensitivity(
     Raises:
         ValueError: ``target_error=`` (a setting chosen per member is not
             differentiable), ``saveat=``/``estimate_error=`` among the solve
-            options, an unknown ``mode``, or a ``wrt`` that is not an input.
+            options, an unknown ``mode``, or a ``wrt`` that is not an input
+            (or selects a body's inertia or its inverse).
     """
     if not isinstance(problem, AbstractProblem):
         raise ValueError(f"problem must be a lierk problem such as FreeRigidBody, got {type(problem).__name__}")

@@ -201,6 +201,11 @@ def test_bad_input_is_refused_with_a_reason():
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt="omega")
     with pytest.raises(ValueError, match="not an input"):
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt=lambda p: p.omega0)
+    # The inertia is read through fields derived from it: replaced alone, the
+    # Jacobian was off by its own size.
+    for field in ("inertia", "inertia_inv"):
+        with pytest.raises(ValueError, match=f"selects the body's {field}, .* use wrt='inertia'"):
+            lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, wrt=lambda p: getattr(p, field))
     with pytest.raises(ValueError, match="mode must be"):
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, mode="sideways")
     with pytest.raises(ValueError, match="saveat"):
