@@ -351,30 +351,25 @@ def markdown(meta, rows) -> list[str]:
     ]
     for body in BODIES:
         for solver, (_, peer) in SOLVERS.items():
-            def pair(work, **kw):
-                return (_find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None, **kw),
-                        _find(rows, body=body, solver=solver, work=work, peer="diffrax"))
+            def compared(work, label, target):
+                """The row of ``work`` (lierk beside diffrax), if both were
+                measured: split into its parts where it was; diffrax's cell."""
+                a = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None)
+                b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
+                if a is not None and b is not None:
+                    cells = (f"{_first(a)} | {a['size']} | {_first(b)} | {b['size']}" if "trace" in a
+                             else f"{a['first']:.2f} | | {b['first']:.2f} |")
+                    lines.append(f"| {body} | {solver} vs {peer} | {label} | {cells} | {_verdict(a, b, target)} |")
+                return b
 
-            a, b = pair("solve")
-            if a is not None and b is not None:
-                lines.append(f"| {body} | {solver} vs {peer} | solve | {_first(a)} | {a['size']} | {_first(b)} | "
-                             f"{b['size']} | {_verdict(a, b, 1.5)} |")
-                c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=True)
-                if c is not None:
-                    lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
-                                 f"{_verdict(c, b, 1.5)} |")
-            e, f = pair("call")
-            if e is not None and f is not None:
-                lines.append(f"| {body} | {solver} vs {peer} | `lierk.solve` from Python | {e['first']:.2f} | | "
-                             f"{f['first']:.2f} | | {_verdict(e, f, 1.5)} |")
-            a, b = pair("jacfwd")
-            if a is not None and b is not None:
-                lines.append(f"| {body} | {solver} vs {peer} | jacfwd | {_first(a)} | {a['size']} | {_first(b)} | "
-                             f"{b['size']} | {_verdict(a, b, 2.0)} |")
-            e, f = pair("eager")
-            if e is not None and f is not None:
-                lines.append(f"| {body} | {solver} vs {peer} | eager `jax.jacfwd` | {e['first']:.2f} | | "
-                             f"{f['first']:.2f} | | {_verdict(e, f, 2.0)} |")
+            b = compared("solve", "solve", 1.5)
+            c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=True)
+            if c is not None and b is not None:
+                lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
+                             f"{_verdict(c, b, 1.5)} |")
+            compared("call", "`lierk.solve` from Python", 1.5)
+            b = compared("jacfwd", "jacfwd", 2.0)
+            compared("eager", "eager `jax.jacfwd`", 2.0)
             s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
             if s is not None and b is not None:
                 lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
