@@ -205,7 +205,7 @@ class Controller(AbstractStepController):
         dtmax = bounded("dtmax", dtmax, lambda v: (v > 0) & (v >= dtmin), "> 0 and >= dtmin")
         max_angle = bounded("max_angle", max_angle, lambda v: v > 0, "> 0 (rad; inf for no bound)")
         self.rtol, self.atol, self.safety, self.facmin, self.facmax, self.dtmin, self.dtmax, self.max_angle = (
-            validation.as_jax(x) for x in (rtol, atol, safety, facmin, facmax, dtmin, dtmax, max_angle)
+            validation.as_jax_each(rtol, atol, safety, facmin, facmax, dtmin, dtmax, max_angle)
         )
         if not isinstance(resolve_modes, bool):
             raise ValueError(f"resolve_modes must be True or False, got {resolve_modes!r}")

@@ -8,7 +8,9 @@ loop emitters compile the program in about 60% of the time of the default
 fusion emitters and run it as fast; for a batch (``jax.vmap``) they run 1.2
 to 1.6x slower (docs/guides/contributing.md, "One body compiles with XLA's
 older emitters").  So a program called with traced arguments keeps XLA's
-defaults.
+defaults.  A solve's one-body program also loops over the stages of the
+long RKMK tableaux (`lierk.AbstractSolver.for_one_body`): it runs once per
+call, so compiling it about twice as fast pays.
 """
 
 from __future__ import annotations
@@ -72,26 +74,45 @@ def _directions(tree) -> int | None:
 
 class OwnProgram:
     """``eqx.filter_jit(fun)``, compiled with `one_body_compiler_options`
-    when called with no traced argument (one body, no transform), with
-    XLA's defaults otherwise (``.default``: always).  ``tangents``: the
+    when called on the CPU with no traced argument (one body, no transform),
+    with XLA's defaults otherwise (``.default``: always).  ``tangents``: the
     position of an argument that an eager `jax.jacfwd` may batch (its
     directions) while the others stay concrete, which keeps the one-body
-    settings for up to 12 directions.  ``jit`` (``jax.jit`` or equinox's)
-    builds both programs, with ``jit_kwargs``.  ``.__wrapped__`` is
-    ``fun``, to be traced inside another program."""
+    settings for up to 12 directions.  ``one_body``: a function of the
+    positional arguments giving those a one-body call passes on (the
+    solver's one-body form, `lierk.AbstractSolver.for_one_body`).  ``jit``
+    (``jax.jit`` or equinox's) builds both programs, with ``jit_kwargs``.
+    ``.__wrapped__`` is ``fun``, to be traced inside another program."""
 
-    def __init__(self, fun: Callable, tangents: int | None = None, jit: Callable = eqx.filter_jit, **jit_kwargs):
+    def __init__(
+        self,
+        fun: Callable,
+        tangents: int | None = None,
+        jit: Callable = eqx.filter_jit,
+        one_body: Callable | None = None,
+        **jit_kwargs,
+    ):
         self.__wrapped__ = fun
         self.default = jit(fun, **jit_kwargs)
         self._one_body = jit(fun, compiler_options=_ONE_BODY, **jit_kwargs)
         self._tangents = tangents
+        self._prepare = one_body
         functools.update_wrapper(self, fun)
 
-    def __call__(self, *args, **kwargs):
+    def _is_one_body(self, args, kwargs) -> bool:
+        if jax.default_backend() != "cpu":
+            return False
         rest = [a for i, a in enumerate(args) if i != self._tangents]
-        one_body = _directions((rest, kwargs)) == 1
-        if one_body and self._tangents is not None and self._tangents < len(args):
+        if _directions((rest, kwargs)) != 1:
+            return False
+        if self._tangents is not None and self._tangents < len(args):
             directions = _directions(args[self._tangents])
-            one_body = directions is not None and directions <= _MOST_DIRECTIONS
-        one_body = one_body and one_body_compiler_options()
-        return (self._one_body if one_body else self.default)(*args, **kwargs)
+            return directions is not None and directions <= _MOST_DIRECTIONS
+        return True
+
+    def __call__(self, *args, **kwargs):
+        if not self._is_one_body(args, kwargs):
+            return self.default(*args, **kwargs)
+        if self._prepare is not None:
+            args = self._prepare(*args)
+        return (self._one_body if one_body_compiler_options() else self.default)(*args, **kwargs)

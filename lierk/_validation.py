@@ -64,6 +64,15 @@ def as_jax(x, dtype=None):
     return jax.device_put(x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype)))
 
 
+def as_jax_each(*xs) -> tuple:
+    """`as_jax` of each of ``xs``, the concrete ones put on the device
+    together: one transfer instead of one per value (each about 20 us of
+    a call from Python)."""
+    put = [not is_traced(x) and not isinstance(x, jax.Array) for x in xs]
+    moved = iter(jax.device_put([np.asarray(x) for x, p in zip(xs, put) if p]))
+    return tuple(next(moved) if p else as_jax(x) for x, p in zip(xs, put))
+
+
 def _traced(x, dtype=None):
     """A traced ``x`` as a JAX value (of ``dtype`` if given), with no
     operation where it is one already: under an eager `jax.jacfwd` or

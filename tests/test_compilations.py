@@ -214,3 +214,36 @@ def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transforme
     assert lierk.one_body_compiler_options() == {}
     solve(np.array([1.0, 0.05, 0.3]))
     assert calls[7:] == [("solve", "default")]
+
+
+def test_a_long_tableau_solved_from_python_loops_over_its_stages_and_traced_unrolls_them(monkeypatch):
+    """One body solved from Python on the CPU (a program lierk compiles on its
+    own, run once per call) takes the stage loop of a tableau of more than
+    four stages, which compiles about twice as fast; inside a caller's
+    ``jax.jit`` or ``jax.vmap`` the stages stay unrolled (faster to run,
+    batches above all); ``compact=False`` is kept.  The forms agree to
+    rounding."""
+    traced = []
+    loop = lierk.AbstractRKMK._stage_loop
+
+    def spy(self, *args):
+        traced.append(type(self).__name__)
+        return loop(self, *args)
+
+    monkeypatch.setattr(lierk.AbstractRKMK, "_stage_loop", spy)
+
+    def solve(w, solver=lierk.DP54()):
+        body = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w)
+        return lierk.solve(body, solver, 1.0, rtol=1e-10, atol=1e-10).R[-1]
+
+    w = np.array([1.0, 0.05, 0.3])
+    looped = np.asarray(solve(w))
+    assert traced and set(traced) == {"DP54"}
+    del traced[:]
+    jitted = np.asarray(jax.jit(solve)(w))
+    batched = np.asarray(jax.vmap(solve)(np.stack([w, w]))[0])
+    unrolled = np.asarray(solve(w, lierk.DP54(compact=False)))
+    lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0, dt=0.1)  # four stages
+    assert traced == []
+    for other in (unrolled, jitted, batched):
+        np.testing.assert_allclose(looped, other, rtol=0, atol=1e-14)

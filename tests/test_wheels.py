@@ -184,7 +184,14 @@ def gg_torque(t, R, w):
 
 def test_against_scipy_sampled_torques_and_gravity_gradient():
     body = pyramid(U_SAMPLES, T_SAMPLES, effects=(lierk.GravityGradient(I_BODY, mean_motion=N_GG),))
-    sol = lierk.solve(body, lierk.DOP853(), 30.0, rtol=1e-12, atol=1e-12, max_steps=20000)
+    # Restarted at the samples' kinks, as the reference is: an adaptive step
+    # straddling a kink is accepted or rejected by its error estimate's luck
+    # (3e-11 to 4e-9 off over the 30 s, with rounding-level changes to the
+    # program), which is not what this test is about.
+    part = body
+    for t0, t1 in zip([0.0, 5.0, 10.0, 20.0], [5.0, 10.0, 20.0, 30.0]):
+        sol = lierk.solve(part, lierk.DOP853(), jnp.asarray(t1), t0=jnp.asarray(t0), rtol=1e-12, atol=1e-12, max_steps=20000)
+        part = body.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
     R_ref, w_ref, Om_ref = scipy_final(basilisk_rhs(I_BODY, AXES_UNIT, JS4, u_sampled, gg_torque), OMEGA0, SPEEDS4, 30.0,
                                        T_SAMPLES)
     w, Om = omega_and_speeds(body, sol)

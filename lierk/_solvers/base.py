@@ -95,6 +95,14 @@ class AbstractSolver(eqx.Module):
         form that compiles faster pays there (`lierk.AbstractRKMK`)."""
         return self
 
+    def for_one_body(self) -> "AbstractSolver":
+        """This solver as a solve of one body that lierk compiles on its own
+        takes it (`lierk.solve` called from Python on the CPU): the form a
+        differentiated solve takes.  Such a program runs once per call, so
+        compiling it faster pays; lierk's per-call work on the host is most
+        of each later call's time."""
+        return self.for_derivatives()
+
     @property
     def name(self) -> str:
         return type(self).__name__
