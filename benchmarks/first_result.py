@@ -73,7 +73,7 @@ BODIES = ("free", "top", "spacecraft")
 # name: (fixed, diffrax peer)
 SOLVERS = {"RKMK4": (True, "Tsit5"), "RKMK(DOP853)": (True, "Dopri8"), "DP54": (False, "Dopri5"), "DOP853": (False, "Dopri8")}
 WORKS = ("solve", "call", "jacfwd", "eager", "sensitivity", "steady")
-STEPS, RTOL, BATCH = 100, 1e-8, 64
+STEPS, RTOL, BATCH, CALLS = 100, 1e-8, 64, 20
 QUICK = (("top", "DOP853"),)
 
 
@@ -189,17 +189,32 @@ def run_cell(cell: dict) -> dict:
             import lierk
 
             kw = dict(dt=T / STEPS, max_steps=STEPS) if fixed else dict(rtol=RTOL, atol=RTOL)
-            problem = lierk.RigidBodyWithEffects(inertia, omega0, effects=effects())
-            t = time.perf_counter()
-            jax.block_until_ready(lierk.solve(problem, solver, T, throw=False, **kw).R)
+            built = effects()
+
+            def call(w):
+                problem = lierk.RigidBodyWithEffects(inertia, w, effects=built)
+                return jax.block_until_ready(lierk.solve(problem, solver, T, throw=False, **kw).R)
         else:
             import peers
 
             kw = dict(dt=T / STEPS, max_steps=STEPS + 1) if fixed else dict(rtol=RTOL)
-            field, y0 = peers.rigid_body_field(inertia, torque), peers.initial_state(inertia, omega0, xp=np)
-            t = time.perf_counter()
-            jax.block_until_ready(peers.diffrax_solution(field, SOLVERS[solver_name][1], T, y0, **kw).ys)
+            field = peers.rigid_body_field(inertia, torque)
+
+            def call(w):
+                y0 = peers.initial_state(inertia, w, xp=np)
+                return jax.block_until_ready(peers.diffrax_solution(field, SOLVERS[solver_name][1], T, y0, **kw).ys)
+
+        t = time.perf_counter()
+        call(omega0)
         out.update(first=time.perf_counter() - t)
+        # Later calls with new initial velocities: the host's work per call
+        # beside the compiled program's run.
+        times = []
+        for i in range(CALLS):
+            t = time.perf_counter()
+            call(omega0 * (1 + 1e-3 * (i + 1)))
+            times.append(time.perf_counter() - t)
+        out["call_steady"] = float(np.median(times))
         return out
     if work == "steady":
         rng = np.random.default_rng(0)
@@ -374,6 +389,19 @@ def markdown(meta, rows) -> list[str]:
             if s is not None and b is not None:
                 lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
                              f"| {s['first']:.2f} | | | | {_verdict(s, b, 2.0)} |")
+    if any("call_steady" in r for r in rows):
+        lines += ["", "## A call from Python once compiled", "",
+                  f"Median of {CALLS} later calls in the same process, each with a new omega0 (the problem or initial "
+                  "state built in the call), ms: the host's work per call and the one-body program's run.", "",
+                  "| problem | solver | `lierk.solve` (ms) | `diffeqsolve` (ms) | lierk / diffrax |",
+                  "|---|---|---:|---:|---:|"]
+        for body in BODIES:
+            for solver, (_, peer) in SOLVERS.items():
+                a = _find(rows, body=body, solver=solver, work="call", peer="lierk", compact=None)
+                b = _find(rows, body=body, solver=solver, work="call", peer="diffrax")
+                if a is not None and b is not None and "call_steady" in a and "call_steady" in b:
+                    lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['call_steady']:.2f} | "
+                                 f"{1e3 * b['call_steady']:.2f} | {a['call_steady'] / b['call_steady']:.2f} |")
     if not any(r["work"] == "steady" for r in rows):
         return lines
     lines += ["", "## Steady state (after compilation)", "",
