@@ -60,17 +60,43 @@ def as_jax(x, dtype=None):
         return _traced(x, dtype)
     if isinstance(x, jax.Array) and (dtype is None or x.dtype == jax.dtypes.canonicalize_dtype(dtype)):
         return x
+    x = _host(x, dtype)
+    return _device_scalar(*_scalar_key(x)) if x.ndim == 0 else jax.device_put(x)
+
+
+def as_jax_each(*xs, dtype=None) -> tuple:
+    """`as_jax` of each of ``xs`` (in ``dtype`` if given), the concrete
+    arrays put on the device together: one transfer instead of one per value
+    (each about 20 us of a call from Python)."""
+    out, put = list(xs), []
+    for i, x in enumerate(xs):
+        if is_traced(x) or isinstance(x, jax.Array) or np.ndim(x) == 0:
+            out[i] = as_jax(x, dtype)
+        else:
+            out[i] = _host(x, dtype)
+            put.append(i)
+    for i, x in zip(put, jax.device_put([out[i] for i in put])):
+        out[i] = x
+    return tuple(out)
+
+
+def _host(x, dtype=None) -> np.ndarray:
     x = np.asarray(x)
-    return jax.device_put(x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype)))
+    return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
 
 
-def as_jax_each(*xs) -> tuple:
-    """`as_jax` of each of ``xs``, the concrete ones put on the device
-    together: one transfer instead of one per value (each about 20 us of
-    a call from Python)."""
-    put = [not is_traced(x) and not isinstance(x, jax.Array) for x in xs]
-    moved = iter(jax.device_put([np.asarray(x) for x, p in zip(xs, put) if p]))
-    return tuple(next(moved) if p else as_jax(x) for x, p in zip(xs, put))
+def _scalar_key(x: np.ndarray) -> tuple:
+    # The dtype it becomes on the device is part of the key: `jax.enable_x64` changes it.
+    return x.tobytes(), x.dtype.str, str(jax.dtypes.canonicalize_dtype(x.dtype))
+
+
+@functools.lru_cache(maxsize=1024)
+def _device_scalar(raw: bytes, dtype: str, canonical: str):
+    """A concrete scalar on the device, kept: a controller's defaults and a
+    solve's tolerances and times are the same few numbers call after call,
+    and each transfer costs about 15 us of a call from Python.  JAX arrays
+    are immutable, so every caller may share one."""
+    return jax.device_put(np.frombuffer(raw, dtype).reshape(()))
 
 
 def _traced(x, dtype=None):

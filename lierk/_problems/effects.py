@@ -150,7 +150,11 @@ class AbstractEffect(eqx.Module):
 
     def _cast(self, dtype) -> "AbstractEffect":
         """A copy with floating leaves in ``dtype`` (the problem's dtype)."""
-        return jax.tree_util.tree_map(lambda x: validation.as_jax(x, dtype) if eqx.is_array(x) else x, self)
+        leaves, structure = jax.tree_util.tree_flatten(self)
+        arrays = [i for i, x in enumerate(leaves) if eqx.is_array(x)]
+        for i, x in zip(arrays, validation.as_jax_each(*(leaves[i] for i in arrays), dtype=dtype)):
+            leaves[i] = x
+        return jax.tree_util.tree_unflatten(structure, leaves)
 
 
 def affine_flow(A: Array, c: Array, m: Array, h: Array) -> Array:
