@@ -60,17 +60,19 @@ def as_jax(x, dtype=None):
         return _traced(x, dtype)
     if isinstance(x, jax.Array) and (dtype is None or x.dtype == jax.dtypes.canonicalize_dtype(dtype)):
         return x
-    x = _host(x, dtype)
-    return _device_scalar(*_scalar_key(x)) if x.ndim == 0 else jax.device_put(x)
+    return jax.device_put(_host(x, dtype))
 
 
 def as_jax_each(*xs, dtype=None) -> tuple:
     """`as_jax` of each of ``xs`` (in ``dtype`` if given), the concrete
-    arrays put on the device together: one transfer instead of one per value
-    (each about 20 us of a call from Python)."""
+    values put on the device together: one transfer instead of one per value
+    (each about 20 us of a call from Python).  (Keeping the transfers of
+    recurring scalars for later calls was tried: a shared array broke JAX's
+    dispatch of a ``jit(vmap)`` of a solve on its second call, "Execution
+    supplied 2 arguments but compiled program expected 14", jax 0.10.)"""
     out, put = list(xs), []
     for i, x in enumerate(xs):
-        if is_traced(x) or isinstance(x, jax.Array) or np.ndim(x) == 0:
+        if is_traced(x) or isinstance(x, jax.Array):
             out[i] = as_jax(x, dtype)
         else:
             out[i] = _host(x, dtype)
@@ -83,20 +85,6 @@ def as_jax_each(*xs, dtype=None) -> tuple:
 def _host(x, dtype=None) -> np.ndarray:
     x = np.asarray(x)
     return x if dtype is None else x.astype(jax.dtypes.canonicalize_dtype(dtype))
-
-
-def _scalar_key(x: np.ndarray) -> tuple:
-    # The dtype it becomes on the device is part of the key: `jax.enable_x64` changes it.
-    return x.tobytes(), x.dtype.str, str(jax.dtypes.canonicalize_dtype(x.dtype))
-
-
-@functools.lru_cache(maxsize=1024)
-def _device_scalar(raw: bytes, dtype: str, canonical: str):
-    """A concrete scalar on the device, kept: a controller's defaults and a
-    solve's tolerances and times are the same few numbers call after call,
-    and each transfer costs about 15 us of a call from Python.  JAX arrays
-    are immutable, so every caller may share one."""
-    return jax.device_put(np.frombuffer(raw, dtype).reshape(()))
 
 
 def _traced(x, dtype=None):

@@ -121,21 +121,18 @@ def test_a_traced_impossible_inertia_is_solved_as_given_and_a_singular_one_fails
         jax.block_until_ready(jax.jit(final)(jnp.array([1.0, -2.0, 3.0])))
 
 
-def test_kept_device_scalars_have_the_dtype_and_bits_asked_for():
-    """Concrete scalars put on the device are kept and shared between calls
-    (`_validation._device_scalar`): one is what a fresh transfer gives, in the
-    dtype JAX makes it under the x64 setting of the call, sign of zero kept."""
-    with jax.enable_x64(True):
-        a = validation.as_jax(0.1)
-        assert a.dtype == np.float64 and float(a) == 0.1
-        assert validation.as_jax(np.float64(0.1)) is a  # kept
-    with jax.enable_x64(False):
-        b = validation.as_jax(0.1)
-        assert b.dtype == np.float32 and float(b) == float(np.float32(0.1))
-    with jax.enable_x64(True):
-        assert validation.as_jax(0.1).dtype == np.float64
-        assert np.signbit(np.asarray(validation.as_jax(-0.0))) and not np.signbit(np.asarray(validation.as_jax(0.0)))
-        x, v, s = validation.as_jax_each(2.0, np.array([1.0, 2.0]), 3, dtype=np.float32)
-        assert (x.dtype, v.dtype, s.dtype) == (np.float32,) * 3 and v.tolist() == [1.0, 2.0] and float(s) == 3.0
-        c = lierk.Controller(1e-7, 1e-9)
-        assert (float(c.rtol), float(c.atol), float(c.safety)) == (1e-7, 1e-9, 0.9) and c.rtol.dtype == np.float64
+
+def test_values_put_on_the_device_together_keep_their_dtype_and_bits():
+    """`_validation.as_jax_each` (one transfer for several values) gives what
+    `as_jax` of each gives, in the dtype JAX makes it under the x64 setting
+    of the call, sign of zero kept."""
+    for x64 in (True, False):
+        with jax.enable_x64(x64):
+            values = (0.1, -0.0, np.array([1.0, 2.0]), 3, jnp.asarray(0.5))
+            for dtype in (None, np.float32):
+                for a, b in zip(validation.as_jax_each(*values, dtype=dtype), (validation.as_jax(v, dtype) for v in values)):
+                    assert isinstance(a, jax.Array) and a.dtype == b.dtype and a.shape == b.shape
+                    assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
+            c = lierk.Controller(1e-7, 1e-9)
+            assert (float(c.rtol), float(c.atol)) == (np.float64(1e-7).astype(c.rtol.dtype), np.float64(1e-9).astype(c.rtol.dtype))
+            assert c.rtol.dtype == (np.float64 if x64 else np.float32)
