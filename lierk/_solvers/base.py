@@ -97,11 +97,12 @@ class AbstractSolver(eqx.Module):
 
     def for_one_body(self) -> "AbstractSolver":
         """This solver as a solve of one body that lierk compiles on its own
-        takes it (`lierk.solve` called from Python on the CPU): the form a
-        differentiated solve takes.  Such a program runs once per call, so
-        compiling it faster pays; lierk's per-call work on the host is most
-        of each later call's time."""
-        return self.for_derivatives()
+        takes it (`lierk.solve` called from Python, a scene's solve on the
+        command line): on the CPU, the form a differentiated solve takes;
+        elsewhere itself.  Such a program runs once per call, so compiling
+        it faster pays; lierk's per-call work on the host is most of each
+        later call's time."""
+        return self.for_derivatives() if jax.default_backend() == "cpu" else self
 
     @property
     def name(self) -> str:
