@@ -83,6 +83,10 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                                                    "lierk.solve and lierk.sensitivity called from Python (lierk's own "
                                                    "programs, compiled with lierk.one_body_compiler_options), an eager "
                                                    "jax.jacfwd and jax.jit(jax.jacfwd(f)), lierk beside diffrax."),
+    "first_result-call": ("Time to first solve from Python, and later calls",
+                          "lierk.solve called from Python (one body's program, compiled for the CPU with "
+                          "lierk.one_body_compiler_options and the long tableaux' stage loop) beside diffrax's "
+                          "diffeqsolve: the first call in a fresh process and 20 later calls."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
