@@ -72,6 +72,18 @@ def _directions(tree) -> int | None:
     return max(counts, default=1) if len(counts) <= 1 else None
 
 
+def at_top_level() -> bool:
+    """Whether no JAX trace is under way (no ``jax.jit``, ``jax.vmap``,
+    ``jax.grad``, ``lax.scan`` body... around the call): a call made here
+    runs a program of its own.  JAX's own test, a private function; without
+    it, as if a trace were under way (XLA's defaults, as before)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:  # a JAX release without it
+        return False
+    return bool(trace_state_clean())
+
+
 class OwnProgram:
     """``eqx.filter_jit(fun)``, compiled with `one_body_compiler_options`
     when called on the CPU with no traced argument (one body, no transform),
@@ -107,8 +119,14 @@ class OwnProgram:
             return False
         if self._tangents is not None and self._tangents < len(args):
             directions = _directions(args[self._tangents])
-            return directions is not None and directions <= _MOST_DIRECTIONS
-        return True
+            if directions is None or directions > _MOST_DIRECTIONS:
+                return False
+            if directions > 1:
+                return True  # an eager `jax.jacfwd`'s directions, over concrete values
+        # Concrete arguments inside a caller's trace (a problem built outside
+        # its `jax.jit`) make a nested program, which takes no options of
+        # its own: the caller's program.
+        return at_top_level()
 
     def __call__(self, *args, **kwargs):
         if not self._is_one_body(args, kwargs):

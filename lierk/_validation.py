@@ -69,7 +69,7 @@ def as_jax_each(*xs, dtype=None) -> tuple:
     (each about 20 us of a call from Python).  (Keeping the transfers of
     recurring scalars for later calls was tried: a shared array broke JAX's
     dispatch of a ``jit(vmap)`` of a solve on its second call, "Execution
-    supplied 2 arguments but compiled program expected 14", jax 0.10.)"""
+    supplied 1 arguments but compiled program expected 14", jax 0.10.)"""
     out, put = list(xs), []
     for i, x in enumerate(xs):
         if is_traced(x) or isinstance(x, jax.Array):

@@ -246,7 +246,15 @@ def test_a_long_tableau_solved_from_python_loops_over_its_stages_and_traced_unro
     batched = np.asarray(batch(np.stack([w, w]))[0])  # a second call: JAX's fast dispatch
     unrolled = np.asarray(solve(w, lierk.DP54(compact=False)))
     lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0, dt=0.1)  # four stages
+    # Every argument concrete, inside a caller's jit (a body built outside
+    # it): the caller's program, unrolled.  This once raised "compiler_options
+    # can only be passed to top-level jax.jit" (solve and sensitivity).
+    free = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w)
+    inside = jax.jit(lambda: lierk.solve(free, lierk.DP54(), 1.0, rtol=1e-10, atol=1e-10).R[-1])()
+    jax.jit(lambda: lierk.sensitivity(free, lierk.RKMK4(), 1.0, dt=0.1, estimate_error=False).jacobian)()
     assert traced == []
+    np.testing.assert_allclose(inside, lierk.solve(free, lierk.DP54(), 1.0, rtol=1e-10, atol=1e-10).R[-1], rtol=0, atol=1e-14)
+    del traced[:]
     looped = np.asarray(solve(w))
     assert traced and set(traced) == {"DP54"}
     for other in (unrolled, jitted, batched):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import equinox as eqx
 import jax
 import numpy as np
 import pytest
@@ -33,6 +34,32 @@ class _RK4FirstCommutator(lierk.AbstractRKMK):
     @property
     def order(self) -> int:  # type: ignore[override]
         return 3
+
+
+class _LabelledDOP853(lierk.AbstractRKMK):
+    """A user's solver with an ``__init__`` of its own (no ``compact``)."""
+
+    tableau: ClassVar = lierk.tableaux.DOP853
+    label: str = eqx.field(static=True)
+
+    def __init__(self, label):
+        self.label = label
+
+
+def test_a_solver_with_its_own_init_takes_the_stage_loop_and_keeps_its_fields():
+    """The one-body and derivative forms copy the solver with ``compact``
+    set, without calling its ``__init__``.  Before: a subclass whose
+    ``__init__`` takes other arguments failed every call from Python
+    (``dataclasses.replace`` passed ``compact=``), and every sensitivity."""
+    mine = _LabelledDOP853("mine")
+    looped = mine.for_one_body()
+    assert (looped.label, looped.compact, mine.compact) == ("mine", True, None)
+    body = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
+    R = lierk.solve(body, mine, 1.0, rtol=1e-9, atol=1e-9).R[-1]
+    R_dop = lierk.solve(body, lierk.DOP853(), 1.0, rtol=1e-9, atol=1e-9).R[-1]
+    np.testing.assert_allclose(R, R_dop, rtol=0, atol=1e-14)
+    J = lierk.sensitivity(body, mine, 1.0, rtol=1e-9, atol=1e-9, estimate_error=False).jacobian
+    assert J.shape == (3, 3) and np.all(np.isfinite(J))
 
 
 # (solver, stated order, step counts over T1 = 4 s).  The step counts keep every

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from typing import ClassVar
 
+import copy
 import dataclasses
 
 import equinox as eqx
@@ -69,7 +70,7 @@ class AbstractRKMK(AbstractSolver):
             derivative, `lierk.sensitivity`) or is one body's solve called
             from Python on the CPU (`lierk.AbstractSolver.for_one_body`: a
             heavy top's first DOP853 solve 1.2 -> 0.5 s, each later call
-            about 0.1 ms longer, beside about 1 ms of host work per call),
+            0 to 0.6 ms longer, beside about 1 ms of host work per call),
             which take the loop for tableaux of more than four stages.
             Inside a caller's ``jax.jit`` or ``jax.vmap`` the stages stay
             unrolled.  Static: each setting is its own program.
@@ -90,7 +91,11 @@ class AbstractRKMK(AbstractSolver):
         """The solver a differentiated solve takes: with ``compact=None``, the
         stage loop for tableaux of more than four stages (see ``compact``)."""
         if self.compact is None and self.tableau.stages > 4:
-            return dataclasses.replace(self, compact=True)
+            # Not `dataclasses.replace`: that calls the class's own
+            # `__init__`, whose arguments a subclass may have changed.
+            looped = copy.copy(self)
+            object.__setattr__(looped, "compact", True)
+            return looped
         return self
 
     @property
