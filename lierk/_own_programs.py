@@ -121,7 +121,7 @@ class OwnProgram:
             directions = _directions(args[self._tangents])
             if directions is None or directions > _MOST_DIRECTIONS:
                 return False
-            if directions > 1:
+            if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(args[self._tangents])):
                 return True  # an eager `jax.jacfwd`'s directions, over concrete values
         # Concrete arguments inside a caller's trace (a problem built outside
         # its `jax.jit`) make a nested program, which takes no options of
