@@ -18,7 +18,6 @@ from __future__ import annotations
 from typing import ClassVar
 
 import copy
-import dataclasses
 
 import equinox as eqx
 import jax
