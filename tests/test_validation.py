@@ -121,7 +121,6 @@ def test_a_traced_impossible_inertia_is_solved_as_given_and_a_singular_one_fails
         jax.block_until_ready(jax.jit(final)(jnp.array([1.0, -2.0, 3.0])))
 
 
-
 def test_values_put_on_the_device_together_keep_their_dtype_and_bits():
     """`_validation.as_jax_each` (one transfer for several values) gives what
     `as_jax` of each gives, in the dtype JAX makes it under the x64 setting
