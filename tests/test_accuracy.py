@@ -408,8 +408,9 @@ def test_float32_error_estimate_below_the_local_error_floor():
     each estimate is the gap between two solves' rounding, off by a random
     factor: one solve of the first body estimated 0.15x its error after a
     rounding-level change to the compiled program (the stage loop), and 12
-    random bodies at these two tolerances gave 0.47x to 1.94x.  So the claim is over 3 bodies: every
-    estimate within 10x and the median within 1.6x."""
+    random bodies at these two tolerances gave 0.47x to 1.94x.  So the
+    claim is over 3 bodies: every estimate within 10x and the median within
+    1.6x."""
     I32 = np.diag([1.0, 2.0, 3.0]).astype(np.float32)
     ratios = []
     for w in ([0.3, 1.0, 0.2], [0.35, 0.9, 0.25], [0.2, 1.1, 0.3]):
