@@ -72,16 +72,18 @@ def _directions(tree) -> int | None:
     return max(counts, default=1) if len(counts) <= 1 else None
 
 
+try:
+    from jax._src.core import trace_state_clean as _trace_state_clean
+except ImportError:  # a JAX release without it
+    _trace_state_clean = None
+
+
 def at_top_level() -> bool:
     """Whether no JAX trace is under way (no ``jax.jit``, ``jax.vmap``,
     ``jax.grad``, ``lax.scan`` body... around the call): a call made here
     runs a program of its own.  JAX's own test, a private function; without
     it, as if a trace were under way (XLA's defaults, as before)."""
-    try:
-        from jax._src.core import trace_state_clean
-    except ImportError:  # a JAX release without it
-        return False
-    return bool(trace_state_clean())
+    return _trace_state_clean is not None and bool(_trace_state_clean())
 
 
 class OwnProgram:
@@ -112,8 +114,8 @@ class OwnProgram:
         functools.update_wrapper(self, fun)
 
     def _is_one_body(self, args, kwargs) -> bool:
-        if jax.default_backend() != "cpu":
-            return False
+        # Off the CPU a one-body call is the default program anyway: the
+        # options are empty and the solver's one-body form is itself.
         rest = [a for i, a in enumerate(args) if i != self._tangents]
         if _directions((rest, kwargs)) != 1:
             return False
