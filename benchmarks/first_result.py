@@ -6,7 +6,8 @@ each first call pays the whole cost once, as a user's new script does:
 - ``solve``: ``jax.jit`` of a function that builds the problem and returns
   ``R(T)``, called once; split into tracing and lowering
   (``jax.jit(f).lower``), XLA's compilation (``.compile()``) and the first
-  run;
+  run; then the compiled program's median time over later calls, each with
+  a new omega0 (one body's run inside a caller's ``jit``);
 - ``jacfwd``: the same for ``jax.jit(jax.jacfwd(f))``, the Jacobian of
   ``R(T)`` with respect to ``omega0`` (diffrax with
   ``adjoint=ForwardMode()``, which `jax.jacfwd` needs: its default adjoint
@@ -27,10 +28,11 @@ each first call pays the whole cost once, as a user's new script does:
 
 The optimized program's size is the number of instructions in XLA's optimized
 HLO (``compiled.as_text()``).  lierk's solvers are measured as a user gets
-them (RKMK stages unrolled, the default for a forward solve; a differentiated
-solve loops over the stages of the long tableaux, `lierk.AbstractRKMK`) and,
-for ``solve`` and ``steady``, also with ``compact=True`` (the stage loop in
-the forward solve too).
+them (``compact=None``: one body, or a differentiated solve, loops over the
+stages of the tableaux of more than four stages on the CPU, a batch unrolls
+them; `lierk.AbstractRKMK`) and also, for ``solve``, with ``compact=False``
+(the stages unrolled for one body too) and, for ``steady``, with
+``compact=True`` (the stage loop in the batch too).
 
 Problems (float64, T = 1 s; fixed steps: 100; adaptive: rtol = atol = 1e-8):
 
@@ -112,7 +114,7 @@ def _setup(body: str):
     return np.asarray(inertia), np.asarray(omega0), T, effects, torque
 
 
-def _function(body: str, solver_name: str, peer: str, compact: bool):
+def _function(body: str, solver_name: str, peer: str, compact: bool | None):
     """``(f(w, s) -> R(T), s)``: the solve as a function of omega0 and its
     setting ``s`` (``dt`` or ``rtol = atol``, traced)."""
     import jax.numpy as jnp
@@ -125,7 +127,7 @@ def _function(body: str, solver_name: str, peer: str, compact: bool):
 
         solver = {"RKMK4": lierk.RKMK4, "DP54": lierk.DP54, "DOP853": lierk.DOP853}.get(solver_name)
         solver = lierk.RKMK(lierk.tableaux.DOP853, compact=compact) if solver is None else (
-            solver(compact=compact) if compact else solver())
+            solver() if compact is None else solver(compact=compact))
 
         def f(w, s):
             problem = lierk.RigidBodyWithEffects(inertia, w, effects=effects())
@@ -245,6 +247,14 @@ def run_cell(cell: dict) -> dict:
     jax.block_until_ready(compiled(w0, s))
     t3 = time.perf_counter()
     out.update(trace=t1 - t0, compile=t2 - t1, run=t3 - t2, first=t3 - t0, size=_size(compiled))
+    if work == "solve":
+        times = []
+        for i in range(CALLS):
+            w = w0 * (1 + 1e-3 * (i + 1))
+            t = time.perf_counter()
+            jax.block_until_ready(compiled(w, s))
+            times.append(time.perf_counter() - t)
+        out["one_steady"] = float(np.median(times))
     return out
 
 
@@ -262,7 +272,8 @@ def cells(pairs, works=WORKS):
         for work in works:
             yield dict(body=body, solver=solver, work=work, peer="lierk", compact=None)
             if work in ("solve", "steady"):
-                yield dict(body=body, solver=solver, work=work, peer="lierk", compact=True)
+                # One body's solve unrolled; a batch's looped.
+                yield dict(body=body, solver=solver, work=work, peer="lierk", compact=work == "steady")
             if work != "sensitivity":
                 yield dict(body=body, solver=solver, work=work, peer="diffrax", compact=None)
 
@@ -319,8 +330,9 @@ def main(argv=None):
                 row["method"] = done[0]["method"]
             rows.append(row)
             value = row.get("first", row.get("steady"))
-            print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s}"
-                  f"{' compact' if cell['compact'] else '        '} {value:8.3f} s", flush=True)
+            compact = "" if cell["compact"] is None else f"compact={cell['compact']}"
+            print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s} {compact:13s} {value:8.3f} s",
+                  flush=True)
         # After every comparison: a run stopped part-way (a time limit on a
         # lent machine) keeps what it measured, and says how much that is.
         meta["measured"] = len(rows)
@@ -378,9 +390,9 @@ def markdown(meta, rows) -> list[str]:
                 return b
 
             b = compared("solve", "solve", 1.5)
-            c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=True)
+            c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=False)
             if c is not None and b is not None:
-                lines.append(f"| {body} | {solver} `compact=True` | solve | {_first(c)} | {c['size']} | | | "
+                lines.append(f"| {body} | {solver} `compact=False` | solve | {_first(c)} | {c['size']} | | | "
                              f"{_verdict(c, b, 1.5)} |")
             compared("call", "`lierk.solve` from Python", 1.5)
             b = compared("jacfwd", "jacfwd", 2.0)
@@ -402,6 +414,22 @@ def markdown(meta, rows) -> list[str]:
                 if a is not None and b is not None and "call_steady" in a and "call_steady" in b:
                     lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['call_steady']:.2f} | "
                                  f"{1e3 * b['call_steady']:.2f} | {a['call_steady'] / b['call_steady']:.2f} |")
+    if any("one_steady" in r for r in rows):
+        lines += ["", "## One body inside `jax.jit`, once compiled", "",
+                  f"The `solve` cells' compiled programs: median of {CALLS} later calls, each with a new omega0, ms "
+                  "(the run's time and JAX's dispatch).", "",
+                  "| problem | solver | lierk (ms) | lierk `compact=False` (ms) | diffrax (ms) | lierk / diffrax | "
+                  "`compact=False` / diffrax |", "|---|---|---:|---:|---:|---:|---:|"]
+        for body in BODIES:
+            for solver, (_, peer) in SOLVERS.items():
+                a = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=None)
+                c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=False)
+                b = _find(rows, body=body, solver=solver, work="solve", peer="diffrax")
+                if a is None or b is None or c is None or "one_steady" not in a:
+                    continue
+                lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['one_steady']:.3f} | {1e3 * c['one_steady']:.3f} | "
+                             f"{1e3 * b['one_steady']:.3f} | {a['one_steady'] / b['one_steady']:.2f} | "
+                             f"{c['one_steady'] / b['one_steady']:.2f} |")
     if not any(r["work"] == "steady" for r in rows):
         return lines
     lines += ["", "## Steady state (after compilation)", "",

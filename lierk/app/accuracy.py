@@ -373,22 +373,27 @@ def method(name: str) -> _Method:
     """The method called ``name`` (any letter case): a solver of
     `lierk.SOLVERS`, adaptive if it has an error estimate, or
     ``"RKMK(DOPRI54)"``/``"RKMK(DOP853)"``, `lierk.RKMK` with the embedded
-    pairs' tableaux at fixed steps.
+    pairs' tableaux at fixed steps.  RKMK solvers come with their stages
+    unrolled (``compact=False``): the form a batch runs and the fastest for
+    one body, so the report times each solver at its fastest (one body's
+    solve otherwise loops over the stages of the longer tableaux, which
+    compiles sooner and runs slower; `lierk.AbstractRKMK`).
 
     Raises:
         ValueError: an unknown name; the message lists the known ones.
     """
     from lierk import tableaux
-    from lierk import RKMK, SOLVERS, solver_class
+    from lierk import RKMK, SOLVERS, AbstractRKMK, solver_class
 
     fixed_pairs = {"RKMK(DOPRI54)": tableaux.DOPRI54, "RKMK(DOP853)": tableaux.DOP853}
     for label, tableau in fixed_pairs.items():
         if isinstance(name, str) and name.replace(" ", "").lower() == label.lower():
-            return _Method(label, RKMK(tableau), adaptive=False)
+            return _Method(label, RKMK(tableau, compact=False), adaptive=False)
     try:
-        solver = solver_class(name)()
+        cls = solver_class(name)
     except ValueError:
         raise ValueError(f"unknown solver {name!r}; choose from: {', '.join([*SOLVERS, *fixed_pairs])}") from None
+    solver = cls(compact=False) if issubclass(cls, AbstractRKMK) else cls()
     return _Method(solver.name, solver, solver.adaptive)
 
 
