@@ -1,4 +1,4 @@
-"""XLA's settings for the programs lierk compiles on its own.
+"""XLA's settings and the solver's form for the programs that solve one body.
 
 A call of `lierk.solve`, `lierk.sensitivity` or `lierk.exact`'s closed
 forms from Python, outside any JAX transform, compiles a program of lierk's
@@ -8,9 +8,16 @@ loop emitters compile the program in about 60% of the time of the default
 fusion emitters and run it as fast; for a batch (``jax.vmap``) they run 1.2
 to 1.6x slower (docs/guides/contributing.md, "One body compiles with XLA's
 older emitters").  So a program called with traced arguments keeps XLA's
-defaults.  A solve's one-body program also loops over the stages of the
-long RKMK tableaux (`lierk.AbstractSolver.for_one_body`): it runs once per
-call, so compiling it about twice as fast pays.
+defaults.
+
+A solve of one body also loops over the stages of the long RKMK tableaux
+(`lierk.AbstractSolver.for_one_body`), called from Python or traced inside
+a caller's ``jax.jit``: it compiles about twice as fast and runs slower,
+while a batch runs 1.6 to 2x slower in the loop.  Tracing a ``jax.jit``,
+lierk cannot tell one body from a batch (``jax.vmap`` of a jitted function
+batches the program traced for one body), so the solve goes through a
+batching rule (``jax.custom_batching.custom_vmap``): a ``jax.vmap`` of it,
+now or later, solves the batch with the stages unrolled.
 """
 
 from __future__ import annotations
@@ -111,7 +118,9 @@ class OwnProgram:
     directions) while the others stay concrete, which keeps the one-body
     settings for up to 12 directions.  ``one_body``: a function of the
     positional arguments giving those a one-body call passes on (the
-    solver's one-body form, `lierk.AbstractSolver.for_one_body`).  ``jit``
+    solver's one-body form, `lierk.AbstractSolver.for_one_body`), also
+    inside a caller's trace where no batch is in sight, with a batching rule
+    that passes the arguments as given to a ``jax.vmap``.  ``jit``
     (``jax.jit`` or equinox's) builds both programs, with ``jit_kwargs``.
     ``.__wrapped__`` is ``fun``, to be traced inside another program."""
 

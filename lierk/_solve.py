@@ -220,10 +220,10 @@ def solve(
     return raise_if_failed(sol, throw)
 
 
-def _one_body_args(problem, solver, *rest):
-    """`_program`'s arguments for one body compiled on its own: the solver's
-    one-body form (`lierk.AbstractSolver.for_one_body`)."""
-    return (problem, solver.for_one_body(), *rest)
+def _one_body_args(problem, solver, t0, t1, dt, dt0, saveat, n, *rest):
+    """`_program`'s arguments for one body's solve: the solver's one-body
+    form for at most ``n`` steps (`lierk.AbstractSolver.for_one_body`)."""
+    return (problem, solver.for_one_body(n), t0, t1, dt, dt0, saveat, n, *rest)
 
 
 @functools.partial(OwnProgram, one_body=_one_body_args)

@@ -218,25 +218,27 @@ def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transforme
 
 
 def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(monkeypatch):
-    """One body on the CPU, solved from Python or inside a caller's
-    ``jax.jit``, takes the stage loop of a tableau of more than four stages,
-    which compiles about twice as fast; a batch unrolls the stages (faster
-    to run, 1.6 to 2x for a batch): under ``jit(vmap)``, and under
-    ``vmap(jit)``, whose batching rule replaces the loop that the ``jit``
-    traced.  ``compact=False`` and four-stage tableaux stay unrolled.  The
-    forms agree to rounding."""
+    """One short solve of one body on the CPU (at most 4096 steps), called
+    from Python or inside a caller's ``jax.jit``, takes the stage loop of a
+    tableau of more than four stages, which compiles about twice as fast; a
+    batch unrolls the stages (1.6 to 2x faster to run): under ``jit(vmap)``,
+    and under ``vmap(jit)``, whose batching rule replaces the loop that the
+    ``jit`` traced.  So do a longer solve, ``compact=False`` and four-stage
+    tableaux.  The forms agree to rounding."""
     loop = lierk.AbstractRKMK._stage_loop
+    traced = []
 
     def spy(self, *args):
+        traced.append(type(self).__name__)
         # A mark in the program: lierk itself places no optimization barrier.
         arrays, rest = eqx.partition(loop(self, *args), eqx.is_array)
         return eqx.combine(jax.lax.optimization_barrier(arrays), rest)
 
     monkeypatch.setattr(lierk.AbstractRKMK, "_stage_loop", spy)
 
-    def solve(w, solver=lierk.DP54()):
+    def solve(w, solver=lierk.DP54(), max_steps=None):
         top = lierk.RigidBodyWithEffects(np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81))
-        return lierk.solve(top, solver, 1.0, rtol=1e-10, atol=1e-10).R[-1]
+        return lierk.solve(top, solver, 1.0, rtol=1e-10, atol=1e-10, max_steps=max_steps).R[-1]
 
     def loops(f, *args) -> bool:
         return "optimization_barrier" in str(jax.make_jaxpr(f)(*args))
@@ -244,12 +246,20 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
     w = np.array([1.0, 0.05, 0.3])
     ws = np.stack([w, w])
     free = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w)
+    # From Python, lierk's own program: called first, as JAX reuses a trace
+    # for another jit of the same function.
+    looped = np.asarray(solve(w))
+    assert traced and set(traced) == {"DP54"}
+    del traced[:]
+    long = np.asarray(solve(w, max_steps=5000))
+    assert traced == []
     assert loops(jax.jit(solve), w)
-    assert loops(solve, w)  # a top-level call's trace, as from Python
+    assert loops(jax.jit(lambda w: solve(w, max_steps=4096)), w)
     # Every argument concrete, inside a caller's jit (a body built outside
     # it): one body in the caller's program.  This once raised
     # "compiler_options can only be passed to top-level jax.jit".
     assert loops(jax.jit(lambda: lierk.solve(free, lierk.DP54(), 1.0, rtol=1e-10, atol=1e-10).R[-1]))
+    assert not loops(jax.jit(lambda w: solve(w, max_steps=4097)), w)
     assert not loops(jax.jit(jax.vmap(solve)), ws)
     assert not loops(jax.vmap(jax.jit(solve)), ws)
     assert not loops(jax.jit(lambda w: solve(w, lierk.DP54(compact=False))), w)
@@ -263,5 +273,5 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
         batch(ws)
         np.testing.assert_allclose(batch(ws), [jitted, jitted], rtol=0, atol=1e-14)  # a second call: JAX's fast dispatch
     unrolled = np.asarray(solve(w, lierk.DP54(compact=False)))
-    for other in (unrolled, jitted):
-        np.testing.assert_allclose(solve(w), other, rtol=0, atol=1e-14)
+    for other in (unrolled, jitted, long):
+        np.testing.assert_allclose(looped, other, rtol=0, atol=1e-14)

@@ -66,13 +66,16 @@ class AbstractRKMK(AbstractSolver):
             (about 2x for one body on CPU; a Jacobian, whose stages carry its
             tangents, about 1.1x).  ``None`` (default): unrolled, except where
             a solve is differentiated (`lierk.ForwardSensitivity`'s
-            derivative, `lierk.sensitivity`) or is one body's solve called
-            from Python on the CPU (`lierk.AbstractSolver.for_one_body`: a
-            heavy top's first DOP853 solve 1.2 -> 0.5 s, each later call
-            0 to 0.6 ms longer, beside about 1 ms of host work per call),
-            which take the loop for tableaux of more than four stages.
-            Inside a caller's ``jax.jit`` or ``jax.vmap`` the stages stay
-            unrolled.  Static: each setting is its own program.
+            derivative, `lierk.sensitivity`) or solves one body on the CPU
+            (`lierk.AbstractSolver.for_one_body`), which take the loop for
+            tableaux of more than four stages.  One body: called from Python
+            (a heavy top's first DOP853 solve 1.2 -> 0.5 s, each later call 0
+            to 0.6 ms longer, beside about 1 ms of host work per call) or
+            inside a caller's ``jax.jit`` (first call 1.7 -> 0.8 s, each run
+            0.06 -> 0.18 ms; diffrax's Dopri8: 0.75 s, 0.22 ms).  A batch
+            (``jax.vmap``, also of a jitted function) unrolls them.  Pass
+            ``False`` for one body's solve run thousands of times.  Static:
+            each setting is its own program.
     """
 
     tableau: eqx.AbstractClassVar[ButcherTableau]
