@@ -83,6 +83,10 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                                                    "lierk.solve and lierk.sensitivity called from Python (lierk's own "
                                                    "programs, compiled with lierk.one_body_compiler_options), an eager "
                                                    "jax.jacfwd and jax.jit(jax.jacfwd(f)), lierk beside diffrax."),
+    "first_result-solve": ("Time to first solve inside jax.jit, and its run",
+                           "jax.jit of one body's solve, lierk (the stage loop of the long tableaux) and with "
+                           "compact=False (the stages unrolled) beside diffrax: the first call in a fresh process "
+                           "and the compiled program's later runs."),
     "first_result-call": ("Time to first solve from Python, and later calls",
                           "lierk.solve called from Python (one body's program, compiled for the CPU with "
                           "lierk.one_body_compiler_options and the long tableaux' stage loop) beside diffrax's "

@@ -171,7 +171,7 @@ class OwnProgram:
         a ``jax.vmap`` later batches this call (``jax.vmap`` of the caller's
         jitted function), whose batching rule then solves the batch with
         the arguments as given.  One body's first ``jit`` of a heavy top's
-        DOP853 solve: 1.68 -> 0.76 s; a batch keeps the program that runs
+        DOP853 solve: 1.57 -> 0.70 s; a batch keeps the program that runs
         fastest (docs/guides/contributing.md)."""
         leaves, tree = jax.tree_util.tree_flatten((args, kwargs))
         leaves_one, tree_one = jax.tree_util.tree_flatten((self._prepare(*args), kwargs))
