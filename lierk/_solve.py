@@ -20,7 +20,7 @@ from ._adjoint import AbstractAdjoint, ForwardSensitivity, _may_capture_tracer
 from ._controller import AbstractStepController, ConstantStep, Controller, frozen
 from ._event import Event, events_tuple, with_closures_converted
 from ._problems import AbstractProblem
-from ._loops import num_steps, solve_adaptive, solve_fixed, solve_fixed_at
+from ._loops import _batched_together, num_steps, solve_adaptive, solve_fixed, solve_fixed_at
 from ._solution import RESULTS, SaveAt, Solution, raise_if_failed
 from ._solvers.base import AbstractSolver
 
@@ -248,7 +248,13 @@ def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, e
             sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events)
             if estimate_error:
                 sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, n, controller, adjoint)
-        return _flag_drift(problem, sol)
+        # Every output batched whenever an input is: a `jax.vmap` that meets
+        # the solve inside a caller's `jit` solves the batch by a batching
+        # rule that reports every output batched (`OwnProgram`), and JAX
+        # needs the custom derivative's rule to batch its outputs alike (a
+        # `grad` of a `vmap(jit)` failed to lower: the count of saved states
+        # batched in one and not the other).  XLA removes the ties.
+        return _batched_together(_flag_drift(problem, sol), (problem, t0, t1, dt, dt0, saveat, controller, eps, events))
 
 
 # Why a derivative of `solve` is not the derivative of `_program`'s jitted
