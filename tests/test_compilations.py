@@ -275,9 +275,10 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
     # A derivative around a vmap(jit): the batching rule's outputs and the
     # custom derivative's must batch alike (a grad failed to lower: the
     # count of saved states was batched in one and not in the other).
-    grads = jax.grad(lambda ws: jax.numpy.sum(jax.vmap(jax.jit(solve))(ws) ** 3))(ws + np.array([[0.0], [0.1]]))
-    for g, v in zip(grads, ws + np.array([[0.0], [0.1]])):
-        np.testing.assert_allclose(g, jax.grad(lambda v: jax.numpy.sum(solve(v, lierk.DP54(compact=False)) ** 3))(v), rtol=0, atol=1e-12)
+    two = ws + np.array([[0.0], [0.1]])
+    grads = jax.grad(lambda ws: jax.numpy.sum(jax.vmap(jax.jit(solve))(ws) ** 3))(two)
+    each = jax.jit(jax.vmap(jax.grad(lambda v: jax.numpy.sum(solve(v, lierk.DP54(compact=False)) ** 3))))(two)
+    np.testing.assert_allclose(grads, each, rtol=0, atol=1e-12)
     unrolled = np.asarray(solve(w, lierk.DP54(compact=False)))
     for other in (unrolled, jitted, long):
         np.testing.assert_allclose(looped, other, rtol=0, atol=1e-14)
