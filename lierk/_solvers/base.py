@@ -107,17 +107,18 @@ class AbstractSolver(eqx.Module):
 
     def for_one_body(self, max_steps: int | None) -> "AbstractSolver":
         """This solver as a solve of one body of at most ``max_steps`` steps
-        takes it: on the CPU, and for at most 4096 steps (the adaptive
-        solves' default ``max_steps``), the form a differentiated solve
-        takes (`for_derivatives`); otherwise itself (None: a count known
-        only at run time).  One body's solve:
-        `lierk.solve` called from Python, or traced inside a caller's
-        ``jax.jit`` that no ``jax.vmap`` batches (a batch, now or later,
-        takes the solver as given: `lierk._own_programs.OwnProgram`).  A
-        short solve pays for compiling sooner: from Python lierk's per-call
-        work on the host is most of each later call's time, and inside a
-        caller's ``jit`` it would run thousands of times before a faster run
-        paid for a slower compile.  A long one does not."""
+        takes it: on the CPU, and for at most 4096 steps
+        (``lierk._solvers.base.MOST_STEPS_LOOPED``, the adaptive solves'
+        default ``max_steps``), the form a differentiated solve takes
+        (`for_derivatives`); otherwise itself (None: a count known only at
+        run time).  One body's solve: `lierk.solve` called from Python, or
+        traced inside a caller's ``jax.jit`` that no ``jax.vmap`` batches (a
+        batch, now or later, takes the solver as given:
+        `lierk._own_programs.OwnProgram`).  A short solve pays for compiling
+        sooner: from Python lierk's per-call work on the host is most of
+        each later call's time, and inside a caller's ``jit`` it would run
+        thousands of times before a faster run paid for a slower compile.
+        A long one does not."""
         if jax.default_backend() != "cpu" or max_steps is None or max_steps > MOST_STEPS_LOOPED:
             return self
         return self.for_derivatives()

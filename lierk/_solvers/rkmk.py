@@ -69,14 +69,13 @@ class AbstractRKMK(AbstractSolver):
             derivative, `lierk.sensitivity`) or solves one body in at most
             4096 steps on the CPU (`lierk.AbstractSolver.for_one_body`),
             which take the loop for tableaux of more than four stages.  One
-            body: called from Python
-            (a heavy top's first DOP853 solve 1.2 -> 0.5 s, each later call 0
-            to 0.6 ms longer, beside about 1 ms of host work per call) or
-            inside a caller's ``jax.jit`` (first call 1.57 -> 0.70 s, each
-            run 0.09 -> 0.21 ms; diffrax's Dopri8: 0.43 s, 0.23 ms).  A batch
-            (``jax.vmap``, also of a jitted function) unrolls them.  Pass
-            ``False`` for one body's solve run thousands of times.  Static:
-            each setting is its own program.
+            body: called from Python (a heavy top's first DOP853 solve 1.2 ->
+            0.5 s, each later call 0 to 0.6 ms longer, beside about 1 ms of
+            host work per call) or inside a caller's ``jax.jit`` (first call
+            1.57 -> 0.70 s, each run 0.09 -> 0.21 ms; diffrax's Dopri8: 0.43
+            s, 0.23 ms).  A batch (``jax.vmap``, also of a jitted function)
+            unrolls them.  Pass ``False`` for one body's solve run thousands
+            of times.  Static: each setting is its own program.
     """
 
     tableau: eqx.AbstractClassVar[ButcherTableau]
