@@ -355,6 +355,24 @@ def _verdict(cell, peer, target: float) -> str:
     return f"{r:.2f} | {'met' if r <= target else 'missed'} (<= {target})"
 
 
+def _ms_rows(rows, work, key, compact=None, digits=2) -> list[str]:
+    """Table rows of ``work``'s times ``key`` (s) in ms, per problem: lierk's,
+    lierk's with ``compact`` (None: no such column), diffrax's, then the
+    ratios of lierk's to diffrax's; problems without all of them are left out."""
+    out = []
+    for body in BODIES:
+        for solver, (_, peer) in SOLVERS.items():
+            ours = [_find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None)]
+            if compact is not None:
+                ours.append(_find(rows, body=body, solver=solver, work=work, peer="lierk", compact=compact))
+            b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
+            if any(r is None or key not in r for r in (*ours, b)):
+                continue
+            cells = [f"{1e3 * r[key]:.{digits}f}" for r in (*ours, b)] + [f"{r[key] / b[key]:.2f}" for r in ours]
+            out.append(f"| {body} | {solver} vs {peer} | " + " | ".join(cells) + " |")
+    return out
+
+
 def markdown(meta, rows) -> list[str]:
     import common
 
@@ -407,44 +425,20 @@ def markdown(meta, rows) -> list[str]:
                   "state built in the call), ms: the host's work per call and the one-body program's run.", "",
                   "| problem | solver | `lierk.solve` (ms) | `diffeqsolve` (ms) | lierk / diffrax |",
                   "|---|---|---:|---:|---:|"]
-        for body in BODIES:
-            for solver, (_, peer) in SOLVERS.items():
-                a = _find(rows, body=body, solver=solver, work="call", peer="lierk", compact=None)
-                b = _find(rows, body=body, solver=solver, work="call", peer="diffrax")
-                if a is not None and b is not None and "call_steady" in a and "call_steady" in b:
-                    lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['call_steady']:.2f} | "
-                                 f"{1e3 * b['call_steady']:.2f} | {a['call_steady'] / b['call_steady']:.2f} |")
+        lines += _ms_rows(rows, "call", "call_steady")
     if any("one_steady" in r for r in rows):
         lines += ["", "## One body inside `jax.jit`, once compiled", "",
                   f"The `solve` cells' compiled programs: median of {CALLS} later calls, each with a new omega0, ms "
                   "(the run's time and JAX's dispatch).", "",
                   "| problem | solver | lierk (ms) | lierk `compact=False` (ms) | diffrax (ms) | lierk / diffrax | "
                   "`compact=False` / diffrax |", "|---|---|---:|---:|---:|---:|---:|"]
-        for body in BODIES:
-            for solver, (_, peer) in SOLVERS.items():
-                a = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=None)
-                c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=False)
-                b = _find(rows, body=body, solver=solver, work="solve", peer="diffrax")
-                if a is None or b is None or c is None or "one_steady" not in a:
-                    continue
-                lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['one_steady']:.3f} | {1e3 * c['one_steady']:.3f} | "
-                             f"{1e3 * b['one_steady']:.3f} | {a['one_steady'] / b['one_steady']:.2f} | "
-                             f"{c['one_steady'] / b['one_steady']:.2f} |")
+        lines += _ms_rows(rows, "solve", "one_steady", compact=False, digits=3)
     if not any(r["work"] == "steady" for r in rows):
         return lines
     lines += ["", "## Steady state (after compilation)", "",
               f"| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
               "|---|---|---:|---:|---:|---:|---:|"]
-    for body in BODIES:
-        for solver, (_, peer) in SOLVERS.items():
-            a = _find(rows, body=body, solver=solver, work="steady", peer="lierk", compact=None)
-            c = _find(rows, body=body, solver=solver, work="steady", peer="lierk", compact=True)
-            b = _find(rows, body=body, solver=solver, work="steady", peer="diffrax")
-            if a is None or b is None:
-                continue
-            lines.append(f"| {body} | {solver} vs {peer} | {1e3 * a['steady']:.2f} | "
-                         f"{1e3 * c['steady']:.2f} | {1e3 * b['steady']:.2f} | {a['steady'] / b['steady']:.2f} | "
-                         f"{c['steady'] / b['steady']:.2f} |")
+    lines += _ms_rows(rows, "steady", "steady", compact=True)
     return lines
 
 
