@@ -185,17 +185,25 @@ class Controller(AbstractStepController):
     ):
         # Checks run on NumPy values while they are known (see `lierk._validation`);
         # everything becomes a JAX array only at the end.
-        def bounded(name, x, ok, what):
+        def scalar(name, x):
             x = validation.asarray(x, name=name)
             if x.ndim != 0:
                 raise ValueError(f"{name} must be a scalar, got shape {jnp.shape(x)}")
-            return validation.check(x, ok, f"{name} must be {what}, got {{value}}")
+            return x
+
+        def bounded(name, x, ok, what):
+            return validation.check(scalar(name, x), ok, f"{name} must be {what}, got {{value}}")
 
         inf = float("inf")
-        rtol = bounded("rtol", rtol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
-        atol = bounded("atol", atol, lambda v: (v >= 0) & (v < inf), ">= 0 and finite")
-        # Keep every checked value: a traced check whose result is dropped is dead code to XLA.
-        rtol = validation.check(rtol, lambda r: r + atol > 0, "rtol + atol must be > 0, got rtol = {value} and atol = 0", reads=atol)
+        rtol, atol = scalar("rtol", rtol), scalar("atol", atol)
+        # One run-time check for the three when they are traced (a sweep over
+        # tolerances).  Keep every checked value: a traced check whose result
+        # is dropped is dead code to XLA.
+        rtol, atol, _ = validation.check_together([
+            (rtol, lambda v: (v >= 0) & (v < inf), "rtol must be >= 0 and finite, got {value}"),
+            (atol, lambda v: (v >= 0) & (v < inf), "atol must be >= 0 and finite, got {value}"),
+            ((rtol, atol), lambda ra: ra[0] + ra[1] > 0, "rtol + atol must be > 0, got rtol = 0 and atol = 0"),
+        ])
         # Outside these bounds the step-size update cannot converge: a solve
         # would spin until max_steps.
         safety = bounded("safety", safety, lambda v: (v > 0) & (v <= 1), "in (0, 1]")
@@ -232,7 +240,7 @@ class Controller(AbstractStepController):
         user set explicitly wins).  ``modes``: ``(rho, angle, decay)``, a mode
         frequency (rad/s), the largest phase (rad) it may turn per step, and
         a decay rate (1/s) the step keeps within stability (``h decay <= 2``)."""
-        speed = jnp.sqrt(jnp.sum(omega * omega, axis=-1))
+        speed = jnp.sqrt(so3._sq(omega))
         turn = jnp.where(speed > 0, self.max_angle / jnp.where(speed > 0, speed, 1.0), jnp.inf)
         if modes is not None:
             rho, angle, decay = modes
@@ -294,7 +302,7 @@ class Controller(AbstractStepController):
         err = solver.error_norm(st.error, lambda e_u, e_y: ctrl.norm(e_u, e_y, tol_y))
         err = jax.lax.stop_gradient(err / calibration)
         f_new = st.fsal if st.fsal is not None else field_at(problem, t_new, st.R, st.y)
-        finite = validation.all_finite((st.R, st.y, f_new)) & jnp.isfinite(err)
+        finite = validation.all_finite((st.R, st.y, f_new, err))
         accept = finite & (err <= 1.0)
         # The turn bound reads omega where the next step starts.
         modes = None
@@ -332,8 +340,13 @@ class Controller(AbstractStepController):
         R0, y0 = problem.R0, problem.y0
         tol = problem.error_tolerance(y0, y0, self.rtol, self.atol)
         # The attitude's size is 1 (entries of R are O(1)); y's is its own.
-        d0 = sg(self.norm(jnp.ones_like(omega0), y0, tol))
-        d1 = sg(self.norm(omega0, ydot0, tol))
+        sizes, slopes = (jnp.ones_like(omega0), y0), (omega0, ydot0)
+        if jax.tree_util.tree_structure(sizes) == jax.tree_util.tree_structure(slopes):
+            # Both norms as one batched reduction: one XLA kernel, not two.
+            pairs = jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), sizes, slopes)
+            d0, d1 = sg(jax.vmap(lambda e_u, e_y: self.norm(e_u, e_y, tol))(*pairs))
+        else:  # y has no rate (y' is None)
+            d0, d1 = sg(self.norm(*sizes, tol)), sg(self.norm(*slopes, tol))
         big = (d0 > 1e-5) & (d1 > 1e-5)
         h0 = jnp.where(big, 0.01 * d0 / jnp.where(big, d1, 1.0), 1e-6)
         y1 = jax.tree_util.tree_map(lambda a, b: a + h0 * b, y0, ydot0)

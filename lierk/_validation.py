@@ -101,7 +101,12 @@ def _traced(x, dtype=None):
 
 def all_finite(tree) -> jax.Array:
     """Whether every entry of every array leaf of ``tree`` is finite (a traced bool)."""
-    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in jax.tree_util.tree_leaves(tree)]))
+    leaves = jax.tree_util.tree_leaves(tree)
+    if not leaves:
+        return jnp.asarray(True)
+    # One reduction over all the entries: XLA compiles a kernel per reduction.
+    dtype = jnp.result_type(*leaves)
+    return jnp.all(jnp.isfinite(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])))
 
 
 def is_traced(*xs) -> bool:
@@ -164,6 +169,50 @@ def check(x, ok: Callable, message: str, *, reads=()):
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=show(x)) if "{value}" in message else message)
     return x
+
+
+def check_together(checks: list) -> list:
+    """`check` for several values at once: ``checks``, a list of ``(x, ok,
+    message)`` (``ok(x)`` may read the other values); returns the ``x``s.
+
+    Known values are checked now, in order, as `check` does.  The traced ones
+    become one run-time check that raises the message of the first that
+    failed (one `equinox.branched_error_if`): each run-time check took about
+    10 ms to trace, and one or two XLA kernels of its own to compile (about
+    5 ms apiece), in every solve with traced tolerances.
+    """
+    xs = [x for x, _, _ in checks]
+    traced = [i for i, x in enumerate(xs) if is_traced(x)]
+    for i, (x, ok, message) in enumerate(checks):
+        if i not in traced:
+            check(x, ok, message)
+    if not traced or _CHECKED_ON_HOST.get():
+        return xs
+    checked = [checks[i] for i in traced]
+    predicates = [_Predicate.of(ok) for _, ok, _ in checked]
+    values = tuple(jax.tree_util.tree_map(_traced, x) for x, _, _ in checked)
+    messages = tuple(m.replace("{value}", "a traced value that failed the check") for _, _, m in checked)
+    if any(p is None for p in predicates):
+        values = _error_unless_any(values, tuple(ok for _, ok, _ in checked), messages)
+    else:
+        values = _error_unless_any_program(values, tuple(predicates), messages)
+    for i, x in zip(traced, values):
+        xs[i] = x
+    return xs
+
+
+def _error_unless_any(xs: tuple, oks: tuple, messages: tuple) -> tuple:
+    failed = [~jnp.all(ok(x)) for x, ok in zip(xs, oks)]
+    # The first that failed (0 where none did: under `jax.vmap` the batch's
+    # largest index names the error), by selects rather than an argmax (a
+    # reduction, which XLA would compile as a kernel of its own).
+    index = jnp.asarray(0)
+    for i in reversed(range(len(failed))):
+        index = jnp.where(failed[i], i, index)
+    return eqx.branched_error_if(xs, functools.reduce(jnp.logical_or, failed), index, messages)
+
+
+_error_unless_any_program = jax.jit(_error_unless_any, static_argnums=(1, 2))
 
 
 class _Predicate:
@@ -284,7 +333,12 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
         text = nearly_singular_inertia(known, dtype)
         if text is not None:
             warnings.warn(text, stacklevel=3)
-    omega0 = check_vector(omega0, "omega0", dtype)
+    if is_traced(omega0):
+        # Checked at run time with the state's range, as one check.
+        omega0 = as_jax(asarray(omega0, dtype, "omega0"))
+        check_shape(omega0, (3,), "omega0")
+    else:
+        omega0 = check_vector(omega0, "omega0", dtype)
     if is_traced(inertia, omega0):
         if not _CHECKED_ON_HOST.get():
             omega0 = _state_in_range(inertia, omega0)
@@ -298,15 +352,25 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 
 @jax.jit
 def _state_in_range(inertia, omega0):
-    """``omega0``, checked at run time against `state_range_error`'s bounds
-    (one program: see `_error_unless_program`)."""
+    """``omega0``, checked at run time: finite, and within `state_range_error`'s
+    bounds, as one check (one program: see `_error_unless_program`)."""
     lo, hi = _log_range(omega0.dtype)
-    moments, squares = _state_logs(inertia, omega0, jnp)
-    return eqx.error_if(
-        omega0, ~(jnp.all((moments >= lo) & (moments <= hi)) & jnp.all(squares <= hi)),
+
+    def in_range(w):
+        moments, squares = _state_logs(inertia, w, jnp)
+        return functools.reduce(jnp.logical_and, [(x >= lo) & (x <= hi) for x in moments] + [x <= hi for x in squares])
+
+    messages = (
+        "omega0 has NaN or inf entries: a traced value that failed the check",
         f"a traced inertia and omega0 give a body state outside {omega0.dtype.name}'s range "
         "(lierk._validation.state_range_error)",
     )
+    return _error_unless_any((omega0, omega0), (_finite, in_range), messages)[0]
+
+
+def _finite(w):
+    # Entry by entry, fused with the range check (a reduction is a kernel of its own).
+    return jnp.isfinite(w[0]) & jnp.isfinite(w[1]) & jnp.isfinite(w[2])
 
 
 def _diagonal(I) -> bool:
@@ -330,8 +394,12 @@ _SQUARES = ("|omega|^2", "|L|^2 = |I omega|^2", "2T = omega . I omega", "2T tr(I
 
 def _state_logs(inertia, omega0, xp):
     """log10 of `_MOMENTS` and of `_SQUARES` (``-inf`` for a body at rest),
-    two ``(3,)`` and ``(5,)`` arrays, computed from the scaled inertia and
-    ``omega0`` so that nothing overflows on the way."""
+    two tuples of 3 and 5 scalars, computed from the scaled inertia and
+    ``omega0`` so that nothing overflows on the way.  What ``omega0`` enters
+    is written entry by entry, without reductions or matrix products: inside
+    a traced solve the check is then one XLA kernel, where each reduction or
+    product was a kernel of its own (about 5 ms of a first compile on CPU
+    apiece).  What only the inertia enters, XLA folds when it is known."""
     I, w = inertia, omega0
     s = xp.max(xp.abs(I))
     s = xp.where(s > 0, s, 1.0)
@@ -343,15 +411,21 @@ def _state_logs(inertia, omega0, xp):
     det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
            + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
     ls = xp.log10(s)
-    moments = [ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det)]
-    sw = xp.max(xp.abs(w))
+    moments = (ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det))
+    size = xp.abs(w)
+    sw = xp.maximum(xp.maximum(size[0], size[1]), size[2])
     moving = sw > 0
     v = w / xp.where(moving, sw, 1.0)
     lw = xp.log10(xp.where(moving, sw, 1.0))
-    Jv = J @ v
-    T2 = 2 * lw + ls + xp.log10(v @ Jv)
-    squares = [2 * lw + xp.log10(v @ v), 2 * lw + 2 * ls + xp.log10(Jv @ Jv), T2, T2 + moments[0], T2 + moments[1]]
-    return xp.stack(moments), xp.where(moving, xp.stack(squares), -xp.inf)
+    Jv = J[:, 0] * v[0] + J[:, 1] * v[1] + J[:, 2] * v[2]
+
+    def dot(a, b):
+        ab = a * b
+        return ab[0] + ab[1] + ab[2]
+
+    T2 = 2 * lw + ls + xp.log10(dot(v, Jv))
+    squares = (2 * lw + xp.log10(dot(v, v)), 2 * lw + 2 * ls + xp.log10(dot(Jv, Jv)), T2, T2 + moments[0], T2 + moments[1])
+    return moments, tuple(xp.where(moving, x, -xp.inf) for x in squares)
 
 
 def state_range_error(inertia: ArrayLike, omega0: ArrayLike, dtype=None) -> str | None:

@@ -140,8 +140,9 @@ def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
         with counting() as seen:
             momentum_jacobian(w)
         names[k] = seen.names
+    # omega0's checks (finite, and a state in range) are one program.
     checks = ("jit(_error_unless)", "jit(_state_in_range)")
-    assert [names[0].count(n) for n in checks] == [1, 1], names[0]
+    assert [names[0].count(n) for n in checks] == [0, 1], names[0]
     for op in ("jit(log10)", "jit(_reduce_max)", "jit(abs)", "jit(matmul)", "jit(branched_error_if_impl)"):
         assert op not in names[0], names[0]
     assert not any(n in checks for n in names[1]), names[1]

@@ -29,6 +29,26 @@ def test_traced_tolerances_are_checked_under_jit():
         jax.block_until_ready(run(0.0, 0.0))
 
 
+@pytest.mark.parametrize("rtol, atol, message", [
+    (-1.0, 1e-8, "rtol must be >= 0 and finite"),
+    (float("nan"), 1e-8, "rtol must be >= 0 and finite"),
+    (1e-8, float("inf"), "atol must be >= 0 and finite"),
+    (-1.0, -1.0, "rtol must be >= 0 and finite"),
+    (0.0, 0.0, "rtol \\+ atol must be > 0"),
+])
+def test_traced_tolerances_are_checked_together_and_the_first_failure_is_named(rtol, atol, message):
+    # The three tolerance checks are one run-time check (one branched error):
+    # each value that fails must still be named, the first in order.
+    run = jax.jit(lambda r, a: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=a).R[-1])
+    with pytest.raises(Exception, match=message):
+        jax.block_until_ready(run(rtol, atol))
+    np.testing.assert_allclose(run(1e-9, 1e-9), reference_R(TEE, OMEGA_GENERIC, 1.0), atol=1e-7)
+    # One bad member of a batch is caught, by its name.
+    batch = jax.jit(jax.vmap(lambda r, a: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=a).R[-1]))
+    with pytest.raises(Exception, match=message):
+        jax.block_until_ready(batch(jnp.array([1e-8, rtol]), jnp.array([1e-8, atol])))
+
+
 def test_a_step_longer_than_the_interval_is_one_shortened_step():
     # dt = 1e10 used to take zero steps and return R0 with success.
     sol = lierk.solve(lierk.FreeRigidBody(TEE, [0.0, 0.0, 0.1]), lierk.RKMK4(), 1.0, dt=1e10)

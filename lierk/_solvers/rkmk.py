@@ -163,13 +163,20 @@ class AbstractRKMK(AbstractSolver):
             rows[i, :i] = a[i]
         rows, nodes = jnp.asarray(rows, k0.dtype), jnp.asarray(c, k0.dtype)
 
+        # The stage's row is read and its slope written without JAX's index
+        # normalisation and bounds checks (i runs over 1..s-1), and the stage
+        # sum is a reduction rather than a matrix product: XLA compiles each
+        # of those as a kernel of its own, about 5 ms each of a first compile.
         def stage(i, carry):
             ks, _ = carry
-            u, dy = unravel(h * (rows[i] @ ks))
-            coefficients = so3.exp_coefficients(so3._sq(u))
+            row = jax.lax.dynamic_index_in_dim(rows, i, keepdims=False, allow_negative_indices=False)
+            u, dy = unravel(jnp.sum((h * row)[:, None] * ks, axis=0))
+            # The loop is one body's form: its coefficients stacked (see there).
+            coefficients = so3.exp_coefficients(so3._sq(u), stacked=True)
             omega, ydot = problem.local(base, t + nodes[i] * h, u, _add(y, dy), coefficients)
             k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
-            return ks.at[i].set(ravel_pytree((k, ydot))[0]), ravel_pytree((omega, ydot))[0]
+            ks = jax.lax.dynamic_update_index_in_dim(ks, ravel_pytree((k, ydot))[0], i, 0, allow_negative_indices=False)
+            return ks, ravel_pytree((omega, ydot))[0]
 
         ks = jnp.zeros((s,) + k0.shape, k0.dtype).at[0].set(k0)
         ks, last = jax.lax.fori_loop(1, s, stage, (ks, k0))
@@ -223,7 +230,8 @@ class AbstractRKMK(AbstractSolver):
         if len(error) == 1:
             return norm(*error[0])
         # DOP853's two estimates (`tableaux.blend_estimates`); both 0 give 0.
-        err, e3 = norm(*error[0]), norm(*error[1])
+        # Their norms as one batched reduction: one XLA kernel, not two.
+        err, e3 = jax.vmap(norm)(*jax.tree_util.tree_map(lambda a, b: jnp.stack([a, b]), *error))
         both = (err > 0) | (e3 > 0)
         blend = jnp.where(both, blend_estimates(err, jnp.where(both, e3, 1.0), jnp.sqrt), 0.0)
         # A rejected stage (inf) must stay inf: inf/inf would be NaN.
