@@ -99,14 +99,17 @@ def _traced(x, dtype=None):
     return x.astype(dtype)
 
 
-def all_finite(tree) -> jax.Array:
-    """Whether every entry of every array leaf of ``tree`` is finite (a traced bool)."""
+def all_finite(tree, *, compact: bool = False) -> jax.Array:
+    """Whether every entry of every array leaf of ``tree`` is finite (a traced
+    bool).  ``compact``: one reduction over all the entries, which XLA
+    compiles as one kernel instead of one per leaf (about 5 ms of a first
+    compile on CPU apiece), for one body's solve; a batch of 64 ran 8% slower
+    that way (free bodies, DP54)."""
     leaves = jax.tree_util.tree_leaves(tree)
-    if not leaves:
-        return jnp.asarray(True)
-    # One reduction over all the entries: XLA compiles a kernel per reduction.
-    dtype = jnp.result_type(*leaves)
-    return jnp.all(jnp.isfinite(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])))
+    if compact and leaves:
+        dtype = jnp.result_type(*leaves)
+        return jnp.all(jnp.isfinite(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])))
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
 
 
 def is_traced(*xs) -> bool:
@@ -352,25 +355,48 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 
 @jax.jit
 def _state_in_range(inertia, omega0):
-    """``omega0``, checked at run time: finite, and within `state_range_error`'s
-    bounds, as one check (one program: see `_error_unless_program`)."""
-    lo, hi = _log_range(omega0.dtype)
-
-    def in_range(w):
-        moments, squares = _state_logs(inertia, w, jnp)
-        return functools.reduce(jnp.logical_and, [(x >= lo) & (x <= hi) for x in moments] + [x <= hi for x in squares])
-
+    """``omega0``, checked at run time: finite, and a body state within
+    `state_range_error`'s bounds, as one check (one program: see
+    `_error_unless_program`)."""
     messages = (
         "omega0 has NaN or inf entries: a traced value that failed the check",
         f"a traced inertia and omega0 give a body state outside {omega0.dtype.name}'s range "
         "(lierk._validation.state_range_error)",
     )
-    return _error_unless_any((omega0, omega0), (_finite, in_range), messages)[0]
+    return _error_unless_any((omega0, omega0), (_finite, functools.partial(_in_range, inertia)), messages)[0]
 
 
 def _finite(w):
-    # Entry by entry, fused with the range check (a reduction is a kernel of its own).
     return jnp.isfinite(w[0]) & jnp.isfinite(w[1]) & jnp.isfinite(w[2])
+
+
+def _in_range(I, w):
+    """`state_range_error`'s bounds as a yes or no, from the quantities
+    themselves: a moment is a normal number and a square is finite exactly
+    when their computed values are (up to the last rounding), with no
+    intermediate that overflows sooner.  Entry by entry, with no logarithm,
+    reduction or matrix product: XLA compiles the check as one kernel, where
+    those were kernels of their own (about 5 ms of a first compile on CPU
+    apiece); what only the inertia enters, it folds when the inertia is
+    known.  (`state_range_error` works in logarithms, to name the sizes.)"""
+    info = jnp.finfo(w.dtype)
+    tiny, big = float(info.tiny), float(info.max)
+    tr = I[0, 0] + I[1, 1] + I[2, 2]
+    minors = (I[0, 0] * I[1, 1] - I[0, 1] * I[1, 0] + I[0, 0] * I[2, 2] - I[0, 2] * I[2, 0]
+              + I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1])
+    det = (I[0, 0] * (I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1]) - I[0, 1] * (I[1, 0] * I[2, 2] - I[1, 2] * I[2, 0])
+           + I[0, 2] * (I[1, 0] * I[2, 1] - I[1, 1] * I[2, 0]))
+    smallest = det / minors  # 1/tr(I^-1)
+    moments = [(x >= tiny) & (x <= big) for x in (tr, smallest, det)]
+    Iw = I[:, 0] * w[0] + I[:, 1] * w[1] + I[:, 2] * w[2]
+
+    def dot(a, b):
+        ab = a * b
+        return ab[0] + ab[1] + ab[2]
+
+    T2 = dot(w, Iw)
+    squares = [jnp.isfinite(x) for x in (dot(w, w), dot(Iw, Iw), T2, T2 * tr, T2 * smallest)]
+    return functools.reduce(jnp.logical_and, moments + squares)
 
 
 def _diagonal(I) -> bool:
@@ -394,12 +420,8 @@ _SQUARES = ("|omega|^2", "|L|^2 = |I omega|^2", "2T = omega . I omega", "2T tr(I
 
 def _state_logs(inertia, omega0, xp):
     """log10 of `_MOMENTS` and of `_SQUARES` (``-inf`` for a body at rest),
-    two tuples of 3 and 5 scalars, computed from the scaled inertia and
-    ``omega0`` so that nothing overflows on the way.  What ``omega0`` enters
-    is written entry by entry, without reductions or matrix products: inside
-    a traced solve the check is then one XLA kernel, where each reduction or
-    product was a kernel of its own (about 5 ms of a first compile on CPU
-    apiece).  What only the inertia enters, XLA folds when it is known."""
+    two ``(3,)`` and ``(5,)`` arrays, computed from the scaled inertia and
+    ``omega0`` so that nothing overflows on the way."""
     I, w = inertia, omega0
     s = xp.max(xp.abs(I))
     s = xp.where(s > 0, s, 1.0)
@@ -411,21 +433,15 @@ def _state_logs(inertia, omega0, xp):
     det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
            + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
     ls = xp.log10(s)
-    moments = (ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det))
-    size = xp.abs(w)
-    sw = xp.maximum(xp.maximum(size[0], size[1]), size[2])
+    moments = [ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det)]
+    sw = xp.max(xp.abs(w))
     moving = sw > 0
     v = w / xp.where(moving, sw, 1.0)
     lw = xp.log10(xp.where(moving, sw, 1.0))
-    Jv = J[:, 0] * v[0] + J[:, 1] * v[1] + J[:, 2] * v[2]
-
-    def dot(a, b):
-        ab = a * b
-        return ab[0] + ab[1] + ab[2]
-
-    T2 = 2 * lw + ls + xp.log10(dot(v, Jv))
-    squares = (2 * lw + xp.log10(dot(v, v)), 2 * lw + 2 * ls + xp.log10(dot(Jv, Jv)), T2, T2 + moments[0], T2 + moments[1])
-    return moments, tuple(xp.where(moving, x, -xp.inf) for x in squares)
+    Jv = J @ v
+    T2 = 2 * lw + ls + xp.log10(v @ Jv)
+    squares = [2 * lw + xp.log10(v @ v), 2 * lw + 2 * ls + xp.log10(Jv @ Jv), T2, T2 + moments[0], T2 + moments[1]]
+    return xp.stack(moments), xp.where(moving, xp.stack(squares), -xp.inf)
 
 
 def state_range_error(inertia: ArrayLike, omega0: ArrayLike, dtype=None) -> str | None:

@@ -82,6 +82,33 @@ def test_a_traced_state_out_of_range_fails_at_run_time():
         jax.block_until_ready(batch(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W])))
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_the_traced_range_check_decides_as_the_host_check(dtype):
+    # A traced solve checks the state's range from the quantities themselves
+    # (one XLA kernel); the host works in logarithms to name the sizes.  Both
+    # must decide alike, at the edges of the dtype's range above all.
+    rng = np.random.default_rng(7)
+    top = np.log10(float(np.finfo(dtype).max))
+    tiny = np.log10(float(np.finfo(dtype).tiny))
+    inertias, omegas = [], []
+    for k in range(600):
+        if k % 3 == 0:  # |L|^2 and 2T tr(I) near overflow
+            I = 10.0 ** rng.uniform(-5, 5, 3)
+            w = rng.normal(size=3)
+            w *= 10.0 ** (top / 2 - np.log10(I.max()) / 2 + rng.uniform(-0.4, 0.4)) / np.linalg.norm(w)
+        elif k % 3 == 1:  # moments near underflow
+            I, w = 10.0 ** (tiny / 3 + rng.uniform(-0.4, 0.4, 3)), rng.normal(size=3)
+        else:  # moments near overflow, and a body at rest
+            I, w = 10.0 ** (top / 3 + rng.uniform(-0.4, 0.4, 3)), rng.normal(size=3) * (k % 2) * 1e-3
+        inertias.append(np.diag(I).astype(dtype))
+        omegas.append(w.astype(dtype))
+    with np.errstate(all="ignore"):
+        host = np.array([validation.state_range_error(I, w, dtype) is None for I, w in zip(inertias, omegas)])
+    traced = np.asarray(jax.jit(jax.vmap(validation._in_range))(jnp.asarray(np.stack(inertias)), jnp.asarray(np.stack(omegas))))
+    assert 100 < host.sum() < 500, host.sum()
+    np.testing.assert_array_equal(traced, host)
+
+
 def test_an_impossible_inertia_warns_once_per_body():
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")

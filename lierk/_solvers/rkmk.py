@@ -40,8 +40,9 @@ def _stage_sums(h, rows, ks):
     flat stage slopes, or their stack ``(s, n)`` (`AbstractRKMK`'s stage
     loop)."""
     if not isinstance(ks, list):
+        # A reduction, not a matrix product: with h folded in, one kernel.
         coeffs = jnp.asarray([list(r) + [0.0] * (ks.shape[0] - len(r)) for r in rows], ks.dtype)
-        return list(h * (coeffs @ ks))
+        return list(jnp.sum((h * coeffs)[:, :, None] * ks[None], axis=1))
     idx = [j for j in range(len(ks)) if any(r[j] != 0.0 for r in rows)]
     if len(idx) == 1:
         return [(h * r[idx[0]]) * ks[idx[0]] for r in rows]
@@ -171,8 +172,8 @@ class AbstractRKMK(AbstractSolver):
             ks, _ = carry
             row = jax.lax.dynamic_index_in_dim(rows, i, keepdims=False, allow_negative_indices=False)
             u, dy = unravel(jnp.sum((h * row)[:, None] * ks, axis=0))
-            # The loop is one body's form: its coefficients stacked (see there).
-            coefficients = so3.exp_coefficients(so3._sq(u), stacked=True)
+            # The loop is one body's form: its coefficients compact (see there).
+            coefficients = so3.exp_coefficients(so3._sq(u), compact=True)
             omega, ydot = problem.local(base, t + nodes[i] * h, u, _add(y, dy), coefficients)
             k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
             ks = jax.lax.dynamic_update_index_in_dim(ks, ravel_pytree((k, ydot))[0], i, 0, allow_negative_indices=False)
@@ -190,7 +191,8 @@ class AbstractRKMK(AbstractSolver):
         u1, dy1 = sums[0]
         y1 = _add(y, dy1)
         error = None if tab.b_error is None else tuple(tuple(e) for e in sums[1:])
-        return Step(so3.right_exp(R, u1), y1, error, last if tab.fsal else None), ks, unravel
+        R1 = so3.right_exp(R, u1, compact=bool(self.compact))
+        return Step(R1, y1, error, last if tab.fsal else None), ks, unravel
 
     def step(self, problem, t, h, R, y, fsal=None):
         return self._step(problem, t, h, R, y, fsal)[0]
