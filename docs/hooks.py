@@ -76,9 +76,8 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                                   "A later run of the first Jacobians alone: jax.jit(jax.jacfwd(f)) and an eager "
                                   "jax.jacfwd(f), as most code calls it, lierk beside diffrax."),
     "first_result-solve-jacfwd": ("Time to first solve and first Jacobian, a later run",
-                                  "The first solves and first jax.jit(jax.jacfwd(f)) alone, after lierk.so3's "
-                                  "functions became nested jits and constant bodies stopped compiling an LU "
-                                  "factorisation, lierk beside diffrax."),
+                                  "The first solves and first jax.jit(jax.jacfwd(f)) alone, after one body's "
+                                  "adaptive step was written in fewer XLA kernels, lierk beside diffrax."),
     "first_result-call-jacfwd-eager-sensitivity": ("Time to first result from Python",
                                                    "lierk.solve and lierk.sensitivity called from Python (lierk's own "
                                                    "programs, compiled with lierk.one_body_compiler_options), an eager "

@@ -345,7 +345,7 @@ def _compose_exp(R: Array, u: Array, compact: bool = False) -> Array:
 
 def _turn_rows(X: Array, u: Array, A: Array, B: Array) -> Array:
     """``X exp(hat(u))`` for ``(..., k, 3)`` rows ``X`` and ``(A, B)`` of ``u``,
-    row by row: ``x + A x x u + B u x (u x x)``."""
+    row by row: each row ``r`` becomes ``r + A (r x u) + B u x (u x r)``."""
     w = u[..., None, :]
     return X + A[..., None, None] * cross(X, w) + B[..., None, None] * _cross_cross(w, X)
 

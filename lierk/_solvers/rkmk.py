@@ -172,7 +172,8 @@ class AbstractRKMK(AbstractSolver):
             ks, _ = carry
             row = jax.lax.dynamic_index_in_dim(rows, i, keepdims=False, allow_negative_indices=False)
             u, dy = unravel(jnp.sum((h * row)[:, None] * ks, axis=0))
-            # The loop is one body's form: its coefficients compact (see there).
+            # The loop is one body's form: its coefficients compact
+            # (`so3.exp_coefficients`), as its step's update (`so3.right_exp`).
             coefficients = so3.exp_coefficients(so3._sq(u), compact=True)
             omega, ydot = problem.local(base, t + nodes[i] * h, u, _add(y, dy), coefficients)
             k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
