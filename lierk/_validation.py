@@ -377,15 +377,10 @@ def _in_range(I, w):
     intermediate that overflows sooner.  Entry by entry, with no logarithm,
     reduction or matrix product: XLA compiles the check as one kernel, where
     those were kernels of their own (about 5 ms of a first compile on CPU
-    apiece); what only the inertia enters, it folds when the inertia is
-    known.  (`state_range_error` works in logarithms, to name the sizes.)"""
+    apiece).  (`state_range_error` works in logarithms, to name the sizes.)"""
     info = jnp.finfo(w.dtype)
     tiny, big = float(info.tiny), float(info.max)
-    tr = I[0, 0] + I[1, 1] + I[2, 2]
-    minors = (I[0, 0] * I[1, 1] - I[0, 1] * I[1, 0] + I[0, 0] * I[2, 2] - I[0, 2] * I[2, 0]
-              + I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1])
-    det = (I[0, 0] * (I[1, 1] * I[2, 2] - I[1, 2] * I[2, 1]) - I[0, 1] * (I[1, 0] * I[2, 2] - I[1, 2] * I[2, 0])
-           + I[0, 2] * (I[1, 0] * I[2, 1] - I[1, 1] * I[2, 0]))
+    tr, minors, det = _principal_invariants(I)
     smallest = det / minors  # 1/tr(I^-1)
     moments = [(x >= tiny) & (x <= big) for x in (tr, smallest, det)]
     Iw = I[:, 0] * w[0] + I[:, 1] * w[1] + I[:, 2] * w[2]
@@ -418,6 +413,18 @@ _MOMENTS = (
 _SQUARES = ("|omega|^2", "|L|^2 = |I omega|^2", "2T = omega . I omega", "2T tr(I)", "2T / tr(I^-1)")
 
 
+def _principal_invariants(J):
+    """``(tr J, sum of the principal 2x2 minors, det J)`` of a ``(3, 3)`` NumPy
+    or JAX array, entry by entry.  For an inertia, ``tr(I^-1) = minors / det``:
+    no eigendecomposition."""
+    tr = J[0, 0] + J[1, 1] + J[2, 2]
+    minors = (J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0] + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
+              + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
+    det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
+           + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
+    return tr, minors, det
+
+
 def _state_logs(inertia, omega0, xp):
     """log10 of `_MOMENTS` and of `_SQUARES` (``-inf`` for a body at rest),
     two ``(3,)`` and ``(5,)`` arrays, computed from the scaled inertia and
@@ -426,12 +433,7 @@ def _state_logs(inertia, omega0, xp):
     s = xp.max(xp.abs(I))
     s = xp.where(s > 0, s, 1.0)
     J = I / s
-    tr = J[0, 0] + J[1, 1] + J[2, 2]
-    # tr(I^-1) = (sum of the principal 2x2 minors) / det: no eigendecomposition.
-    minors = (J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0] + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-              + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
-    det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
-           + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
+    tr, minors, det = _principal_invariants(J)
     ls = xp.log10(s)
     moments = [ls + xp.log10(tr), ls + xp.log10(det / minors), 3 * ls + xp.log10(det)]
     sw = xp.max(xp.abs(w))
