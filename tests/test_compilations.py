@@ -283,3 +283,19 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
     unrolled = np.asarray(solve(w, lierk.DP54(compact=False)))
     for other in (unrolled, jitted, long):
         np.testing.assert_allclose(looped, other, rtol=0, atol=1e-14)
+
+
+def test_one_bodys_adaptive_solve_compiles_few_kernels():
+    # XLA's CPU backend compiles each kernel of a program (a fusion, a matrix
+    # product) on its own, about 5 ms apiece whatever its size, so the count
+    # decides a first compile (docs/guides/contributing.md, "A kernel costs
+    # about 5 ms to compile").  A heavy top's adaptive DOP853 solve inside
+    # jax.jit was 77 kernels; written to fuse, 52 (48 with the suite's quick
+    # XLA flags).  diffrax's Dopri8 is 26.
+    def final(w, tol):
+        top = lierk.RigidBodyWithEffects([2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),))
+        return lierk.solve(top, lierk.DOP853(), 1.0, rtol=tol, atol=tol, throw=False).R[-1]
+
+    text = jax.jit(final).lower(jax.numpy.array([1.0, 0.3, 20.0]), jax.numpy.asarray(1e-8)).compile().as_text()
+    kernels = text.count(" fusion(") + text.count(" dot(")
+    assert kernels <= 60, f"{kernels} kernels in one body's adaptive DOP853 solve (77 before they were written to fuse)"

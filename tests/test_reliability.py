@@ -39,14 +39,20 @@ def test_traced_tolerances_are_checked_under_jit():
 def test_traced_tolerances_are_checked_together_and_the_first_failure_is_named(rtol, atol, message):
     # The three tolerance checks are one run-time check (one branched error):
     # each value that fails must still be named, the first in order.
-    run = jax.jit(lambda r, a: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=a).R[-1])
     with pytest.raises(Exception, match=message):
-        jax.block_until_ready(run(rtol, atol))
-    np.testing.assert_allclose(run(1e-9, 1e-9), reference_R(TEE, OMEGA_GENERIC, 1.0), atol=1e-7)
+        jax.block_until_ready(_FINAL(rtol, atol))
+    np.testing.assert_allclose(_FINAL(1e-9, 1e-9), reference_R(TEE, OMEGA_GENERIC, 1.0), atol=1e-7)
     # One bad member of a batch is caught, by its name.
-    batch = jax.jit(jax.vmap(lambda r, a: lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=a).R[-1]))
     with pytest.raises(Exception, match=message):
-        jax.block_until_ready(batch(jnp.array([1e-8, rtol]), jnp.array([1e-8, atol])))
+        jax.block_until_ready(_FINALS(jnp.array([1e-8, rtol]), jnp.array([1e-8, atol])))
+
+
+def _final(r, a):
+    return lierk.solve(BODY, lierk.DP54(), 1.0, rtol=r, atol=a).R[-1]
+
+
+# One program each for all the cases.
+_FINAL, _FINALS = jax.jit(_final), jax.jit(jax.vmap(_final))
 
 
 def test_a_step_longer_than_the_interval_is_one_shortened_step():
