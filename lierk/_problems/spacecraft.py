@@ -315,9 +315,7 @@ class MagneticTorque(AbstractEffect):
     def torque_from(self, t, v, m, omega):
         B = self._field_body(t, v, m.dtype)
         if self.bdot_gain is not None:
-            # (omega x B) x B = B x (B x omega), without the inner product
-            # stored (a kernel of its own in every stage).
-            return self.bdot_gain * so3._cross_cross(B, omega)
+            return self.bdot_gain * so3.cross(so3.cross(omega, B), B)
         mu = self.dipole.astype(m.dtype) if self.dipole is not None else jnp.asarray(self.law(t, B, omega), m.dtype)
         return so3.cross(mu, B)
 
