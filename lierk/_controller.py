@@ -114,6 +114,14 @@ class ConstantStep(AbstractStepController):
         return Decision(jnp.asarray(True), h_proposed, h <= 0, ~finite, None)
 
 
+def _compact(solver) -> bool:
+    """Whether ``solver`` loops over its stages (`lierk.AbstractRKMK.compact`
+    True: one body's solve, a differentiated one): the controller's helpers
+    then take their compact forms, fewer XLA kernels to compile, where a
+    batch's forms run faster."""
+    return getattr(solver, "compact", None) is True
+
+
 class Controller(AbstractStepController):
     """Error-per-step controller ``h_new = h min(facmax, max(facmin, safety err^(-1/(q+1))))``.
 
@@ -293,7 +301,7 @@ class Controller(AbstractStepController):
             mode_angle = jax.lax.stop_gradient(jnp.minimum(ctrl.max_angle, allowed ** (1.0 / (solver.error_order + 1))))
         modes = None if mode_angle is None else self._modes(problem, t0, problem.R0, problem.y0, mode_angle)
         f0 = field_at(problem, t0, problem.R0, problem.y0)
-        compact = getattr(solver, "compact", None) is True  # one body's form (see `adapt`)
+        compact = _compact(solver)
         if dt0 is None:
             h0 = ctrl._initial_step(problem, solver.error_order, t0, t1, f0, modes, compact=compact)
         else:
@@ -307,9 +315,7 @@ class Controller(AbstractStepController):
         err = solver.error_norm(st.error, lambda e_u, e_y: ctrl.norm(e_u, e_y, tol_y))
         err = jax.lax.stop_gradient(err / calibration)
         f_new = st.fsal if st.fsal is not None else field_at(problem, t_new, st.R, st.y)
-        # One body's form compiles fewer kernels (`lierk.AbstractRKMK.compact`),
-        # a batch's runs faster.
-        compact = getattr(solver, "compact", None) is True
+        compact = _compact(solver)
         finite = validation.all_finite((st.R, st.y, f_new, err), compact=compact)
         accept = finite & (err <= 1.0)
         # The turn bound reads omega where the next step starts.

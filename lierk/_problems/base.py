@@ -201,11 +201,7 @@ class AbstractRigidBody(AbstractProblem):
         m = self._body_momenta(R, y)
         w = so3.matvec(self.inertia_inv, m)
         J = so3.hat(m) @ self.inertia_inv - so3.hat(w)
-        c2 = (
-            J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0]
-            + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-            + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]
-        )
+        _, c2, _ = validation._principal_invariants(J)
         return jnp.sqrt(jnp.abs(c2))
 
     @property
