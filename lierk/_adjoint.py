@@ -381,6 +381,9 @@ def _contract(dp):
         # cut out of the transpose: reverse mode would otherwise send their
         # cotangents through 0 * NaN into every gradient.
         moved = jnp.any(Jl != 0, axis=-1)
-        return jnp.where(moved, jnp.tensordot(Jl, dp.astype(Jl.dtype), axes=1), 0)
+        # A sum of products, not a tensordot: under `jax.jacfwd` (``dp``
+        # batched) XLA made the contraction a dot kernel with a transposed
+        # copy on either side; the products fuse with the reduction.
+        return jnp.where(moved, jnp.sum(Jl * dp.astype(Jl.dtype), axis=-1), 0)
 
     return contract

@@ -418,11 +418,17 @@ def _principal_invariants(J):
     or JAX array, entry by entry.  For an inertia, ``tr(I^-1) = minors / det``:
     no eigendecomposition."""
     tr = J[0, 0] + J[1, 1] + J[2, 2]
-    minors = (J[0, 0] * J[1, 1] - J[0, 1] * J[1, 0] + J[0, 0] * J[2, 2] - J[0, 2] * J[2, 0]
-              + J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
+    minors = _principal_minors([[J[i, j] for j in range(3)] for i in range(3)])
     det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
            + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
     return tr, minors, det
+
+
+def _principal_minors(J):
+    """The sum of the principal 2x2 minors of ``J``, given as rows of
+    entries (``J[i][j]``, scalars or arrays of one shape)."""
+    return (J[0][0] * J[1][1] - J[0][1] * J[1][0] + J[0][0] * J[2][2] - J[0][2] * J[2][0]
+            + J[1][1] * J[2][2] - J[1][2] * J[2][1])
 
 
 def _state_logs(inertia, omega0, xp):

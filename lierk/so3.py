@@ -207,6 +207,16 @@ def exp_coefficients(theta2: Array, *, compact: bool = False) -> tuple[Array, Ar
 
 @functools.partial(jax.custom_jvp, nondiff_argnums=(1,))
 def _exp_coefficients(theta2: Array, compact: bool = False) -> tuple[Array, Array, Array]:
+    numerators, denominators = _exp_fractions(theta2)
+    if not compact:
+        return tuple(n / d for n, d in zip(numerators, denominators))
+    ABD = jnp.stack(numerators, axis=-1) / jnp.stack(denominators, axis=-1)
+    return ABD[..., 0], ABD[..., 1], ABD[..., 2]
+
+
+def _exp_fractions(theta2: Array) -> tuple[tuple, tuple]:
+    """`exp_coefficients`' ``(A, B, D)`` as three numerators and three
+    denominators, before the divisions."""
     x2 = 0.25 * theta2
     near = x2 <= (0.25 * math.pi) ** 2
     # Each branch sees only its own inputs, so neither divides by zero and
@@ -236,10 +246,7 @@ def _exp_coefficients(theta2: Array, compact: bool = False) -> tuple[Array, Arra
     numerators = (jnp.where(near, S * C, sin_x * cos_x), jnp.where(near, 0.5 * S * S, 0.5 * sin_x * sin_x),
                   jnp.where(near, E_near, sin_x - x * cos_x))
     denominators = (jnp.where(near, one, x), jnp.where(near, one, xf2), jnp.where(near, 4.0 * S, 4.0 * xf2 * sin_x))
-    if not compact:
-        return tuple(n / d for n, d in zip(numerators, denominators))
-    ABD = jnp.stack(numerators, axis=-1) / jnp.stack(denominators, axis=-1)
-    return ABD[..., 0], ABD[..., 1], ABD[..., 2]
+    return numerators, denominators
 
 
 @_exp_coefficients.defjvp
@@ -249,8 +256,18 @@ def _exp_coefficients_jvp(compact, primals, tangents):
     # coefficient.  Left to JAX, forward mode carried every direction through
     # the polynomial chains, and XLA re-derived them inside each consumer.
     (theta2,), (dtheta2,) = primals, tangents
-    values, slopes = jax.jvp(lambda x: _exp_coefficients.fun(x, compact), (theta2,), (jnp.ones_like(theta2),))
-    return values, tuple(s * dtheta2 for s in slopes)
+    (N, D), (dN, dD) = jax.jvp(_exp_fractions, (theta2,), (jnp.ones_like(theta2),))
+    if not compact:
+        values = tuple(n / d for n, d in zip(N, D))
+        slopes = tuple((dn - v * dd) / d for v, dn, d, dd in zip(values, dN, D, dD))
+        return values, tuple(s * dtheta2 for s in slopes)
+    # Values and slopes (n/d)' = (n' d - n d') / d^2 in one division of
+    # stacked values: one kernel, where the quotient rule's divisions were
+    # several in every differentiated stage.
+    num = jnp.stack([*N, *(dn * d - n * dd for n, d, dn, dd in zip(N, D, dN, dD))], axis=-1)
+    den = jnp.stack([*D, *(d * d for d in D)], axis=-1)
+    q = num / den
+    return tuple(q[..., i] for i in range(3)), tuple(q[..., 3 + i] * dtheta2 for i in range(3))
 
 
 def _sq(u: Array) -> Array:

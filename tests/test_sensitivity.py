@@ -347,6 +347,35 @@ def test_mode_frequency_counts_the_effects_modes():
                                float(_mode_frequency(free)), rtol=1e-12)
 
 
+def test_the_free_bodys_mode_frequency_is_sqrt_c2_and_the_nutation_at_a_steady_spin():
+    """The torque-free part, written out by entries, against NumPy's
+    ``sqrt(|c2|)`` of ``J = hat(m) I^-1 - hat(omega)`` for bodies with full
+    (rotated) and diagonal inertia; at a steady spin about each principal
+    axis, against the eigenvalues of ``J`` and the nutation ``omega
+    sqrt((I_k - I_i)(I_k - I_j)/(I_i I_j))`` (growth about the intermediate
+    one); a sphere's 0 exactly."""
+    rng = np.random.default_rng(7)
+    cases = []
+    for _ in range(4):
+        Q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        cases.append((Q @ np.diag(rng.uniform(1.0, 2.0, 3)) @ Q.T, rng.normal(size=3)))
+    moments = np.array([1.0, 2.0, 2.5])
+    cases += [(np.diag(moments), 2.0 * np.eye(3)[k]) for k in range(3)]
+    for inertia, omega in cases:
+        rho = float(_mode_frequency(lierk.FreeRigidBody(inertia, omega)))
+        m, w = inertia @ omega, omega
+        J = np.asarray(lierk.so3.hat(m)) @ np.linalg.inv(inertia) - np.asarray(lierk.so3.hat(w))
+        c2 = sum(J[i, i] * J[j, j] - J[i, j] * J[j, i] for i, j in ((0, 1), (0, 2), (1, 2)))
+        np.testing.assert_allclose(rho, np.sqrt(abs(c2)), rtol=1e-12)
+        if np.linalg.norm(np.cross(m, w)) < 1e-12 * np.linalg.norm(m) * np.linalg.norm(w):  # a steady spin
+            np.testing.assert_allclose(rho, np.max(np.abs(np.linalg.eigvals(J))), rtol=1e-12)
+    for k in range(3):
+        i, j = [x for x in range(3) if x != k]
+        nutation = 2.0 * np.sqrt(abs((moments[k] - moments[i]) * (moments[k] - moments[j])) / (moments[i] * moments[j]))
+        np.testing.assert_allclose(float(_mode_frequency(lierk.FreeRigidBody(moments, 2.0 * np.eye(3)[k]))), nutation, rtol=1e-13)
+    assert float(_mode_frequency(lierk.FreeRigidBody([2.0, 2.0, 2.0], [0.3, -1.0, 7.0]))) == 0.0
+
+
 @pytest.mark.parametrize("which", ["top", "spacecraft"])
 def test_effects_linearisation_is_the_torques_derivative(which):
     """The mode bounds' linearisation (`RigidBodyWithEffects._effects_linearisation`,

@@ -190,18 +190,34 @@ class AbstractRigidBody(AbstractProblem):
         return self._body_momenta(R, y)
 
     def mode_frequency(self, t: Array, R: Array, y: Any) -> Array:
-        """The torque-free part: the spectral radius (rad/s) of Euler's
-        equations linearised at the momentum ``m`` of ``(R, y)``:
-        ``J = hat(m) I^-1 - hat(omega)`` has the eigenvalues ``0, +-sqrt(-c2)``,
-        ``c2`` the sum of its principal 2x2 minors (``m.m`` and ``m.omega``
-        are conserved), so this is ``sqrt(|c2|)``: the nutation frequency
-        ``omega_k sqrt((I_k - I_i)(I_k - I_j)/(I_i I_j))`` of a steady spin
-        about a principal axis, the growth rate about the intermediate one.
-        `RigidBodyWithEffects` adds its effects' modes."""
+        """The torque-free part (rad/s), from Euler's equations linearised
+        at the momentum ``m`` of ``(R, y)``, ``J = hat(m) I^-1 - hat(omega)``:
+        ``sqrt(|c2|)``, ``c2`` the sum of its principal 2x2 minors.  At a
+        steady spin about a principal axis ``J`` has the eigenvalues ``0,
+        +-sqrt(-c2)`` (``tr J = 0`` and ``det J = 0`` there), so this is its
+        spectral radius: the nutation frequency ``omega_k sqrt((I_k -
+        I_i)(I_k - I_j)/(I_i I_j))``, the growth rate about the intermediate
+        axis.  Away from a steady spin ``det J`` is not 0 and this is an
+        estimate of the fastest mode, not a bound (it can be below the
+        spectral radius); but there the state moves, and the step control's
+        error estimate sees its motion.  `RigidBodyWithEffects` adds its
+        effects' modes."""
         m = self._body_momenta(R, y)
-        w = so3.matvec(self.inertia_inv, m)
-        J = so3.hat(m) @ self.inertia_inv - so3.hat(w)
-        _, c2, _ = validation._principal_invariants(J)
+        A = self.inertia_inv
+        w = so3.matvec(A, m)
+        # J's entries written out, (hat(m) A)_ij = (m x A[:, j])_i, so that
+        # no matrix is formed: in a differentiated adaptive solve, which
+        # bounds its steps by this at every step, the two skew matrices and
+        # their product were kernels of their own (a sphere's J is still 0
+        # exactly: w = a m entry by entry).
+        m0, m1, m2 = m[..., 0], m[..., 1], m[..., 2]
+        w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
+        X = [[m1 * A[..., 2, j] - m2 * A[..., 1, j] for j in range(3)],
+             [m2 * A[..., 0, j] - m0 * A[..., 2, j] for j in range(3)],
+             [m0 * A[..., 1, j] - m1 * A[..., 0, j] for j in range(3)]]
+        W = [[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]]
+        J = [[X[i][j] - W[i][j] for j in range(3)] for i in range(3)]
+        c2 = validation._principal_minors(J)
         return jnp.sqrt(jnp.abs(c2))
 
     @property

@@ -337,6 +337,10 @@ class RigidBodyWithEffects(AbstractRigidBody):
                 return self._body_momenta(R, dm) - so3.cross(m, omega)
 
             K_u, K_m = jax.jacfwd(torque, argnums=(0, 1))(jnp.zeros(3, m0.dtype), m0)
+            # A diagonal inertia's product is a scaling of rows, which fuses
+            # with the norms `modes` takes (a dot is a kernel of its own).
+            if self.diagonal:
+                return so3._diagonal(self.inertia_inv)[:, None] * K_u, K_m
             return self.inertia_inv @ K_u, K_m
 
         if not any(e.depends_on_time for e in self.effects):
