@@ -158,12 +158,29 @@ class OwnProgram:
 
     def __call__(self, *args, **kwargs):
         if not self._is_one_body(args, kwargs):
-            if self._prepare is not None and not _is_batched((args, kwargs)):
+            if self._prepare is not None and (
+                not _is_batched((args, kwargs)) if self._tangents is None else self._directions_only(args, kwargs)
+            ):
                 return self._one_body_unless_batched(args, kwargs)
             return self.default(*args, **kwargs)
         if self._prepare is not None:
             args = self._prepare(*args)
         return (self._one_body if one_body_compiler_options() else self.default)(*args, **kwargs)
+
+    def _directions_only(self, args, kwargs) -> bool:
+        """Whether the tangents alone are batched (`jax.jacfwd`'s directions
+        over one body) and nothing else transforms the call: one body's
+        derivative.  A single direction (a `jax.jvp`, or `jax.grad`'s
+        linearisation, which cannot go through a batching rule) and a
+        derivative of the derivative keep the program as given."""
+        if self._tangents >= len(args) or not _is_batched(args[self._tangents]):
+            return False
+        given = [a for i, a in enumerate(args) if i != self._tangents]
+        return all(
+            type(x).__name__ == "DynamicJaxprTracer"
+            for x in jax.tree_util.tree_leaves((given, kwargs))
+            if isinstance(x, jax.core.Tracer)
+        )
 
     def _one_body_unless_batched(self, args, kwargs):
         """Inside a caller's trace with no batch in sight (its ``jax.jit``,
@@ -183,6 +200,14 @@ class OwnProgram:
             # numbers (nothing a batching rule could pass both ways).
             return self.default(*args, **kwargs)
         out_static = []
+        # Which of the dynamic leaves are the tangents' (`tangents`): their
+        # batch alone is `jax.jacfwd`'s directions over one body.
+        tangent = [False] * len(leaves)
+        if self._tangents is not None and self._tangents < len(args):
+            start = len(jax.tree_util.tree_leaves(args[: self._tangents]))
+            stop = start + len(jax.tree_util.tree_leaves(args[self._tangents]))
+            tangent[start:stop] = [True] * (stop - start)
+        tangent = [tangent[i] for i in where]
 
         def solve(dynamic, leaves, tree):
             leaves = list(leaves)
@@ -200,8 +225,35 @@ class OwnProgram:
         @one_body.def_vmap
         def batch(axis_size, in_batched, dynamic):
             del axis_size
-            out = jax.vmap(lambda d: solve(d, leaves, tree), in_axes=([0 if b else None for b in in_batched[0]],))(dynamic)
+            axes = [0 if b else None for b in in_batched[0]]
+            if not any(b and not t for b, t in zip(in_batched[0], tangent)):
+                return directions(axes, dynamic)
+            out = jax.vmap(lambda d: solve(d, leaves, tree), in_axes=(axes,))(dynamic)
             return out, jax.tree_util.tree_map(lambda _: True, out)
+
+        def directions(axes, dynamic):
+            """One body's derivative in a batch of directions (the tangents
+            batched, ``axes``), in the one-body form, unless a ``jax.vmap``
+            later batches the body too: then, as for a batch, the arguments
+            as given.  The output is ``(primal, tangent)``, the primal the
+            same in every direction."""
+
+            @jax.custom_batching.custom_vmap
+            def one_body_directions(dynamic):
+                return jax.vmap(lambda d: solve(d, leaves_one, tree_one), in_axes=(axes,), out_axes=(None, 0))(dynamic)
+
+            @one_body_directions.def_vmap
+            def bodies(axis_size, in_batched, dynamic):
+                del axis_size
+                inner = jax.vmap(lambda d: solve(d, leaves, tree), in_axes=(axes,), out_axes=(None, 0))
+                if not any(in_batched[0]):  # (as JAX's derivative of this rule calls it)
+                    out = inner(dynamic)
+                    return out, jax.tree_util.tree_map(lambda _: False, out)
+                out = jax.vmap(inner, in_axes=([0 if b else None for b in in_batched[0]],))(dynamic)
+                return out, jax.tree_util.tree_map(lambda _: True, out)
+
+            out = one_body_directions(dynamic)
+            return out, (jax.tree_util.tree_map(lambda _: False, out[0]), jax.tree_util.tree_map(lambda _: True, out[1]))
 
         out_dynamic = one_body([leaves[i] for i in where])
         return eqx.combine(out_dynamic, out_static[0])

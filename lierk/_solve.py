@@ -276,7 +276,22 @@ def _differentiable_program_jvp(primals, tangents):
     return _program_jvp(primals[0], tangents[0])
 
 
-@functools.partial(OwnProgram, tangents=1)
+def _one_body_jvp_args(args, t_args):
+    """`_program_jvp`'s arguments for the derivative of one body's solve:
+    the solver's form for it (`lierk.AbstractSolver.for_one_body` with
+    ``derivatives=True``), in the arguments and their tangents alike."""
+    n = args[7]
+
+    def prepared(a):
+        problem, solver, *rest = a
+        if isinstance(solver, AbstractSolver):
+            solver = solver.for_one_body(n, derivatives=True)
+        return (problem, solver, *rest)
+
+    return prepared(args), prepared(t_args)
+
+
+@functools.partial(OwnProgram, tangents=1, one_body=_one_body_jvp_args)
 def _program_jvp(args, t_args):
     """``(solution, tangent)`` of `_program` at ``args`` in the direction
     ``t_args`` (None: not perturbed), as one program."""

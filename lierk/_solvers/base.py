@@ -100,12 +100,15 @@ class AbstractSolver(eqx.Module):
         its norm."""
         return norm(*error[0])
 
-    def for_derivatives(self) -> "AbstractSolver":
+    def for_derivatives(self, one_body: bool = False) -> "AbstractSolver":
         """This solver as a differentiated solve takes it: itself, unless a
-        form that compiles faster pays there (`lierk.AbstractRKMK`)."""
+        form that compiles faster pays there (`lierk.AbstractRKMK`).
+        ``one_body``: the derivative of one body's solve, no batch (a
+        `jax.jacfwd` of it inside a caller's `jax.jit`, or from Python),
+        where a form that compiles faster pays sooner."""
         return self
 
-    def for_one_body(self, max_steps: int | None) -> "AbstractSolver":
+    def for_one_body(self, max_steps: int | None, derivatives: bool = False) -> "AbstractSolver":
         """This solver as a solve of one body of at most ``max_steps`` steps
         takes it: on the CPU, and for at most 4096 steps
         (``lierk._solvers.base.MOST_STEPS_LOOPED``, the adaptive solves'
@@ -118,10 +121,11 @@ class AbstractSolver(eqx.Module):
         sooner: from Python lierk's per-call work on the host is most of
         each later call's time, and inside a caller's ``jit`` it would run
         thousands of times before a faster run paid for a slower compile.
-        A long one does not."""
+        A long one does not.  ``derivatives``: the form for the derivative of
+        one body's solve (`for_derivatives` with ``one_body=True``)."""
         if jax.default_backend() != "cpu" or max_steps is None or max_steps > MOST_STEPS_LOOPED:
             return self
-        return self.for_derivatives()
+        return self.for_derivatives(one_body=derivatives)
 
     @property
     def name(self) -> str:
