@@ -240,7 +240,23 @@ class OwnProgram:
 
             @jax.custom_batching.custom_vmap
             def one_body_directions(dynamic):
-                return jax.vmap(lambda d: solve(d, leaves_one, tree_one), in_axes=(axes,), out_axes=(None, 0))(dynamic)
+                # The tangent is linear in the directions and the primal does
+                # not read them: linearised, the batch goes through the
+                # linear map alone.  A `jax.vmap` of the whole program
+                # batched every nested program and loop in it (JAX's rules
+                # for those run whether or not an input is batched: 0.27 s
+                # of a heavy top's 0.7 s trace).
+                where = [i for i, a in enumerate(axes) if a is not None]
+
+                def at(directions):
+                    d = list(dynamic)
+                    for i, x in zip(where, directions):
+                        d[i] = x
+                    return solve(d, leaves_one, tree_one)
+
+                (primal, _), linear = jax.linearize(at, [dynamic[i][0] for i in where])
+                _, tangent = jax.vmap(linear)([dynamic[i] for i in where])
+                return primal, tangent
 
             @one_body_directions.def_vmap
             def bodies(axis_size, in_batched, dynamic):
