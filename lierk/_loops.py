@@ -535,15 +535,16 @@ def _adaptive_loop(
         # the solver's own accuracy (no interpolation error), then on t1.
         stop = t1 if ts_req is None else jnp.min(jnp.where(ts_req > c.t, ts_req, t1))
         remaining = stop - c.t
+        h_proposed = controller.bound(ctrl_state, problem, solver, c.t, c.R, c.y, c.f, c.h)
         # A step within rounding of the remaining time ends on the stop (as
         # `step_count` snaps fixed steps): steps of a constant dt that add up
         # to a save time, up to the rounding of the times, would otherwise
         # leave a step of a few ulps.
         eps = jnp.finfo(remaining.dtype).eps
-        snap = jnp.minimum(jnp.maximum(1e-9 * c.h, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(stop))), 0.5 * c.h)
-        clipped = c.h + snap >= remaining
+        snap = jnp.minimum(jnp.maximum(1e-9 * h_proposed, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(stop))), 0.5 * h_proposed)
+        clipped = h_proposed + snap >= remaining
         last = clipped & (stop >= t1)
-        t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(c.h))
+        t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(h_proposed))
         # Step by exactly the time the clock advances: far from t = 0, c.t + h
         # rounds, and a state advanced by h would drift from its time stamp.
         # (c.h is a decision, out of the gradient; a step clipped to t1 or a
@@ -555,7 +556,7 @@ def _adaptive_loop(
         else:
             st = solver.step(problem, c.t, h, c.R, c.y, c.f)
         d = controller.adapt(
-            ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=c.h, clipped=clipped, t1=t1, R=c.R, y=c.y,
+            ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=h_proposed, clipped=clipped, t1=t1, R=c.R, y=c.y,
             f=c.f, rejected_last=c.rejected_last,
         )
         accept, h_out, decisions = _decide(c, d, h, record, replay)

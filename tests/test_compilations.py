@@ -340,3 +340,31 @@ def test_one_bodys_adaptive_solve_compiles_few_kernels():
     text = jax.jit(final).lower(jax.numpy.array([1.0, 0.3, 20.0]), jax.numpy.asarray(1e-8)).compile().as_text()
     kernels = text.count(" fusion(") + text.count(" dot(")
     assert kernels <= 60, f"{kernels} kernels in one body's adaptive DOP853 solve (77 before they were written to fuse)"
+
+
+def test_one_bodys_jacobian_compiles_one_linearisation_and_few_kernels(monkeypatch):
+    # A differentiated adaptive solve bounds its steps by the body's modes
+    # (`Controller.resolve_modes`), a linearisation of the effects' torque.
+    # Applied where each step starts (`Controller.bound`), it is in the
+    # program once, not a second time for the first step; with the other
+    # rewrites of 2026-11-28 the heavy top's jit(jacfwd) of an adaptive
+    # DOP853 solve went from 133 kernels to 99 (121 -> 89 with the suite's
+    # quick XLA flags).
+    traced = []
+    modes = lierk.RigidBodyWithEffects.modes
+
+    def spy(self, *args):
+        traced.append(1)
+        return modes(self, *args)
+
+    monkeypatch.setattr(lierk.RigidBodyWithEffects, "modes", spy)
+
+    def final(w, tol):
+        top = lierk.RigidBodyWithEffects([2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),))
+        return lierk.solve(top, lierk.DOP853(), 1.0, rtol=tol, atol=tol, throw=False).R[-1]
+
+    lowered = jax.jit(jax.jacfwd(final)).lower(jax.numpy.array([1.0, 0.3, 20.0]), jax.numpy.asarray(1e-8))
+    assert len(traced) == 1, f"the mode bounds traced {len(traced)} times"
+    text = lowered.compile().as_text()
+    kernels = text.count(" fusion(") + text.count(" dot(")
+    assert kernels <= 105, f"{kernels} kernels in one body's jit(jacfwd) of an adaptive DOP853 solve (133 before)"
