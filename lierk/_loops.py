@@ -547,7 +547,7 @@ def _adaptive_loop(
         t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(h_proposed))
         # Step by exactly the time the clock advances: far from t = 0, c.t + h
         # rounds, and a state advanced by h would drift from its time stamp.
-        # (c.h is a decision, out of the gradient; a step clipped to t1 or a
+        # (The proposal is a decision, out of the gradient; a step clipped to t1 or a
         # save time moves with it, so derivatives in t0, t1 and the save
         # times are those of the solve.)
         h = t_new - c.t

@@ -17,7 +17,12 @@ while a batch runs 1.6 to 2x slower in the loop.  Tracing a ``jax.jit``,
 lierk cannot tell one body from a batch (``jax.vmap`` of a jitted function
 batches the program traced for one body), so the solve goes through a
 batching rule (``jax.custom_batching.custom_vmap``): a ``jax.vmap`` of it,
-now or later, solves the batch with the stages unrolled.
+now or later, solves the batch with the stages unrolled.  One body's
+Jacobian (``jax.jacfwd``, whose directions batch the tangents alone) takes
+the one-body form too (RKMK4's stages loop there as well), through a second
+such rule for a batch of bodies; its directions batch only the linearised
+program (`jax.linearize`), as JAX's rules batch a nested program or loop
+whether or not an input of it is batched.
 """
 
 from __future__ import annotations
@@ -246,17 +251,17 @@ class OwnProgram:
                 # batched every nested program and loop in it (JAX's rules
                 # for those run whether or not an input is batched: 0.27 s
                 # of a heavy top's 0.7 s trace).
-                where = [i for i, a in enumerate(axes) if a is not None]
+                batched = [i for i, a in enumerate(axes) if a is not None]
 
                 def at(directions):
                     d = list(dynamic)
-                    for i, x in zip(where, directions):
+                    for i, x in zip(batched, directions):
                         d[i] = x
                     return solve(d, leaves_one, tree_one)
 
-                (primal, _), linear = jax.linearize(at, [dynamic[i][0] for i in where])
-                _, tangent = jax.vmap(linear)([dynamic[i] for i in where])
-                return primal, tangent
+                (primal, _), linear = jax.linearize(at, [dynamic[i][0] for i in batched])
+                _, t_out = jax.vmap(linear)([dynamic[i] for i in batched])
+                return primal, t_out
 
             @one_body_directions.def_vmap
             def bodies(axis_size, in_batched, dynamic):
