@@ -120,6 +120,15 @@ class ConstantStep(AbstractStepController):
         return Decision(jnp.asarray(True), h_proposed, h <= 0, ~finite, None)
 
 
+def _modes_step(modes) -> Array:
+    """The largest step (s) that `Controller.largest_step`'s ``modes``
+    ``(rho, angle, decay)`` allow: the phase ``rho h`` at most ``angle``,
+    and ``h decay`` at most 2."""
+    rho, angle, decay = modes
+    turn = jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf)
+    return jnp.minimum(turn, jnp.where(decay > 0, 2.0 / jnp.where(decay > 0, decay, 1.0), jnp.inf))
+
+
 def _compact(solver) -> bool:
     """Whether ``solver`` loops over its stages (`lierk.AbstractRKMK.compact`
     True: one body's solve, a differentiated one): the controller's helpers
@@ -261,10 +270,12 @@ class Controller(AbstractStepController):
         speed2 = so3._sq(omega) if compact else jnp.sum(omega * omega, axis=-1)
         turn = jnp.where(speed2 > 0, self.max_angle / jnp.sqrt(jnp.where(speed2 > 0, speed2, 1.0)), jnp.inf)
         if modes is not None:
-            rho, angle, decay = modes
-            turn = jnp.minimum(turn, jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf))
-            turn = jnp.minimum(turn, jnp.where(decay > 0, 2.0 / jnp.where(decay > 0, decay, 1.0), jnp.inf))
-        return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, turn)))
+            turn = jnp.minimum(turn, _modes_step(modes))
+        return self._within_limits(turn)
+
+    def _within_limits(self, h: Array) -> Array:
+        """``h`` within ``[dtmin, dtmax]``, a decision (no derivative)."""
+        return jax.lax.stop_gradient(jnp.maximum(self.dtmin, jnp.minimum(self.dtmax, h)))
 
     def norm(self, e_u: Array, e_y, tol_y) -> Array:
         """RMS of the scaled error over the algebra's 3 components and y's:
@@ -330,7 +341,9 @@ class Controller(AbstractStepController):
         ctrl, _, mode_angle = state
         if mode_angle is None:
             return h
-        return jnp.minimum(h, ctrl.largest_step(f[0], self._modes(problem, t, R, y, mode_angle), compact=_compact(solver)))
+        # The turn bound of omega is `adapt`'s, already in ``h``:
+        # min(within(a), within(b)) = within(min(a, b)).
+        return jnp.minimum(h, ctrl._within_limits(_modes_step(self._modes(problem, t, R, y, mode_angle))))
 
     def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last):
         ctrl, calibration, mode_angle = state

@@ -106,7 +106,9 @@ def all_finite(tree, *, compact: bool = False) -> jax.Array:
     compile on CPU apiece), for one body's solve; a batch of 64 ran 8% slower
     that way (free bodies, DP54)."""
     leaves = jax.tree_util.tree_leaves(tree)
-    if compact and leaves:
+    if not leaves:
+        return jnp.asarray(True)
+    if compact:
         dtype = jnp.result_type(*leaves)
         return jnp.all(jnp.isfinite(jnp.concatenate([jnp.ravel(x).astype(dtype) for x in leaves])))
     return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
