@@ -9,6 +9,7 @@ not depend on what ran before it."""
 
 from __future__ import annotations
 
+import gc
 from pathlib import Path
 
 import equinox as eqx
@@ -95,6 +96,57 @@ def _compiles(calls) -> list[int]:
 
 def _body(inertia, omega0):
     return lierk.RigidBodyWithEffects(inertia, omega0, effects=(lierk.Gravity([0.0, 0.1, 0.4], 1.0),))
+
+
+class _CollectorProbe(lierk.BodyTorque):
+    """A constant body torque that records, each time it is traced, whether
+    Python's cyclic garbage collector is on, or raises (``fail``).  Each
+    ``tag`` is a structure of its own: a solve with it is traced afresh."""
+
+    tag: int = eqx.field(static=True)
+    fail: bool = eqx.field(static=True)
+
+    def __init__(self, tag, fail=False):
+        super().__init__([0.0, 0.0, 0.1])
+        self.tag, self.fail = tag, fail
+
+    def torque_from(self, t, v, m, omega):
+        _COLLECTOR_SEEN.append(gc.isenabled())
+        if self.fail:
+            raise RuntimeError("probe")
+        return super().torque_from(t, v, m, omega)
+
+
+_COLLECTOR_SEEN: list[bool] = []
+
+
+def test_the_collector_is_held_off_while_lierk_traces_and_left_as_it_was():
+    # Tracing allocates objects that live until the trace ends; the
+    # collector's passes over them were a tenth of a Jacobian's trace.
+    def solve(w, probe):
+        problem = lierk.RigidBodyWithEffects([2.0, 3.0, 4.0], w, effects=(probe,))
+        return lierk.solve(problem, lierk.RKMK4(), 0.1, dt=0.05).R
+
+    w = np.array([0.3, -0.2, 1.0])
+    assert gc.isenabled()
+    calls = (lambda: solve(w, _CollectorProbe(1)),  # from Python: lierk's own program
+             lambda: jax.jit(solve)(w, _CollectorProbe(2)),  # inside a caller's trace
+             lambda: jax.jacfwd(solve)(w, _CollectorProbe(3)))
+    for call in calls:
+        _COLLECTOR_SEEN.clear()
+        call()
+        assert _COLLECTOR_SEEN and not any(_COLLECTOR_SEEN)
+        assert gc.isenabled()
+    # A trace that fails turns it back on; a caller's choice to hold it off stays.
+    with pytest.raises(RuntimeError, match="probe"):
+        solve(w, _CollectorProbe(4, fail=True))
+    assert gc.isenabled()
+    gc.disable()
+    try:
+        solve(w, _CollectorProbe(5))
+        assert not gc.isenabled()
+    finally:
+        gc.enable()
 
 
 def test_new_numbers_reuse_the_compiled_program():
