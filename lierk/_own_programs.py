@@ -23,6 +23,9 @@ the one-body form too (RKMK4's stages loop there as well), through a second
 such rule for a batch of bodies; its directions batch only the linearised
 program (`jax.linearize`), as JAX's rules batch a nested program or loop
 whether or not an input of it is batched.
+
+While it traces, a call holds Python's cyclic garbage collector off
+(`_without_collection`).
 """
 
 from __future__ import annotations
