@@ -37,8 +37,8 @@ import lierk.app.compilations  # noqa: E402
 # what is loaded by now (jax, lierk, pytest) is never garbage, so frozen it
 # is not scanned again, and a young generation of 100,000 objects (700 by
 # default) is not collected over and over while a trace allocates its
-# long-lived equations.  test_adjoint: 52-57 s -> 47 s, the same peak memory
-# (1.18 GB).  lierk itself holds the collector off while it traces
+# long-lived equations.  test_adjoint alone: 52-57 s -> 47 s (one run each),
+# the same peak memory (1.18 GB).  lierk itself holds the collector off while it traces
 # (lierk._own_programs).
 gc.freeze()
 gc.set_threshold(100_000, 20, 100)
