@@ -305,11 +305,12 @@ def _fixed_stats(taken, solver, tracked: bool = False) -> dict:
     """Step and field-evaluation counts of ``taken`` fixed steps; ``tracked``:
     each step built its interpolant (`AbstractSolver.dense_fevals`)."""
     per_step, initial = solver.dense_fevals if tracked else (0, 0)
+    served = 1 if tracked and solver.dense_serves_first_stage else 0
     return {
         "num_steps": taken,
         "num_accepted_steps": taken,
         "num_rejected_steps": jnp.zeros_like(taken),
-        "num_fevals": initial + taken * (solver.stages + per_step),
+        "num_fevals": initial + taken * (solver.stages + per_step - served),
     }
 
 
@@ -758,7 +759,8 @@ def _adaptive_stats(solver, final: _Carry, f0, dt0, tracked: bool) -> dict[str, 
     # keeps the field at the new point (the FSAL stage or one extra
     # evaluation); one evaluation at t0, plus one inside the automatic
     # first-step estimate.
-    reuses_first_stage = f0 is not None and solver.tableau.fsal
+    # (With no field kept, an interpolant's node may serve it.)
+    reuses_first_stage = solver.tableau.fsal if f0 is not None else tracked and solver.dense_serves_first_stage
     per_step, initial = solver.dense_fevals if tracked else (0, 0)
     fevals_per_attempt = solver.stages - (1 if reuses_first_stage else 0) + per_step
     fevals_setup = (0 if f0 is None else 1 if dt0 is not None else 2) + initial

@@ -148,8 +148,11 @@ def test_stats_count_every_field_evaluation():
     (a host callback in the torque): stages, the first-step estimate, and
     the interpolants that events and dense output build (the Hermite node's
     field and rate at each step's end, DOP853's three extra stages).  These
-    were left out: RKMK4 with an event reported 80 of 122.  A splitting
-    counts its drifts, and runs one kick more a step."""
+    were left out: RKMK4 with an event reported 80 of 122.  The node's
+    field then serves the next step's first stage: 102, where the field at
+    each step's start was computed twice (122), with fixed steps or an
+    adaptive loop whose controller keeps no field (`ConstantStep`).  A
+    splitting counts its drifts, and runs one kick more a step."""
     calls = [0]
 
     def bump():
@@ -164,7 +167,10 @@ def test_stats_count_every_field_evaluation():
     dense = lierk.SaveAt(t1=True, dense=True)
     cases = [
         (lierk.RKMK4(), dict(dt=0.1), 80),
-        (lierk.RKMK4(), dict(dt=0.1, event=event), 122),
+        (lierk.RKMK4(), dict(dt=0.1, event=event), 102),
+        (lierk.RKMK4(), dict(dt0=0.1, controller=lierk.ConstantStep(), event=event), None),
+        (lierk.CF4(), dict(dt=0.1, event=event), 102),
+        (lierk.LieEuler(), dict(dt=0.1, saveat=dense), 42),
         (lierk.DOP853(), dict(rtol=1e-8, atol=1e-8, saveat=dense), None),
         (lierk.DP54(), dict(rtol=1e-8, atol=1e-8, event=event), None),
     ]

@@ -74,7 +74,11 @@ class AbstractSolver(eqx.Module):
         Here a quintic Hermite interpolant from the ends of the step
         (`lierk._interpolation.hermite`); a tableau with a continuous extension
         uses that instead (`lierk.AbstractRKMK`), and the splittings keep no
-        coefficients and take a shortened step (`dense_partial`)."""
+        coefficients and take a shortened step (`dense_partial`).  The node
+        holds the field at the start point: given no ``fsal``, the step takes
+        its first stage from there (`dense_serves_first_stage`)."""
+        if fsal is None and node is not None:
+            fsal = node[0]
         st = self.step(problem, t, h, R, y, fsal)
         node1 = interpolation.node(problem, t + h, st.R, st.y)
         return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
@@ -84,8 +88,19 @@ class AbstractSolver(eqx.Module):
         """Field evaluations that dense output and events add: ``(per step
         attempted, once at the start)``.  Here the Hermite interpolant's
         `dense_node` at each step's end and at ``t0``: the field and its rate
-        along the motion (a JVP, counted as one evaluation), 2 each."""
+        along the motion (a JVP, counted as one evaluation), 2 each (less
+        the first stage the node serves, `dense_serves_first_stage`)."""
         return 2, 2
+
+    @property
+    def dense_serves_first_stage(self) -> bool:
+        """Whether `dense_step`, given no ``fsal``, takes the step's first
+        stage from the start point's node (the field there), so that a step
+        with its interpolant costs one field evaluation fewer than `step`
+        and the node apart.  A fixed-step solve with events or dense output
+        passes no ``fsal``, nor does an adaptive one whose controller keeps
+        no field (``init``'s ``f0`` None)."""
+        return True
 
     def dense_partial(self, problem) -> Any:
         """The interpolant that replaces the coefficients of `dense_step`

@@ -27,7 +27,7 @@ class CF4(AbstractSolver):
 
     def step(self, problem, t, h, R, y, fsal=None):
         b0 = problem.base(t, R, y)
-        w1, g1 = problem.at(b0, t, y)
+        w1, g1 = fsal if fsal is not None else problem.at(b0, t, y)
         b2 = problem.advance(b0, 0.5 * h * w1)
         w2, g2 = problem.at(b2, t + 0.5 * h, combine(y, h, (0.5,), (g1,)))
         b3 = problem.advance(b0, 0.5 * h * w2)

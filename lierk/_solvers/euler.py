@@ -35,6 +35,6 @@ class LieEuler(AbstractSolver):
     order: ClassVar[int] = 1
 
     def step(self, problem, t, h, R, y, fsal=None):
-        omega, ydot = problem.at(problem.base(t, R, y), t, y)
+        omega, ydot = fsal if fsal is not None else problem.at(problem.base(t, R, y), t, y)
         u = h * omega
         return Step(so3.right_exp(R, u), combine(y, h, (1.0,), (ydot,)), None, None)

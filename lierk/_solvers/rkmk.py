@@ -214,6 +214,12 @@ class AbstractRKMK(AbstractSolver):
         else the Hermite interpolant's (`AbstractSolver.dense_fevals`)."""
         return (len(self.tableau.dense_c), 0) if self.tableau.dense else super().dense_fevals
 
+    @property
+    def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
+        """The Hermite node's field serves the first stage; a continuous
+        extension keeps no node."""
+        return not self.tableau.dense
+
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
         tab = self.tableau
         if not tab.dense:
