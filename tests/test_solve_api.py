@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 
 import lierk
 from lierk import so3
+from lierk._solvers.base import Step
 
 R0_GENERIC = Rotation.from_rotvec([0.3, -0.2, 0.5]).as_matrix()
 
@@ -143,6 +144,17 @@ def test_vmap_over_the_times_and_atol_with_concrete_save_times_and_rtol():
         jax.vmap(lambda t1: saved(t1=t1))(np.array([1.5, 0.7]))
 
 
+class _OwnLieEuler(lierk.AbstractSolver):
+    """A solver of one's own that evaluates its first stage itself, given
+    ``fsal`` or not (`AbstractSolver.dense_serves_first_stage` False)."""
+
+    order = 1
+
+    def step(self, problem, t, h, R, y, fsal=None):
+        omega, ydot = problem.at(problem.base(t, R, y), t, y)
+        return Step(lierk.so3.right_exp(R, h * omega), y + h * ydot, None, None)
+
+
 def test_stats_count_every_field_evaluation():
     """``num_fevals`` against a count of the field's evaluations at run time
     (a host callback in the torque): stages, the first-step estimate, and
@@ -171,6 +183,7 @@ def test_stats_count_every_field_evaluation():
         (lierk.RKMK4(), dict(dt0=0.1, controller=lierk.ConstantStep(), event=event), None),
         (lierk.CF4(), dict(dt=0.1, event=event), 102),
         (lierk.LieEuler(), dict(dt=0.1, saveat=dense), 42),
+        (_OwnLieEuler(), dict(dt=0.1, saveat=dense), 62),  # its first stage its own: no saving, and none counted
         (lierk.DOP853(), dict(rtol=1e-8, atol=1e-8, saveat=dense), None),
         (lierk.DP54(), dict(rtol=1e-8, atol=1e-8, event=event), None),
     ]

@@ -94,13 +94,17 @@ class AbstractSolver(eqx.Module):
 
     @property
     def dense_serves_first_stage(self) -> bool:
-        """Whether `dense_step`, given no ``fsal``, takes the step's first
+        """Whether `dense_step`, given no ``fsal``, serves the step's first
         stage from the start point's node (the field there), so that a step
         with its interpolant costs one field evaluation fewer than `step`
-        and the node apart.  A fixed-step solve with events or dense output
-        passes no ``fsal``, nor does an adaptive one whose controller keeps
-        no field (``init``'s ``f0`` None)."""
-        return True
+        and the node apart: a solver whose `step` takes a given ``fsal`` as
+        its first stage, with this Hermite `dense_step` (`LieEuler`, `CF4`,
+        an RKMK tableau without a continuous extension).  False here, so
+        that the counts of a solver of one's own that evaluates its first
+        stage anyway are right.  A fixed-step solve with events or dense
+        output passes no ``fsal``, nor does an adaptive one whose controller
+        keeps no field (``init``'s ``f0`` None)."""
+        return False
 
     def dense_partial(self, problem) -> Any:
         """The interpolant that replaces the coefficients of `dense_step`

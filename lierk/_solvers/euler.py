@@ -38,3 +38,7 @@ class LieEuler(AbstractSolver):
         omega, ydot = fsal if fsal is not None else problem.at(problem.base(t, R, y), t, y)
         u = h * omega
         return Step(so3.right_exp(R, u), combine(y, h, (1.0,), (ydot,)), None, None)
+
+    @property
+    def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
+        return True

@@ -156,10 +156,6 @@ class AbstractSplitting(AbstractSolver):
         # that depends on the root finder's iterations (not counted).
         return 0, 0
 
-    @property
-    def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
-        return False  # (no node)
-
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
         st = self.step(problem, t, h, R, y, fsal)
         empty = lambda a: jnp.zeros((0,) + jnp.shape(a), jnp.result_type(a))  # noqa: E731
