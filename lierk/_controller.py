@@ -121,9 +121,10 @@ class ConstantStep(AbstractStepController):
 
 
 def _modes_step(modes) -> Array:
-    """The largest step (s) that `Controller.largest_step`'s ``modes``
-    ``(rho, angle, decay)`` allow: the phase ``rho h`` at most ``angle``,
-    and ``h decay`` at most 2."""
+    """The largest step (s) that ``modes`` ``(rho, angle, decay)`` allow (a
+    mode frequency, rad/s; the largest phase, rad, it may turn per step; a
+    decay rate, 1/s): the phase ``rho h`` at most ``angle``, and ``h decay``
+    at most 2, within stability."""
     rho, angle, decay = modes
     turn = jnp.where(rho > 0, angle / jnp.where(rho > 0, rho, 1.0), jnp.inf)
     return jnp.minimum(turn, jnp.where(decay > 0, 2.0 / jnp.where(decay > 0, decay, 1.0), jnp.inf))
@@ -256,21 +257,17 @@ class Controller(AbstractStepController):
         structure = jax.tree_util.tree_structure(Controller(resolve_modes=True))
         return jax.tree_util.tree_unflatten(structure, jax.tree_util.tree_leaves(self))
 
-    def largest_step(self, omega: Array, modes: tuple[Array, Array] | None = None, *, compact: bool = False) -> Array:
+    def largest_step(self, omega: Array, *, compact: bool = False) -> Array:
         """The largest step (s) the controller proposes when a step starts at
         body angular velocity ``omega`` ``(..., 3)`` (rad/s): ``dtmax``, and
         at most ``max_angle / |omega|``, but never below ``dtmin`` (a bound the
-        user set explicitly wins).  ``modes``: ``(rho, angle, decay)``, a mode
-        frequency (rad/s), the largest phase (rad) it may turn per step, and
-        a decay rate (1/s) the step keeps within stability (``h decay <= 2``).
-        ``compact``: ``|omega|`` entry by entry, which XLA fuses with its
+        user set explicitly wins).  The mode bounds (``resolve_modes``) apply
+        where each step starts (`bound`).  ``compact``: ``|omega|`` entry by entry, which XLA fuses with its
         neighbours, where a reduction is a kernel of its own (about 5 ms of a
         first compile on CPU), for one body's solve; a batch of 64 free bodies
         (DP54) ran 4% slower that way.  The same numbers either way."""
         speed2 = so3._sq(omega) if compact else jnp.sum(omega * omega, axis=-1)
         turn = jnp.where(speed2 > 0, self.max_angle / jnp.sqrt(jnp.where(speed2 > 0, speed2, 1.0)), jnp.inf)
-        if modes is not None:
-            turn = jnp.minimum(turn, _modes_step(modes))
         return self._within_limits(turn)
 
     def _within_limits(self, h: Array) -> Array:

@@ -126,10 +126,10 @@ def _without_collection():
     program (and, called from Python, lowers, compiles and starts it):
     tracing allocates hundreds of thousands of objects that live until the
     trace ends, so the collector's passes find little to free and scan all
-    of them (the whole process's heap in its oldest generation).  They were 0.07 to 0.1 s of a heavy
-    top's 0.6 s `jit(jacfwd)` trace.  What the call leaves for collection
-    is collected at the next pass after it.  Nested calls leave the
-    collector as the outermost found it."""
+    of them (the whole process's heap in its oldest generation).  They were
+    0.07 to 0.1 s of a heavy top's 0.6 s `jit(jacfwd)` trace.  What the
+    call leaves for collection is collected at the next pass after it.
+    Nested calls leave the collector as the outermost found it."""
     if not gc.isenabled():
         yield
         return

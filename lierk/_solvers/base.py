@@ -57,6 +57,17 @@ class AbstractSolver(eqx.Module):
     # Why this solver's steps have no interpolant (so no dense output and no
     # events), or None: tools ask it before they add an event of their own.
     no_interpolant: ClassVar[str | None] = None
+    # Whether `dense_step`, given no ``fsal``, serves the step's first stage
+    # from the start point's node (the field there), so that a step with its
+    # interpolant costs one field evaluation fewer than `step` and the node
+    # apart: a solver whose `step` takes a given ``fsal`` as its first stage,
+    # with the Hermite `dense_step` (`LieEuler`, `CF4`, an RKMK tableau
+    # without a continuous extension).  False by default, so that the counts
+    # of a solver of one's own that evaluates its first stage anyway are
+    # right.  A fixed-step solve with events or dense output passes no
+    # ``fsal``, nor does an adaptive one whose controller keeps no field
+    # (``init``'s ``f0`` None).
+    dense_serves_first_stage: ClassVar[bool] = False
 
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
@@ -91,20 +102,6 @@ class AbstractSolver(eqx.Module):
         along the motion (a JVP, counted as one evaluation), 2 each (less
         the first stage the node serves, `dense_serves_first_stage`)."""
         return 2, 2
-
-    @property
-    def dense_serves_first_stage(self) -> bool:
-        """Whether `dense_step`, given no ``fsal``, serves the step's first
-        stage from the start point's node (the field there), so that a step
-        with its interpolant costs one field evaluation fewer than `step`
-        and the node apart: a solver whose `step` takes a given ``fsal`` as
-        its first stage, with this Hermite `dense_step` (`LieEuler`, `CF4`,
-        an RKMK tableau without a continuous extension).  False here, so
-        that the counts of a solver of one's own that evaluates its first
-        stage anyway are right.  A fixed-step solve with events or dense
-        output passes no ``fsal``, nor does an adaptive one whose controller
-        keeps no field (``init``'s ``f0`` None)."""
-        return False
 
     def dense_partial(self, problem) -> Any:
         """The interpolant that replaces the coefficients of `dense_step`

@@ -24,6 +24,7 @@ class CF4(AbstractSolver):
 
     order: ClassVar[int] = 4
     stages: ClassVar[int] = 4
+    dense_serves_first_stage: ClassVar[bool] = True
 
     def step(self, problem, t, h, R, y, fsal=None):
         b0 = problem.base(t, R, y)
@@ -38,7 +39,3 @@ class CF4(AbstractSolver):
         ub = (h / 12.0) * (-w1 + 2.0 * w2 + 2.0 * w3 + 3.0 * w4)
         y1 = combine(y, h, (1 / 6, 1 / 3, 1 / 3, 1 / 6), (g1, g2, g3, g4))
         return Step(so3.right_exp(R, ua, ub), y1, None, None)
-
-    @property
-    def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
-        return True

@@ -33,12 +33,9 @@ class LieEuler(AbstractSolver):
     """The report's eq. 25, ``W_{i+1} = W_i exp(h hat(omega_i))``.  Order 1, stays on SO(3)."""
 
     order: ClassVar[int] = 1
+    dense_serves_first_stage: ClassVar[bool] = True
 
     def step(self, problem, t, h, R, y, fsal=None):
         omega, ydot = fsal if fsal is not None else problem.at(problem.base(t, R, y), t, y)
         u = h * omega
         return Step(so3.right_exp(R, u), combine(y, h, (1.0,), (ydot,)), None, None)
-
-    @property
-    def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
-        return True

@@ -74,8 +74,8 @@ class AbstractRKMK(AbstractSolver):
             CPU (`jax.jacfwd` inside a caller's `jax.jit` or from Python,
             `lierk.sensitivity`), which loops RKMK4's four as well (a
             spacecraft's first ``jit(jacfwd)``: 135 kernels unrolled, 71
-            looped; each run 0.65 -> 0.75-0.88 ms; a batch of Jacobians unrolls).  One
-            body: called from Python (a heavy top's first DOP853 solve 1.2 ->
+            looped; each run 0.65 -> 0.75-0.88 ms; a batch of Jacobians
+            unrolls).  One body: called from Python (a heavy top's first DOP853 solve 1.2 ->
             0.5 s, each later call 0 to 0.6 ms longer, beside about 1 ms of
             host work per call) or inside a caller's ``jax.jit`` (first call
             1.57 -> 0.70 s, each run 0.09 -> 0.21 ms; diffrax's Dopri8: 0.43
