@@ -359,17 +359,15 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 def _state_in_range(inertia, omega0):
     """``omega0``, checked at run time: finite, and a body state within
     `state_range_error`'s bounds, as one check (one program: see
-    `_error_unless_program`)."""
-    messages = (
-        "omega0 has NaN or inf entries: a traced value that failed the check",
-        f"a traced inertia and omega0 give a body state outside {omega0.dtype.name}'s range "
-        "(lierk._validation.state_range_error)",
+    `_error_unless_program`).  One predicate, since a NaN or infinite
+    ``omega0`` makes its squares so, and one message that names both: an
+    index choosing between two messages was an XLA kernel of its own in
+    every solve of a traced ``omega0``."""
+    message = (
+        "omega0 has NaN or inf entries, or a traced inertia and omega0 give a body state outside "
+        f"{omega0.dtype.name}'s range (lierk._validation.state_range_error): a traced value that failed the check"
     )
-    return _error_unless_any((omega0, omega0), (_finite, functools.partial(_in_range, inertia)), messages)[0]
-
-
-def _finite(w):
-    return jnp.isfinite(w[0]) & jnp.isfinite(w[1]) & jnp.isfinite(w[2])
+    return eqx.error_if(omega0, ~_in_range(inertia, omega0), message)
 
 
 def _in_range(I, w):
@@ -539,6 +537,16 @@ def concrete_inertia(inertia: ArrayLike, given: ArrayLike | None = None) -> np.n
             I = np.asarray(source, np.float64)
             return np.diag(I) if I.shape == (3,) else I
     return None
+
+
+def concrete_diagonal(inertia: ArrayLike) -> np.ndarray | None:
+    """The diagonal ``(3,)`` of a concrete inertia with zero off-diagonal
+    entries (given as ``(3,)`` or ``(3, 3)``); None if traced or not diagonal."""
+    I = concrete_inertia(inertia)
+    if I is None:
+        return None
+    d = np.diagonal(I)
+    return None if np.any(I - np.diag(d)) else d
 
 
 @jax.jit
