@@ -382,3 +382,21 @@ def test_moment_spread_is_the_eigenvalues_spread():
         e = np.linalg.eigvalsh(I)
         assert abs(g - (e[-1] - e[0])) <= 1e-7 * e[-1], (g, e)
     assert got[3] <= 1e-7 * 3.0
+
+
+def test_a_diagonal_inertia_gives_gravity_gradient_its_spread_from_the_diagonal():
+    # A concrete diagonal inertia takes max - min of its moments (no cubic to
+    # trace); a rotated or traced one the closed form.  Both the same scale.
+    n = 1.1e-3
+    moments = np.array([10.0, 14.0, 6.0])
+    Q, _ = np.linalg.qr(np.random.default_rng(5).normal(size=(3, 3)))
+    diagonal = lierk.GravityGradient(moments, mean_motion=n)
+    rotated = lierk.GravityGradient(Q @ np.diag(moments) @ Q.T, mean_motion=n)
+    assert diagonal.diagonal and not rotated.diagonal
+    assert float(diagonal.energy_scale()) == 1.5 * n**2 * 8.0
+    np.testing.assert_allclose(float(rotated.energy_scale()), 1.5 * n**2 * 8.0, rtol=1e-9)
+    traced = jax.jit(lambda I: (lierk.GravityGradient(I, mean_motion=n).energy_scale(),
+                                lierk.GravityGradient(I, mean_motion=n).diagonal))
+    scale, flag = traced(jnp.asarray(np.diag(moments)))
+    assert not flag
+    np.testing.assert_allclose(float(scale), 1.5 * n**2 * 8.0, rtol=1e-9)

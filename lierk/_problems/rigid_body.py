@@ -135,7 +135,7 @@ class RigidBodyWithEffects(AbstractRigidBody):
             self.y0 = (m0, w.speeds)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
-        diagonal = _concrete_diagonal(inertia)
+        diagonal = validation.concrete_diagonal(inertia)
         self.diagonal = diagonal is not None
         self.symmetry_axis = None if diagonal is None else _symmetry_axis(diagonal)
 
@@ -609,16 +609,6 @@ def _momentum(inertia: Array, omega0: Array) -> Array:
     inlined, entry by entry (`so3.matvec`): a matrix product is an XLA
     kernel of its own, about 5 ms of a first compile on CPU."""
     return so3.matvec(inertia, omega0)
-
-
-def _concrete_diagonal(inertia: Array) -> np.ndarray | None:
-    """The diagonal ``(3,)`` of a concrete inertia with zero off-diagonal
-    entries (given as ``(3,)`` or ``(3, 3)``); None if traced or not diagonal."""
-    I = validation.concrete_inertia(inertia)
-    if I is None:
-        return None
-    d = np.diagonal(I)
-    return None if np.any(I - np.diag(d)) else d
 
 
 def _symmetry_axis(d: np.ndarray) -> int | None:
