@@ -122,8 +122,11 @@ class GravityGradient(AbstractEffect):
     phase: Array
     position: Callable | None = eqx.field(static=True)
     # Whether the inertia was given as a concrete diagonal matrix: its
-    # moments' spread (`energy_scale`) is then the diagonal's, not the
-    # characteristic cubic's (25 operations to trace, twice a solve).
+    # moments' spread (`energy_scale`, a tolerance's scale) is then the
+    # diagonal's, not the characteristic cubic's (25 operations to trace,
+    # twice a solve).  Like a body's own flag it describes the inertia the
+    # constructor saw: build a new effect for another inertia rather than
+    # swap the array in (`eqx.tree_at`).
     diagonal: bool = eqx.field(static=True)
     reads_momentum: ClassVar[bool] = False
 
