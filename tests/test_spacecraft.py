@@ -395,8 +395,10 @@ def test_a_diagonal_inertia_gives_gravity_gradient_its_spread_from_the_diagonal(
     assert diagonal.diagonal and not rotated.diagonal
     assert float(diagonal.energy_scale()) == 1.5 * n**2 * 8.0
     np.testing.assert_allclose(float(rotated.energy_scale()), 1.5 * n**2 * 8.0, rtol=1e-9)
-    traced = jax.jit(lambda I: (lierk.GravityGradient(I, mean_motion=n).energy_scale(),
-                                lierk.GravityGradient(I, mean_motion=n).diagonal))
-    scale, flag = traced(jnp.asarray(np.diag(moments)))
+    def traced(I):
+        effect = lierk.GravityGradient(I, mean_motion=n)
+        return effect.energy_scale(), effect.diagonal
+
+    scale, flag = jax.jit(traced)(jnp.asarray(np.diag(moments)))
     assert not flag
     np.testing.assert_allclose(float(scale), 1.5 * n**2 * 8.0, rtol=1e-9)
