@@ -239,15 +239,22 @@ def run_cell(cell: dict) -> dict:
         jax.block_until_ready(g(w0, s))
         out.update(first=time.perf_counter() - t0)
         return out
+    # ``options``: the caller's jit passes lierk's one-body compile options
+    # (`benchmarks/compiler_options.py`).
+    opts = None
+    if cell.get("options"):
+        import lierk
+
+        opts = lierk.one_body_compiler_options()
     t0 = time.perf_counter()
-    lowered = jax.jit(g).lower(w0, s)
+    lowered = jax.jit(g, compiler_options=opts).lower(w0, s)
     t1 = time.perf_counter()
     compiled = lowered.compile()
     t2 = time.perf_counter()
     jax.block_until_ready(compiled(w0, s))
     t3 = time.perf_counter()
     out.update(trace=t1 - t0, compile=t2 - t1, run=t3 - t2, first=t3 - t0, size=_size(compiled))
-    if work == "solve":
+    if work in ("solve", "jacfwd"):
         times = []
         for i in range(CALLS):
             w = w0 * (1 + 1e-3 * (i + 1))

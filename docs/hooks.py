@@ -90,6 +90,10 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                           "lierk.solve called from Python (one body's program, compiled for the CPU with "
                           "lierk.one_body_compiler_options and the long tableaux' stage loop) beside diffrax's "
                           "diffeqsolve: the first call in a fresh process and 20 later calls."),
+    "compiler_options": ("A first call inside your own jax.jit, with lierk's compile options",
+                         "jax.jit(f) against jax.jit(f, compiler_options=lierk.one_body_compiler_options()) for "
+                         "one body's adaptive solve and its Jacobian, diffrax's jax.jit(f) beside them: the first "
+                         "call in a fresh process and the compiled program's later runs."),
     "compile_time": ("Compilation time",
                      "What one program costs to trace and compile, lierk beside diffrax."),
     "latency": ("The command line, cold and warm",
