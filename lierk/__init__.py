@@ -63,7 +63,7 @@ from ._problems.spacecraft import MagneticTorque as MagneticTorque
 from ._problems.spacecraft import ReactionWheels as ReactionWheels
 from ._problems.spacecraft import Rotor as Rotor
 from ._problems.spacecraft import dipole_field as dipole_field
-from ._own_programs import one_body_compiler_options as one_body_compiler_options
+from ._programs import one_body_compiler_options as one_body_compiler_options
 from ._progress import Progress as Progress
 from ._sensitivity import Sensitivity as Sensitivity
 from ._sensitivity import sensitivity as sensitivity

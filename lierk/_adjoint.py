@@ -48,7 +48,7 @@ import numpy as np
 from jax.flatten_util import ravel_pytree
 
 from ._controller import Controller
-from ._solvers.base import AbstractSolver
+from ._programs import by_batch, in_form
 
 __all__ = ["AbstractAdjoint", "ForwardSensitivity", "RecursiveCheckpointAdjoint", "ForwardMode", "DirectAdjoint"]
 
@@ -63,9 +63,11 @@ class AbstractAdjoint(eqx.Module):
     def checkpoints(self) -> int | None:
         return None
 
-    def run(self, loop: Callable, fixed: bool, *args) -> Any:
+    def run(self, loop: Callable, fixed: bool, *args, steps: int | None = None) -> Any:
         """``loop(adjoint, *args)``, the solve, differentiated as this adjoint
-        says.  ``fixed``: the loop takes fixed steps (a `lax.scan`)."""
+        says.  ``fixed``: the loop takes fixed steps (a `lax.scan`);
+        ``steps``: its most steps (static), which decides the form of a
+        Jacobian's program (`lierk._programs`)."""
         return loop(self, *args)
 
 
@@ -153,7 +155,7 @@ class ForwardSensitivity(AbstractAdjoint):
                 f"got {type(self.fallback).__name__}()"
             )
 
-    def run(self, loop: Callable, fixed: bool, *args) -> Any:
+    def run(self, loop: Callable, fixed: bool, *args, steps: int | None = None) -> Any:
         limit = self.max_inputs if self.max_inputs is not None else (6 if fixed else 32)
         # The derivative's loop resolves the body's perturbation modes
         # (`Controller.resolve_modes`): about a steady spin the state's error
@@ -161,13 +163,13 @@ class ForwardSensitivity(AbstractAdjoint):
         # (DP54 on a symmetric body spinning about its axis: 1e10 off).  So a
         # differentiated adaptive solve takes those steps, value included;
         # the undifferentiated one keeps its own.
-        tangent = _for_derivatives(loop if fixed else _resolving(loop))
+        tangent = loop if fixed else _resolving(loop)
         loops = (
             functools.partial(loop, ForwardMode()),
             functools.partial(loop, self.fallback),
             functools.partial(tangent, ForwardMode()),
         )
-        kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed)
+        kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed, steps=steps)
         if _may_capture_tracer(args):
             # A function in the problem (a torque profile, an orbit, an event
             # condition) may close over a value that is being differentiated,
@@ -316,21 +318,9 @@ def _is_none(x) -> bool:
 # The primal and the fallback loop ride in the arguments: plain functions
 # are static, closure-converted ones carry their captured values as leaves.
 @eqx.filter_custom_jvp
-def _sensitive(loops_args, *, limit, fallback, fixed):
+def _sensitive(loops_args, *, limit, fallback, fixed, steps):
     (primal, _, _), args = loops_args
     return primal(*args)
-
-
-def _for_derivatives(loop: Callable) -> Callable:
-    """``loop`` with its solver in the form differentiated solves take
-    (`lierk.AbstractSolver.for_derivatives`: the long RKMK tableaux loop over
-    their stages, so the derivative's program, the solve's steps with every
-    direction's tangents, compiles several times faster)."""
-
-    def derivative(*args):
-        return loop(*(a.for_derivatives() if isinstance(a, AbstractSolver) else a for a in args))
-
-    return derivative
 
 
 def _resolving(loop: Callable) -> Callable:
@@ -343,7 +333,7 @@ def _resolving(loop: Callable) -> Callable:
 
 
 @_sensitive.def_jvp
-def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed):
+def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed, steps):
     (loops_args,), (t_loops_args,) = primals, tangents
     live = jtu.tree_map(lambda t, _: t is not None, t_loops_args, loops_args, is_leaf=_is_none)
     inputs, rest = eqx.partition(loops_args, live)
@@ -360,19 +350,43 @@ def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed):
         return eqx.filter_jvp(lambda la: la[0][1](*la[1]), (loops_args,), (t_loops_args,))
     dp, _ = ravel_pytree(t_loops_args)  # the live tangents, in the order of p0 (None leaves are empty)
 
-    def solve(p):
-        (_, _, tangent), args = eqx.combine(unravel(p), rest)
-        return tangent(*args)
+    def jacobian(p0, rest):
+        def solve(p):
+            (_, _, tangent), args = eqx.combine(unravel(p), rest)
+            return tangent(*args)
 
-    def column(e):
-        return eqx.filter_jvp(solve, (p0,), (e,))
+        def column(e):
+            return eqx.filter_jvp(solve, (p0,), (e,))
 
-    # One pass: the primal is the same for every direction (not batched), the
-    # tangents are the Jacobian's columns.  The contraction with ``dp`` is
-    # the only part that reads the input tangents, so reverse mode transposes
-    # just that: J^T times the cotangent.
-    out, J = jax.vmap(column, out_axes=(None, -1))(jnp.eye(p0.size, dtype=p0.dtype))
+        # One pass: the primal is the same for every direction (not
+        # batched), the tangents are the Jacobian's columns.
+        return jax.vmap(column, out_axes=(None, -1))(jnp.eye(p0.size, dtype=p0.dtype))
+
+    # The Jacobian reads the primal inputs only, so its program's form
+    # follows the rule of a call (`lierk._programs`: one body's, unless a
+    # `jax.vmap` batches them), and reverse mode never enters it.  The
+    # contraction with ``dp`` is the only part that reads the input
+    # tangents, so reverse mode transposes just that: J^T times the
+    # cotangent.
+    def forms(form, p0, rest):
+        (primal, fallback, tangent), args = rest
+        formed = in_form(args, form, steps, derivative=True)
+        if jtu.tree_structure(formed) == jtu.tree_structure(args):
+            return p0, rest
+        return p0, ((primal, fallback, _InForm(tangent, form, steps)), args)
+
+    out, J = by_batch(jacobian, forms, p0, rest)
     return out, jtu.tree_map(_contract(dp), J)
+
+
+class _InForm:
+    """A loop that runs with its solver in ``form`` (`lierk._programs.in_form`)."""
+
+    def __init__(self, loop: Callable, form, steps: int | None):
+        self.loop, self.form, self.steps = loop, form, steps
+
+    def __call__(self, *args):
+        return self.loop(*in_form(args, self.form, self.steps, derivative=True))
 
 
 def _contract(dp):

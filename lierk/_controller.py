@@ -220,14 +220,16 @@ class Controller(AbstractStepController):
 
         inf = float("inf")
         rtol, atol = scalar("rtol", rtol), scalar("atol", atol)
-        # One run-time check for the three when they are traced (a sweep over
-        # tolerances).  Keep every checked value: a traced check whose result
-        # is dropped is dead code to XLA.
-        rtol, atol, _ = validation.check_together([
+        # Traced, both are checked in one program (a sweep over tolerances);
+        # keep every checked value: a traced check whose result is dropped
+        # is dead code to XLA.
+        rtol, atol = validation.check_together([
             (rtol, lambda v: (v >= 0) & (v < inf), "rtol must be >= 0 and finite, got {value}"),
             (atol, lambda v: (v >= 0) & (v < inf), "atol must be >= 0 and finite, got {value}"),
-            ((rtol, atol), lambda ra: ra[0] + ra[1] > 0, "rtol + atol must be > 0, got rtol = 0 and atol = 0"),
         ])
+        rtol, atol = validation.check(
+            (rtol, atol), lambda ra: ra[0] + ra[1] > 0, "rtol + atol must be > 0, got rtol = 0 and atol = 0"
+        )
         # Outside these bounds the step-size update cannot converge: a solve
         # would spin until max_steps.
         safety = bounded("safety", safety, lambda v: (v > 0) & (v <= 1), "in (0, 1]")

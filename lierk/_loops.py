@@ -264,7 +264,7 @@ def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps: int |
     ts = jnp.asarray(saveat.ts, dt.dtype)
     starts = jnp.concatenate([t0[None], ts])
     ends = jnp.concatenate([ts, t1[None]])
-    # A bad step (checks skipped under `lierk.checked_on_host`) makes one step of NaN.
+    # A bad step (NaN after its check in the program) makes one step of NaN.
     valid = jnp.isfinite(dt) & (dt > 0)
     bound = jnp.iinfo(jnp.int32).max if max_steps is None else max_steps
 

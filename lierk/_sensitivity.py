@@ -45,7 +45,7 @@ from ._controller import Controller
 from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from ._solution import RESULTS, SaveAt, raise_if_failed
 from ._global_error import finer_options, richardson
-from ._own_programs import OwnProgram
+from ._programs import Program
 from ._solve import num_steps, solve
 from ._solvers import AbstractSplitting
 from ._solvers.base import AbstractSolver
@@ -286,10 +286,7 @@ def sensitivity(
     if not fixed and method == "derivative":
         solve_options = _resolving_modes(solve_options)
     _check_input(problem, wrt)  # bad input raises here, before tracing
-    # A derivative's program holds the solve's steps with every direction's
-    # tangents: the long tableaux loop over their stages there, which
-    # compiles several times faster (`lierk.AbstractRKMK`'s ``compact``).
-    return _sensitivity(problem, solver.for_derivatives(), t1, wrt, mode, method, estimate_error, throw, solve_options)
+    return _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options)
 
 
 # The options that are numbers: traced, so that a new value reuses the program.
@@ -376,7 +373,7 @@ def _variational(problem, wrt: str):
 # One program for the solve, its Jacobian and the estimate's: traced op by op,
 # the few array operations around the solve would each be compiled on its own.
 # A `wrt` function is static: pass the same function to reuse the compilation.
-@OwnProgram
+@Program
 def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options) -> Sensitivity:
     p0, rebuild = _input(problem, wrt)
     jac = jax.jacfwd if mode == "forward" else jax.jacrev

@@ -24,7 +24,15 @@ class RESULTS:
     invariant_drift = 5
     event_occurred = 6
     event_condition_nan = 7
+    invalid_times = 8
+    invalid_step = 9
+    invalid_save_times = 10
+    invalid_tolerances = 11
+    invalid_target = 12
+    invalid_problem = 13
 
+    _traced = ("is NaN, or is traced (inside jax.jit or jax.vmap) and failed the check that raises at once, with "
+               "the value, for a known value: ")
     messages = {
         0: "successful",
         1: "max_steps was reached before t1; raise max_steps or loosen the tolerances",
@@ -39,13 +47,29 @@ class RESULTS:
         6: "a terminating event stopped the solve at the event time (not a failure): the last saved state is the "
         "one at the event; Solution.events says which event and when",
         7: "an event condition returned NaN: cond(t, R, y) must be a finite real number along the motion",
+        8: "t0 or t1 " + _traced + "t1 must be >= t0, both finite; the states are NaN",
+        9: "dt or dt0 " + _traced + "dt must be > 0, a finite number (dt0 too); the states are NaN",
+        10: "a save time " + _traced + "SaveAt(ts=...) must be non-decreasing and lie in [t0, t1]; the states are NaN",
+        11: "a tolerance " + _traced + "rtol must be >= 0 and finite, atol must be >= 0 and finite, rtol + atol "
+        "must be > 0, and safety, facmin, facmax, dtmin, dtmax, max_angle within their bounds (lierk.Controller); "
+        "the states are NaN",
+        12: "target_error " + _traced + "target_error must be > 0; the states are NaN",
+        13: "a value of the problem " + _traced + "inertia must be positive definite (symmetric, finite); R0 must be "
+        "a rotation matrix; omega0 must be finite, and a traced inertia and omega0 give a body state outside "
+        "{dtype}'s range otherwise (lierk.checks.state_range_error); an effect's parameters must be in range "
+        "(positive masses and gains, non-negative damping, positive-definite spin inertias, increasing sample "
+        "times). The states are NaN; build the problem from the concrete values to see which",
     }
+    # Bad inputs, in the order `solve` looks for them (`lierk._solve`).
+    invalid = (invalid_times, invalid_step, invalid_save_times, invalid_tolerances, invalid_target, invalid_problem)
     # Codes that are not failures: `raise_if_failed` passes them and `Solution.ok` is true.
     finished = (successful, event_occurred)
 
     @classmethod
-    def message(cls, code) -> str:
-        return cls.messages[int(code)]
+    def message(cls, code, dtype=None) -> str:
+        """The message of ``code``; ``dtype``: the solve's float type, which
+        `invalid_problem`'s names (default float64)."""
+        return cls.messages[int(code)].replace("{dtype}", np.dtype(dtype or np.float64).name)
 
 
 class SaveAt(eqx.Module):
@@ -261,11 +285,11 @@ class Solution(eqx.Module):
 def raise_if_failed(sol: Solution, throw: bool) -> Solution:
     """With ``throw``, turn a failed result into an error naming it (the
     event codes only when the solve had events): a `RuntimeError` at once
-    when the result is known (read on the host, nothing compiled), a
-    run-time check (`eqx.error_if`) when it is traced."""
+    when the result is known (read on the host, nothing compiled), one
+    run-time check (`eqx.branched_error_if`) when it is traced."""
     if not throw:
         return sol
-    failures = [(code, message) for code, message in RESULTS.messages.items()
+    failures = [(code, RESULTS.message(code, sol.R.dtype)) for code in RESULTS.messages
                 if code not in RESULTS.finished and not (code == RESULTS.event_condition_nan and sol.events is None)]
     if not isinstance(sol.result, jax.core.Tracer):
         result = np.asarray(sol.result)
@@ -273,6 +297,8 @@ def raise_if_failed(sol: Solution, throw: bool) -> Solution:
             if np.any(result == code):
                 raise RuntimeError(f"lierk.solve failed: {message}")
         return sol
-    for code, message in failures:
-        sol = eqx.error_if(sol, jnp.any(sol.result == code), f"lierk.solve failed: {message}")
-    return sol
+    codes = jnp.asarray([code for code, _ in failures], sol.result.dtype)
+    hit = jnp.ravel(sol.result)[:, None] == codes  # (members, failures)
+    index = jnp.argmax(jnp.any(hit, axis=0))
+    messages = tuple(f"lierk.solve failed: {message}" for _, message in failures)
+    return eqx.branched_error_if(sol, jnp.any(hit), index, messages)

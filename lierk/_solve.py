@@ -3,11 +3,11 @@ when asked, to a global-error estimate (`lierk._global_error`)."""
 
 from __future__ import annotations
 
-import contextlib
 import functools
 from typing import Sequence
 
 import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -15,7 +15,7 @@ from jax.typing import ArrayLike
 
 from . import _validation as validation
 from . import _global_error as global_error
-from ._own_programs import OwnProgram, at_top_level
+from ._programs import Program, in_form
 from ._adjoint import AbstractAdjoint, ForwardSensitivity, _may_capture_tracer
 from ._controller import AbstractStepController, ConstantStep, Controller, frozen
 from ._event import Event, events_tuple, with_closures_converted
@@ -193,19 +193,19 @@ def solve(
     else:
         controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
         n = max_steps or global_error.DEFAULT_ADAPTIVE_MAX_STEPS
-    checked = not validation.is_traced(t0, t1, dt, dt0, eps, saveat, controller)
-    args = (problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked)
+    args = (problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events)
     try:
         # A function in the problem that closes over a value being
         # differentiated is seen only by the adjoints' own rules, which
         # closure-convert it (`lierk._adjoint`): those calls take `_program`.
+        # Which program runs is `lierk._programs`' rule.
         if _may_capture_tracer(args):
             sol = _program.default(*args)
-        elif validation.is_traced(args) or not at_top_level():
+        elif validation.is_traced(args):
             sol = _differentiable_program(args)
         else:
-            # A call from Python, nothing to differentiate: the custom
-            # derivative's wrapping alone took 0.3 of a 1.4 ms call.
+            # Concrete values: nothing to differentiate, and the custom
+            # derivative's wrapping is work on the host for every call.
             sol = _program(*args)
     except TypeError as e:
         if dt is not None or eps is not None or "custom_vjp" not in str(e):
@@ -220,41 +220,42 @@ def solve(
     return raise_if_failed(sol, throw)
 
 
-def _one_body_args(problem, solver, t0, t1, dt, dt0, saveat, n, *rest):
-    """`_program`'s arguments for one body's solve: the solver's one-body
-    form for at most ``n`` steps (`lierk.AbstractSolver.for_one_body`)."""
-    return (problem, solver.for_one_body(n), t0, t1, dt, dt0, saveat, n, *rest)
+def _forms(form, problem, solver, t0, t1, dt, dt0, saveat, n, *rest):
+    """`_program`'s arguments with the solver in ``form`` for at most ``n``
+    steps (`lierk._programs.in_form`)."""
+    return (problem, in_form(solver, form, n), t0, t1, dt, dt0, saveat, n, *rest)
 
 
-@functools.partial(OwnProgram, one_body=_one_body_args)
-def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events, checked):
+@functools.partial(Program, forms=_forms)
+def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events):
     """The solve `solve` has checked: ``eps`` (``target_error``), ``dt``
     (fixed steps, ``n`` of them) or ``controller`` (adaptive, at most ``n``
-    attempts) says which.  ``checked``: the values were known and checked on
-    the host, so the program adds no run-time checks of its own (a run-time
-    check is a host callback, which the persistent cache cannot keep)."""
-    with validation.checked_on_host() if checked else contextlib.nullcontext():
-        if eps is not None:
-            sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
-        elif dt is not None and saveat.ts is not None:
-            sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat, n)
-            if estimate_error:
-                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
-        elif dt is not None:
-            sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events)
-            if estimate_error:
-                sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
-        else:
-            sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events)
-            if estimate_error:
-                sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, n, controller, adjoint)
-        # Every output batched whenever an input is: a `jax.vmap` that meets
-        # the solve inside a caller's `jit` solves the batch by a batching
-        # rule that reports every output batched (`OwnProgram`), and JAX
-        # needs the custom derivative's rule to batch its outputs alike (a
-        # `grad` of a `vmap(jit)` failed to lower: the count of saved states
-        # batched in one and not the other).  XLA removes the ties.
-        return _batched_together(_flag_drift(problem, sol), (problem, t0, t1, dt, dt0, saveat, controller, eps, events))
+    attempts) says which.  An input that is NaN, as a traced value that
+    failed its check is (`lierk._validation.check`), ends the solve with
+    its code in `RESULTS.invalid` and NaN states (`_invalid_code`)."""
+    invalid = _invalid_code(problem, t0, t1, dt, dt0, saveat, controller, eps)
+    if eps is not None:
+        sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
+    elif dt is not None and saveat.ts is not None:
+        sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat, n, steps=n)
+        if estimate_error:
+            sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
+    elif dt is not None:
+        sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events, steps=n)
+        if estimate_error:
+            sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
+    else:
+        sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events, steps=n)
+        if estimate_error:
+            sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, n, controller, adjoint)
+    # Every output batched whenever an input is: a `jax.vmap` that meets
+    # the solve inside a caller's `jit` solves the batch by a batching
+    # rule that reports every output batched (`lierk._programs.by_batch`), and JAX
+    # needs the custom derivative's rule to batch its outputs alike (a
+    # `grad` of a `vmap(jit)` failed to lower: the count of saved states
+    # batched in one and not the other).  XLA removes the ties.
+    sol = _marked_invalid(_flag_drift(problem, sol), invalid)
+    return _batched_together(sol, (problem, t0, t1, dt, dt0, saveat, controller, eps, events))
 
 
 # Why a derivative of `solve` is not the derivative of `_program`'s jitted
@@ -276,25 +277,12 @@ def _differentiable_program_jvp(primals, tangents):
     return _program_jvp(primals[0], tangents[0])
 
 
-def _one_body_jvp_args(args, t_args):
-    """`_program_jvp`'s arguments for the derivative of one body's solve:
-    the solver's form for it (`lierk.AbstractSolver.for_one_body` with
-    ``derivatives=True``), in the arguments and their tangents alike."""
-    n = args[7]
-
-    def prepared(a):
-        problem, solver, *rest = a
-        if isinstance(solver, AbstractSolver):
-            solver = solver.for_one_body(n, derivatives=True)
-        return (problem, solver, *rest)
-
-    return prepared(args), prepared(t_args)
-
-
-@functools.partial(OwnProgram, tangents=1, one_body=_one_body_jvp_args)
+@Program
 def _program_jvp(args, t_args):
     """``(solution, tangent)`` of `_program` at ``args`` in the direction
-    ``t_args`` (None: not perturbed), as one program."""
+    ``t_args`` (None: not perturbed), as one program.  The solver keeps the
+    form it was given: `lierk.ForwardSensitivity` computes its Jacobian in
+    a program of its own, by `lierk._programs`' rule."""
     return eqx.filter_jvp(lambda a: _program.__wrapped__(*a), (args,), (t_args,))
 
 
@@ -473,6 +461,26 @@ def _fixed_at_loop(adjoint, problem, solver, t0, t1, dt, saveat, max_steps):
 
 def _adaptive_loop(adjoint, problem, solver, t0, t1, dt0, saveat, max_steps, controller, events):
     return solve_adaptive(problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, events=events)
+
+
+def _invalid_code(problem, t0, t1, dt, dt0, saveat: SaveAt, controller, eps) -> Array:
+    """The `RESULTS.invalid` code of the first input group holding a NaN (a
+    NaN given, or a traced value that failed its check in the program), 0
+    if none: a traced bool per group and one select each."""
+    groups = [(t0, t1), (dt, dt0), saveat.ts, controller, eps, problem]
+    code = jnp.zeros((), jnp.int32)
+    for value, c in reversed(list(zip(groups, RESULTS.invalid))):
+        code = jnp.where(validation.first_invalid(value), c, code)
+    return code
+
+
+def _marked_invalid(sol: Solution, code) -> Solution:
+    """``sol`` with the result ``code`` and NaN states where it is not 0."""
+    bad = code != 0
+    nan = lambda x: jnp.where(bad, jnp.nan, x) if eqx.is_inexact_array(x) else x  # noqa: E731
+    result = jnp.where(bad, code.astype(sol.result.dtype), sol.result)
+    return eqx.tree_at(lambda s: (s.R, s.y, s.result), sol, (nan(sol.R), jax.tree_util.tree_map(nan, sol.y), result),
+                       is_leaf=lambda x: x is None)
 
 
 # A conserved quantity that moves by more than this (relative to its scale)

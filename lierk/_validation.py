@@ -4,8 +4,13 @@ for it).
 
 A value known while tracing (a NumPy array or Python number) is checked in
 Python and raises `ValueError` at once, naming the value.  A traced value
-cannot be inspected, so the same condition becomes a run-time check with
-`eqx.error_if`, which raises when the compiled program runs.
+cannot be inspected, so the same condition is computed inside the program
+and a value that fails it comes back as NaN (`check`): a solve finds the NaN
+among its inputs and ends with a code of `RESULTS.invalid` and NaN states
+(`first_invalid`), which ``throw=True`` raises as an error and
+``throw=False`` returns.  So a program holds no host callback for its input
+checks, JAX's persistent compilation cache can keep it, and no bad input
+comes back as success.
 """
 
 from __future__ import annotations
@@ -118,39 +123,36 @@ def is_traced(*xs) -> bool:
     return any(isinstance(leaf, jax.core.Tracer) for leaf in jax.tree_util.tree_leaves(xs))
 
 
-_CHECKED_ON_HOST = contextvars.ContextVar("lierk_checked_on_host", default=False)
-
-
 @contextlib.contextmanager
 def checked_on_host():
-    """Trace solves whose traced inputs the caller has checked itself.
-
-    Inside `jax.jit`, `lierk.solve` cannot see the values of traced inputs
-    (``t1``, ``dt``, tolerances, save times), so it checks them at run time
-    (`equinox.error_if`: a bad value raises when the program runs).  A
-    run-time check is a host callback, and JAX's persistent compilation
-    cache does not keep programs with host callbacks.  Solves traced inside
-    this block skip those checks: use it when the values are your own and
-    known to be valid (say, step sizes your code computed), so that the
-    program can be cached.  Values known while tracing are still checked.
-
-    Example:
-        >>> with lierk.checked_on_host():
-        ...     run = jax.jit(lambda dt: lierk.solve(body, lierk.RKMK4(), 1.0, dt=dt, max_steps=100))
-        ...     run.lower(0.01).compile()
-    """
-    token = _CHECKED_ON_HOST.set(True)
-    try:
-        yield
-    finally:
-        _CHECKED_ON_HOST.reset(token)
+    """Deprecated, and does nothing: traced inputs are checked inside the
+    program, with no host callback (a bad one ends the solve with
+    `RESULTS.invalid`), so every program can live in JAX's persistent
+    compilation cache and there is nothing to turn off.  Kept for one
+    release; remove the ``with`` block."""
+    warnings.warn(
+        "lierk.checked_on_host() is deprecated and does nothing: traced inputs are checked inside the program "
+        "(a bad one ends the solve with a code of lierk.RESULTS.invalid), with no host callback; remove the with block",
+        DeprecationWarning,
+        stacklevel=3,
+    )
+    yield
 
 
 def checking_on_host() -> bool:
-    """True inside `lierk.checked_on_host`: a solve traced now leaves out its
-    run-time checks of traced inputs, so its program differs from one traced
-    outside (a cache keyed without tracing must tell them apart)."""
-    return _CHECKED_ON_HOST.get()
+    """Deprecated: always False (see `checked_on_host`)."""
+    return False
+
+
+def first_invalid(tree) -> Array:
+    """Whether some floating entry of ``tree``'s array leaves is NaN (a
+    traced bool): an input that is NaN, or that failed its `check` inside
+    the program.  Infinite values pass (a tolerance's ``dtmax`` may be
+    ``inf``); those that must be finite are checked to be."""
+    leaves = [x for x in jax.tree_util.tree_leaves(tree) if eqx.is_array(x) and jnp.issubdtype(x.dtype, jnp.inexact)]
+    if not leaves:
+        return jnp.asarray(False)
+    return functools.reduce(jnp.logical_or, [jnp.any(jnp.isnan(x)) for x in leaves])
 
 
 def check(x, ok: Callable, message: str, *, reads=()):
@@ -158,19 +160,16 @@ def check(x, ok: Callable, message: str, *, reads=()):
 
     ``ok`` must work on NumPy and on JAX arrays (use ``xnp``-agnostic operators or
     the array's own methods).  ``reads``: the other values ``ok`` reads (``t0``
-    in ``t1 >= t0``).  When ``x`` or one of them is traced, the check is
-    deferred to run time (not made at all inside `checked_on_host`), and the
-    returned ``x`` is traced: keep it, or the check is dead code.
+    in ``t1 >= t0``).  When ``x`` or one of them is traced, the check is made
+    inside the program: ``x`` comes back NaN (every floating entry of it)
+    where ``ok`` fails, which the solve reports (`first_invalid`).  Keep the
+    returned ``x``, or the check is dead code.
     """
     traced = is_traced(x, reads)
-    if traced and _CHECKED_ON_HOST.get():
-        return x
     if traced:
-        # The value is only known at run time; say which check failed.
         x = jax.tree_util.tree_map(_traced, x)
-        message = message.replace("{value}", "a traced value that failed the check")
         predicate = _Predicate.of(ok)
-        return _error_unless(x, ok, message) if predicate is None else _error_unless_program(x, predicate, message)
+        return _nan_unless(x, ok) if predicate is None else _nan_unless_program(x, predicate)
     if not bool(np.all(ok(np.asarray(x)))):
         raise ValueError(message.format(value=show(x)) if "{value}" in message else message)
     return x
@@ -180,49 +179,45 @@ def check_together(checks: list) -> list:
     """`check` for several values at once: ``checks``, a list of ``(x, ok,
     message)`` (``ok(x)`` may read the other values); returns the ``x``s.
 
-    Known values are checked now, in order, as `check` does.  The traced ones
-    become one run-time check that raises the message of the first that
-    failed (one `equinox.branched_error_if`): each run-time check took about
-    10 ms to trace, and one or two XLA kernels of its own to compile (about
-    5 ms apiece), in every solve with traced tolerances.
+    Known values are checked now, in order, as `check` does; each traced one
+    becomes NaN where its own ``ok`` fails, all in one compiled program (see
+    `_nan_unless_program`).
     """
     xs = [x for x, _, _ in checks]
     traced = [i for i, x in enumerate(xs) if is_traced(x)]
     for i, (x, ok, message) in enumerate(checks):
         if i not in traced:
             check(x, ok, message)
-    if not traced or _CHECKED_ON_HOST.get():
+    if not traced:
         return xs
-    checked = [checks[i] for i in traced]
-    predicates = [_Predicate.of(ok) for _, ok, _ in checked]
-    values = tuple(jax.tree_util.tree_map(_traced, x) for x, _, _ in checked)
-    messages = tuple(m.replace("{value}", "a traced value that failed the check") for _, _, m in checked)
+    values = tuple(jax.tree_util.tree_map(_traced, checks[i][0]) for i in traced)
+    oks = tuple(checks[i][1] for i in traced)
+    predicates = tuple(_Predicate.of(ok) for ok in oks)
     if any(p is None for p in predicates):
-        values = _error_unless_any(values, tuple(ok for _, ok, _ in checked), messages)
+        values = _nan_unless_each(values, oks)
     else:
-        values = _error_unless_any_program(values, tuple(predicates), messages)
+        values = _nan_unless_each_program(values, predicates)
     for i, x in zip(traced, values):
         xs[i] = x
     return xs
 
 
-def _error_unless_any(xs: tuple, oks: tuple, messages: tuple) -> tuple:
-    failed = [~jnp.all(ok(x)) for x, ok in zip(xs, oks)]
-    # The first that failed (0 where none did: under `jax.vmap` the batch's
-    # largest index names the error), by selects rather than an argmax (a
-    # reduction, which XLA would compile as a kernel of its own).
-    index = jnp.asarray(0)
-    for i in reversed(range(len(failed))):
-        index = jnp.where(failed[i], i, index)
-    return eqx.branched_error_if(xs, functools.reduce(jnp.logical_or, failed), index, messages)
+def _nan_unless(x, ok: Callable):
+    """``x`` as it is where ``ok(x)`` holds (all of it), else NaN in every
+    floating entry: a traced input that failed its check."""
+    good = jnp.all(ok(x))
+    return jax.tree_util.tree_map(
+        lambda v: jnp.where(good, v, jnp.nan) if jnp.issubdtype(v.dtype, jnp.inexact) else v, x
+    )
 
 
-_error_unless_any_program = jax.jit(_error_unless_any, static_argnums=(1, 2))
+def _nan_unless_each(xs: tuple, oks: tuple) -> tuple:
+    return tuple(_nan_unless(x, ok) for x, ok in zip(xs, oks))
 
 
 class _Predicate:
     """A check's predicate, equal to any other with the same code and the same
-    (hashable) closed-over values, so that `_error_unless_program` compiles once per
+    (hashable) closed-over values, so that `_nan_unless_program` compiles once per
     predicate rather than once per call (a call site's lambda is a new object
     each time)."""
 
@@ -257,13 +252,10 @@ class _Predicate:
 
 # Why a jitted check: a traced value outside `jax.jit` (under an eager
 # `jax.jacfwd` or `jax.grad`) runs each operation of the predicate as a
-# program of its own, and a rigid body's checks were about 50 of them, 1.5 s
-# of a first Jacobian.  Inside `jax.jit` the call is inlined.
-def _error_unless(x, ok: Callable, message: str):
-    return eqx.error_if(x, ~jnp.all(ok(x)), message)
-
-
-_error_unless_program = jax.jit(_error_unless, static_argnums=(1, 2))
+# program of its own, and a rigid body's checks were about 50 of them.
+# Inside `jax.jit` the call is inlined.
+_nan_unless_program = jax.jit(_nan_unless, static_argnums=1)
+_nan_unless_each_program = jax.jit(_nan_unless_each, static_argnums=1)
 
 
 def show(x) -> str:
@@ -323,7 +315,8 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 
     Besides `check_inertia`'s checks, the body's state must fit the dtype
     (`state_range_error`): checked now when the inertia and ``omega0`` are
-    known, at run time (`eqx.error_if`) when either is traced.  A concrete
+    known, in the program (NaN unless it passes: `check`) when either is
+    traced.  A concrete
     inertia that is nearly singular is warned about, once per body (see
     `check_inertia`).
 
@@ -345,8 +338,7 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
     else:
         omega0 = check_vector(omega0, "omega0", dtype)
     if is_traced(inertia, omega0):
-        if not _CHECKED_ON_HOST.get():
-            omega0 = _state_in_range(inertia, omega0)
+        omega0 = _state_in_range(inertia, omega0)
     else:
         reason = state_range_error(inertia, omega0, dtype)
         if reason is not None:
@@ -357,17 +349,10 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
 
 @jax.jit
 def _state_in_range(inertia, omega0):
-    """``omega0``, checked at run time: finite, and a body state within
-    `state_range_error`'s bounds, as one check (one program: see
-    `_error_unless_program`).  One predicate, since a NaN or infinite
-    ``omega0`` makes its squares so, and one message that names both: an
-    index choosing between two messages was an XLA kernel of its own in
-    every solve of a traced ``omega0``."""
-    message = (
-        "omega0 has NaN or inf entries, or a traced inertia and omega0 give a body state outside "
-        f"{omega0.dtype.name}'s range (lierk._validation.state_range_error): a traced value that failed the check"
-    )
-    return eqx.error_if(omega0, ~_in_range(inertia, omega0), message)
+    """``omega0``, checked in the program (NaN unless it passes): finite,
+    and a body state within `state_range_error`'s bounds, as one predicate
+    (a NaN or infinite ``omega0`` makes its squares so)."""
+    return jnp.where(_in_range(inertia, omega0), omega0, jnp.nan)
 
 
 def _in_range(I, w):
@@ -575,7 +560,7 @@ def check_inertia(inertia: ArrayLike) -> Array:
 
     Raises:
         ValueError: wrong shape, NaN/inf, not symmetric, or not positive
-            definite (checked at run time with `eqx.error_if` when traced).
+            definite (when traced, checked in the program: see `check`).
     """
     given = inertia
     inertia = asarray(inertia, name="inertia")

@@ -47,7 +47,7 @@ Inputs are validated as `lierk.FreeRigidBody` validates them
 positive definite or ``(3,)`` principal moments, ``omega0`` is a finite
 ``(3,)`` vector and ``R0`` a rotation matrix.  Concrete values raise
 `ValueError` naming the value; traced values (under ``jit``/``vmap``/``grad``)
-are checked when the program runs, with `eqx.error_if`.
+are checked when the program runs (one `eqx.error_if`).
 
 Branches use ``jnp.where`` with sanitised inputs on both sides ("double
 where"), so everything jits, vmaps and differentiates with respect to
@@ -68,6 +68,7 @@ from __future__ import annotations
 
 import math
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -77,8 +78,8 @@ from jax.typing import ArrayLike
 
 from lierk import so3
 from lierk._elliptic import _ellipj_reduced, _pi_reduced, _safe_sqrt, ellipk, elliprf
-from lierk._own_programs import OwnProgram
-from lierk._validation import is_traced, rigid_body_inputs
+from lierk._programs import Program
+from lierk._validation import first_invalid, is_traced, rigid_body_inputs
 
 __all__ = ["free_rigid_body", "free_flow", "symmetric_flow", "flip_interval", "sphere", "principal_frame"]
 
@@ -114,10 +115,19 @@ def principal_frame(inertia: ArrayLike) -> tuple[Array, Array]:
 
 def _validated(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = None):
     """``(inertia (3, 3), omega0 (3,), R0 (3, 3))`` checked and in one float
-    dtype, as `lierk.FreeRigidBody` checks them.  Traced values come back
-    wrapped in their run-time checks, so callers must compute with the
-    returned arrays (XLA drops a check whose result is unused)."""
-    return rigid_body_inputs(inertia, omega0, R0)
+    dtype, as `lierk.FreeRigidBody` checks them.  Traced values that fail
+    their checks come back NaN (`lierk._validation.check`); having no result
+    code, the closed forms raise for them at run time (one `eqx.error_if`),
+    so callers must compute with the returned arrays."""
+    inputs = rigid_body_inputs(inertia, omega0, R0)
+    if not is_traced(inputs):
+        return inputs
+    return eqx.error_if(inputs, first_invalid(inputs), _INVALID)
+
+
+_INVALID = ("lierk.exact: an input is NaN, or a traced value failed the check that a known value would have failed "
+            "at once with its name (the inertia symmetric positive definite, omega0 finite and within the dtype's "
+            "range, R0 a rotation); call with the concrete values to see which")
 
 
 def _working_constants(inertia: Array, omega0: Array):
@@ -298,7 +308,7 @@ def _free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     return Q, _value_with_tangent_of(sg(m) + _momentum_change(sg(inertia), sg(m), sg(h)), inertia @ omega_h)
 
 
-_free_flow_program = OwnProgram(_free_flow, jit=jax.jit)
+_free_flow_program = Program(_free_flow, jit=jax.jit)
 
 
 @jax.custom_jvp
@@ -390,7 +400,7 @@ def _symmetric_flow(I_a, I_3, k: int, m, h):
     return so3.reorthonormalize(Q), so3.axis_turn(m, k, phi)
 
 
-_symmetric_flow_program = OwnProgram(_symmetric_flow, jit=jax.jit, static_argnums=2)
+_symmetric_flow_program = Program(_symmetric_flow, jit=jax.jit, static_argnums=2)
 
 
 def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Array]:
@@ -398,7 +408,7 @@ def _free_motion(inertia: Array, omega0: Array, t, R0: Array) -> tuple[Array, Ar
     return _free_motion_ad(inertia, omega0, jnp.asarray(t, dtype=inertia.dtype), R0)
 
 
-_free_motion_program = OwnProgram(_free_motion, jit=jax.jit)
+_free_motion_program = Program(_free_motion, jit=jax.jit)
 
 
 @jax.custom_jvp
@@ -698,7 +708,7 @@ def _flip_interval(inertia: Array, omega0: Array) -> Array:
     return jnp.where(flips, 2.0 * K / lam, jnp.inf)
 
 
-_flip_interval_program = OwnProgram(_flip_interval, jit=jax.jit)
+_flip_interval_program = Program(_flip_interval, jit=jax.jit)
 
 
 def sphere(omega0: ArrayLike, t: ArrayLike, R0: ArrayLike | None = None) -> tuple[Array, Array]:

@@ -171,8 +171,8 @@ def _horner(coef, x2):
     return acc
 
 
-@_one_program(static=("compact",))
-def exp_coefficients(theta2: Array, *, compact: bool = False) -> tuple[Array, Array, Array]:
+@_one_program
+def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
     """Coefficients ``(A, B, D)`` of the closed forms on so(3), from ``theta^2``:
     ``(...) -> 3 x (...)``.
 
@@ -196,12 +196,16 @@ def exp_coefficients(theta2: Array, *, compact: bool = False) -> tuple[Array, Ar
     ``(sin x / x - cos x)/x^2`` are taken in ``x^2`` itself: no square root,
     and no cancellation at small angles.
 
-    ``compact``: the three end in one division of stacked values, which XLA
-    compiles as one kernel instead of three (about 5 ms of a first compile
-    on CPU apiece, whatever its size); a batch runs slower that way (64 free
-    bodies with DP54: 1.4 times).  The same numbers to rounding (XLA may
-    contract a multiply-add differently: an ulp).
     """
+    return _exp_coefficients(theta2, False)
+
+
+def _coefficients(theta2: Array, compact: bool) -> tuple[Array, Array, Array]:
+    """`exp_coefficients` in a solver's form (`lierk._programs`): with
+    ``compact``, the three end in one division of stacked values, which XLA
+    compiles as one kernel instead of three, for one body; a batch runs
+    slower that way.  The same numbers to rounding (XLA may contract a
+    multiply-add differently: an ulp)."""
     return _exp_coefficients(theta2, compact)
 
 
@@ -323,13 +327,12 @@ def compose(X: ArrayLike, Y: ArrayLike) -> Array:
     return X[..., :, 0:1] * Y[..., 0:1, :] + X[..., :, 1:2] * Y[..., 1:2, :] + X[..., :, 2:3] * Y[..., 2:3, :]
 
 
-
-@_one_program(static=("compact",))
-def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike, compact: bool = False) -> Array:
+@_one_program
+def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike) -> Array:
     """The group update of a body-frame step, ``R exp(hat(u)) exp(hat(more[0])) ...``:
     ``(..., 3, 3), (..., 3)... -> (..., 3, 3)``.
 
-    Every Lie-group solver advances its attitude through this one function.  In
+    Every Lie-group solver advances its attitude through this function.  In
     float32 (and narrower) the result gets one Newton-Schulz step
     ``R <- R (3I - R^T R)/2``, which squares the distance to SO(3): the rounding
     of each product leaves ``||R^T R - I||`` of order eps ~ 1e-7 per step, and
@@ -337,14 +340,16 @@ def right_exp(R: ArrayLike, u: ArrayLike, *more: ArrayLike, compact: bool = Fals
     correction moves ``R`` only by that rounding-level amount, so it changes
     nothing about the method's accuracy.  In float64 the same drift is ~1e-14
     after 10^5 steps, so nothing is done (the check is on the static dtype).
-
-    ``compact``: each row ``r`` of ``R`` is turned by ``exp(-hat(u))``, ``r + A
-    r x u + B u x (u x r)``, without forming the exponential, whose rows XLA
-    stored for the product, a kernel each (about 5 ms of a first compile on
-    CPU apiece), and with compact `exp_coefficients`: five kernels fewer, for
-    one body.  A batch of 64 free bodies (DP54) ran 1.15 times slower that
-    way.  The same numbers to rounding.
     """
+    return _right_exp(R, u, False, *more)
+
+
+def _right_exp(R: ArrayLike, u: ArrayLike, compact: bool, *more: ArrayLike) -> Array:
+    """`right_exp` in a solver's form (`lierk._programs`): with ``compact``,
+    each row ``r`` of ``R`` is turned by ``exp(-hat(u))``, ``r + A r x u +
+    B u x (u x r)``, without forming the exponential, whose rows XLA stored
+    for the product, a kernel each: fewer kernels for one body, slower for a
+    batch.  The same numbers to rounding."""
     R = _float(R)
     for v in (u,) + more:
         R = _compose_exp(R, _float(v), compact)
@@ -356,7 +361,7 @@ def _compose_exp(R: Array, u: Array, compact: bool = False) -> Array:
     """``R exp(hat(u))``, ``(..., 3, 3), (..., 3) -> (..., 3, 3)``."""
     if not compact:
         return compose(R, exp(u))
-    A, B, _ = exp_coefficients(_sq(u), compact=True)
+    A, B, _ = _coefficients(_sq(u), True)
     return _turn_rows(R, u, A, B)
 
 
@@ -374,7 +379,7 @@ def _compose_exp_jvp(compact, primals, tangents):
     # rebuilt the exponential's tangent inside every entry of dR (about 190
     # operations each) under jax.jacfwd.
     (R, u), (dR, du) = primals, tangents
-    coefficients = exp_coefficients(_sq(u), compact=compact)
+    coefficients = _coefficients(_sq(u), compact)
     w = dexp(-u, du, coefficients)
     if compact:
         # Row by row, as the primal: r hat(w) = r x w.

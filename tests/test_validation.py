@@ -67,6 +67,11 @@ def test_extreme_bodies_that_fit_are_accepted_and_computed_right():
 
 
 def test_a_traced_state_out_of_range_fails_at_run_time():
+    """Checked inside the program: the solve ends with
+    `RESULTS.invalid_problem` and NaN states (``throw=False``), or raises
+    naming the condition (``throw=True``); one bad member of a batch is
+    caught and the others are solved."""
+
     @jax.jit
     def final(I, w):
         sol = lierk.solve(lierk.FreeRigidBody(I, w), lierk.RKMK4(), 0.1, dt=0.05, throw=False)
@@ -74,12 +79,17 @@ def test_a_traced_state_out_of_range_fails_at_run_time():
 
     R, code = final(jnp.array([1.0, 2.0, 3.0]), jnp.asarray(W))
     assert int(code) == 0 and np.isfinite(np.asarray(R)).all()
+    R, code = final(jnp.array([1e300, 1e300, 1e300]), jnp.asarray(W))
+    assert int(code) == lierk.RESULTS.invalid_problem and np.isnan(np.asarray(R)).all()
+    raising = jax.jit(lambda I, w: lierk.solve(lierk.FreeRigidBody(I, w), lierk.RKMK4(), 0.1, dt=0.05).R)
     with pytest.raises(Exception, match="a traced inertia and omega0 give a body state outside float64's range"):
-        jax.block_until_ready(final(jnp.array([1e300, 1e300, 1e300]), jnp.asarray(W)))
-    # One bad member of a batch is caught.
-    batch = jax.jit(jax.vmap(final))
+        jax.block_until_ready(raising(jnp.array([1e300, 1e300, 1e300]), jnp.asarray(W)))
+    # One bad member of a batch is caught, the other solved.
+    R, code = jax.jit(jax.vmap(final))(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W]))
+    np.testing.assert_array_equal(np.asarray(code), [0, lierk.RESULTS.invalid_problem])
+    assert np.isfinite(np.asarray(R[0])).all() and np.isnan(np.asarray(R[1])).all()
     with pytest.raises(Exception, match="outside float64's range"):
-        jax.block_until_ready(batch(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W])))
+        jax.block_until_ready(jax.vmap(raising)(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W])))
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])

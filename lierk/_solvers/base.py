@@ -31,16 +31,6 @@ class Step(NamedTuple):
     fsal: Any
 
 
-MOST_STEPS_LOOPED = 4096
-"""The most steps (``max_steps``, or a fixed-step solve's count) of one
-body's solve that takes its solver's faster-compiling form
-(`AbstractSolver.for_one_body`).  DOP853's stage loop runs each step of a
-heavy top in 9.1 us against 2.7 unrolled (from Python, 2 cores) and
-compiles 0.6 to 0.9 s sooner: ahead until about 100,000 steps over all
-calls.  At the adaptive solves' default of 4096 steps a call costs at most
-26 ms more, and most take far fewer steps."""
-
-
 class AbstractSolver(eqx.Module):
     """An immutable solver with a pure `step`.
 
@@ -116,32 +106,12 @@ class AbstractSolver(eqx.Module):
         its norm."""
         return norm(*error[0])
 
-    def for_derivatives(self, one_body: bool = False) -> "AbstractSolver":
-        """This solver as a differentiated solve takes it: itself, unless a
-        form that compiles faster pays there (`lierk.AbstractRKMK`).
-        ``one_body``: the derivative of one body's solve, no batch (a
-        `jax.jacfwd` of it inside a caller's `jax.jit`, or from Python),
-        where a form that compiles faster pays sooner."""
+    def in_form(self, compact: bool) -> "AbstractSolver":
+        """This solver in the form `lierk._programs`' rule chose: ``compact``
+        for one body's compact form, else the batch form.  Itself here: only
+        a solver with more than one form (`lierk.AbstractRKMK`) changes, and
+        only where its form was not fixed by the user."""
         return self
-
-    def for_one_body(self, max_steps: int | None, derivatives: bool = False) -> "AbstractSolver":
-        """This solver as a solve of one body of at most ``max_steps`` steps
-        takes it: on the CPU, and for at most 4096 steps
-        (``lierk._solvers.base.MOST_STEPS_LOOPED``, the adaptive solves'
-        default ``max_steps``), the form a differentiated solve takes
-        (`for_derivatives`); otherwise itself (None: a count known only at
-        run time).  One body's solve: `lierk.solve` called from Python, or
-        traced inside a caller's ``jax.jit`` that no ``jax.vmap`` batches (a
-        batch, now or later, takes the solver as given:
-        `lierk._own_programs.OwnProgram`).  A short solve pays for compiling
-        sooner: from Python lierk's per-call work on the host is most of
-        each later call's time, and inside a caller's ``jit`` it would run
-        thousands of times before a faster run paid for a slower compile.
-        A long one does not.  ``derivatives``: the form for the derivative of
-        one body's solve (`for_derivatives` with ``one_body=True``)."""
-        if jax.default_backend() != "cpu" or max_steps is None or max_steps > MOST_STEPS_LOOPED:
-            return self
-        return self.for_derivatives(one_body=derivatives)
 
     @property
     def name(self) -> str:

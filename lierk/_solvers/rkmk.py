@@ -59,29 +59,16 @@ class AbstractRKMK(AbstractSolver):
     """RKMK stepping for ``self.tableau``; subclasses fix the tableau.
 
     Attributes:
-        compact: how the stages are written into the compiled program.
-            ``False``: one after another (unrolled), the fastest to run;
-            ``True``: a loop over the stages (`jax.lax.fori_loop`), whose
-            program holds one stage, so it traces and compiles several times
-            faster for the long tableaux (DOP853: 12 stages) and runs slower
-            (about 2x for one body on CPU; a Jacobian, whose stages carry its
-            tangents, about 1.1x).  ``None`` (default): unrolled, except where
-            a solve is differentiated (`lierk.ForwardSensitivity`'s
-            derivative, `lierk.sensitivity`) or solves one body in at most
-            4096 steps on the CPU (`lierk.AbstractSolver.for_one_body`),
-            which take the loop for tableaux of more than four stages, and
-            the Jacobian of one body's solve in at most 4096 steps on the
-            CPU (`jax.jacfwd` inside a caller's `jax.jit` or from Python,
-            `lierk.sensitivity`), which loops RKMK4's four as well (a
-            spacecraft's first ``jit(jacfwd)``: 135 kernels unrolled, 71
-            looped; each run 0.65 -> 0.75-0.88 ms; a batch of Jacobians
-            unrolls).  One body: called from Python (a heavy top's first DOP853 solve 1.2 ->
-            0.5 s, each later call 0 to 0.6 ms longer, beside about 1 ms of
-            host work per call) or inside a caller's ``jax.jit`` (first call
-            1.57 -> 0.70 s, each run 0.09 -> 0.21 ms; diffrax's Dopri8: 0.43
-            s, 0.23 ms).  A batch (``jax.vmap``, also of a jitted function)
-            unrolls them.  Pass ``False`` for one body's solve run thousands
-            of times.  Static: each setting is its own program.
+        compact: how the step is written into the compiled program.  True:
+            one body's compact form, the stages in a loop
+            (`jax.lax.fori_loop`) and the step's helpers compact, which
+            compiles several times faster for the long tableaux and runs
+            each step slower; False: every stage written out, the fastest
+            to run, above all for a batch; None (default): as
+            `lierk._programs`' rule decides for each call (one body's solve
+            of at most 4096 steps on the CPU, compact for tableaux of five or
+            more stages; a batch, unrolled).  The same numbers to rounding
+            either way.  Static: each setting is its own program.
     """
 
     tableau: eqx.AbstractClassVar[ButcherTableau]
@@ -95,18 +82,14 @@ class AbstractRKMK(AbstractSolver):
         if self.compact not in (None, True, False):
             raise ValueError(f"compact must be True, False or None (automatic), got {self.compact!r}")
 
-    def for_derivatives(self, one_body: bool = False) -> "AbstractRKMK":
-        """The solver a differentiated solve takes: with ``compact=None``, the
-        stage loop for tableaux of more than four stages (see ``compact``),
-        and for RKMK4's four too where one body is differentiated
-        (``one_body``)."""
-        if self.compact is None and self.tableau.stages >= (4 if one_body else 5):
-            # Not `dataclasses.replace`: that calls the class's own
-            # `__init__`, whose arguments a subclass may have changed.
-            looped = copy.copy(self)
-            object.__setattr__(looped, "compact", True)
-            return looped
-        return self
+    def in_form(self, compact: bool) -> "AbstractRKMK":
+        if self.compact is not None or compact == bool(self.compact):
+            return self
+        # Not `dataclasses.replace`: that calls the class's own `__init__`,
+        # whose arguments a subclass may have changed.
+        formed = copy.copy(self)
+        object.__setattr__(formed, "compact", compact)
+        return formed
 
     @property
     def order(self) -> int:  # type: ignore[override]
@@ -124,47 +107,40 @@ class AbstractRKMK(AbstractSolver):
     def error_order(self):  # type: ignore[override]
         return self.tableau.error_order
 
+    def _stage(self, problem, base, t, h, y, du, ci, unravel):
+        """One stage at node ``ci`` from its stage sum ``du`` (flat, the
+        algebra's and y's): its flat slope ``(k, ydot)`` and its field
+        ``(omega, ydot)``.  Both forms and the continuous extension's stages
+        take it."""
+        u, dy = unravel(du)
+        # One evaluation serves the effects' rotations and dexpinv.
+        coefficients = so3._coefficients(so3._sq(u), bool(self.compact))
+        omega, ydot = problem.local(base, t + ci * h, u, _add(y, dy), coefficients)
+        k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
+        return ravel_pytree((k, ydot))[0], (omega, ydot)
+
     def _stages(self, problem, t, h, R, y, fsal, c, a):
         """The stage slopes for nodes ``c`` and rows ``a``: ``(ks, unravel,
         (omega, ydot))``, each ``ks[i]`` the flat ``(k_i, ydot_i)`` of one
-        stage (a list, or their stack ``(s, n)`` when ``compact``) and
+        stage (a list; their stack ``(s, n)`` when ``compact``, looped) and
         ``(omega, ydot)`` the last stage's field."""
-        if self.compact:
-            return self._stage_loop(problem, t, h, R, y, fsal, c, a)
-        base = problem.base(t, R, y)
-        # Each stage's algebra slope and y slope are kept as one flat vector,
-        # so every stage sum (for u and y together) is a single small matrix
-        # product: under vmap, XLA on CPU runs each stage sum as its own
-        # kernel, and one per stage instead of two (plus the layout changes
-        # around them) made a DOP853 step with torques 1.7x faster.
-        ks = []
-        unravel = None
-        omega = ydot = None
-        for i in range(len(c)):
-            if i == 0:
-                omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
-                k = omega
-            else:
-                (du,) = _stage_sums(h, [a[i]], ks)
-                u, dy = unravel(du)
-                yi = _add(y, dy)
-                # One evaluation per stage serves the effects' rotations and dexpinv.
-                coefficients = so3.exp_coefficients(so3._sq(u))
-                omega, ydot = problem.local(base, t + c[i] * h, u, yi, coefficients)
-                k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
-            flat, unravel = ravel_pytree((k, ydot))
-            ks.append(flat)
-        return ks, unravel, (omega, ydot)
-
-    def _stage_loop(self, problem, t, h, R, y, fsal, c, a):
-        """`_stages` as a loop over the stages: the program holds one stage
-        evaluation whatever the tableau, and the slopes live in one array
-        ``(s, n)`` that each stage reads through its row of ``a`` (zero-padded,
-        so every row is a product with all ``s`` slopes)."""
         base = problem.base(t, R, y)
         omega, ydot = fsal if fsal is not None else problem.at(base, t, y)
-        # omega and the algebra slope k share a shape, so one unravel serves both.
+        # omega and the algebra slope k share a shape, so one unravel serves
+        # both.  Each stage's algebra slope and y slope are one flat vector,
+        # so every stage sum (for u and y together) is a single small matrix
+        # product (`_stage_sums`).
         k0, unravel = ravel_pytree((omega, ydot))
+        if not self.compact:
+            ks, last = [k0], (omega, ydot)
+            for i in range(1, len(c)):
+                (du,) = _stage_sums(h, [a[i]], ks)
+                k, last = self._stage(problem, base, t, h, y, du, c[i], unravel)
+                ks.append(k)
+            return ks, unravel, last
+        # The loop holds one stage whatever the tableau; the slopes live in
+        # one array ``(s, n)`` that each stage reads through its row of
+        # ``a`` (zero-padded, so every row is a product with all ``s``).
         s = len(c)
         rows = np.zeros((s, s))
         for i in range(1, s):
@@ -174,18 +150,13 @@ class AbstractRKMK(AbstractSolver):
         # The stage's row is read and its slope written without JAX's index
         # normalisation and bounds checks (i runs over 1..s-1), and the stage
         # sum is a reduction rather than a matrix product: XLA compiles each
-        # of those as a kernel of its own, about 5 ms each of a first compile.
+        # of those as a kernel of its own.
         def stage(i, carry):
             ks, _ = carry
             row = jax.lax.dynamic_index_in_dim(rows, i, keepdims=False, allow_negative_indices=False)
-            u, dy = unravel(jnp.sum((h * row)[:, None] * ks, axis=0))
-            # The loop is one body's form: its coefficients compact
-            # (`so3.exp_coefficients`), as its step's update (`so3.right_exp`).
-            coefficients = so3.exp_coefficients(so3._sq(u), compact=True)
-            omega, ydot = problem.local(base, t + nodes[i] * h, u, _add(y, dy), coefficients)
-            k = so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients)
-            ks = jax.lax.dynamic_update_index_in_dim(ks, ravel_pytree((k, ydot))[0], i, 0, allow_negative_indices=False)
-            return ks, ravel_pytree((omega, ydot))[0]
+            k, last = self._stage(problem, base, t, h, y, jnp.sum((h * row)[:, None] * ks, axis=0), nodes[i], unravel)
+            ks = jax.lax.dynamic_update_index_in_dim(ks, k, i, 0, allow_negative_indices=False)
+            return ks, ravel_pytree(last)[0]
 
         ks = jnp.zeros((s,) + k0.shape, k0.dtype).at[0].set(k0)
         ks, last = jax.lax.fori_loop(1, s, stage, (ks, k0))
@@ -199,7 +170,7 @@ class AbstractRKMK(AbstractSolver):
         u1, dy1 = sums[0]
         y1 = _add(y, dy1)
         error = None if tab.b_error is None else tuple(tuple(e) for e in sums[1:])
-        R1 = so3.right_exp(R, u1, compact=bool(self.compact))
+        R1 = so3._right_exp(R, u1, bool(self.compact))
         return Step(R1, y1, error, last if tab.fsal else None), ks, unravel
 
     def step(self, problem, t, h, R, y, fsal=None):
@@ -234,10 +205,7 @@ class AbstractRKMK(AbstractSolver):
         base = problem.base(t, R, y)
         for i in range(s, len(c)):
             (du,) = _stage_sums(h, [a[i]], ks)
-            u, dy = unravel(du)
-            coefficients = so3.exp_coefficients(so3._sq(u))
-            omega, ydot = problem.local(base, t + c[i] * h, u, _add(y, dy), coefficients)
-            ks.append(ravel_pytree((so3.dexpinv(-u, omega, self.dexpinv_terms, coefficients), ydot))[0])
+            ks.append(self._stage(problem, base, t, h, y, du, c[i], unravel)[0])
         F = jnp.stack(_stage_sums(h, list(tab.dense_b), ks))
         Fu, Fy = jax.vmap(unravel)(F)
         return st, (Fu, Fy), None

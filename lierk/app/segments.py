@@ -25,7 +25,7 @@ N_PIECES = 20
 def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Solution:
     """``scene.solve()`` in ``n_pieces`` pieces; see `Scene.solve`."""
     # One body: `solve`, traced in each program here, takes the solver's
-    # one-body form itself (`lierk.AbstractSolver.for_one_body`).
+    # one-body form itself (`lierk._programs`).
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
     dtype = problem.R0.dtype
     kw = {k: v for k, v in scene.solve_kwargs.items() if k != "max_steps"}
