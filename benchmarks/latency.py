@@ -73,12 +73,10 @@ def one(argv: list[str]) -> dict:
     imported = time.perf_counter()
     import jax
 
-    from lierk.app.compilations import LOADED, counting
+    from lierk.app.compilations import counting
 
     hits = []
     jax.monitoring.register_event_listener(lambda event, **_: hits.append(event) if event.endswith("/cache_hits") else None)
-    # Executables the command line keeps whole (`lierk.app.cache.compiled`), loaded without JAX's cache.
-    jax.monitoring.register_event_time_span_listener(lambda event, *_, **__: hits.append(event) if event == LOADED else None)
     out, err = io.StringIO(), io.StringIO()
     with counting() as c, redirect_stdout(out), redirect_stderr(err):
         code = lierk.app.cli.main([*argv, "--quiet"])

@@ -3,6 +3,7 @@ with their documented sizes, and every mistake ends in one line on stderr
 with a non-zero exit status."""
 
 import io
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -340,6 +341,22 @@ def test_devices_before_the_command_takes_effect(tmp_path):
     p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stderr
     assert "devices 2" in p.stdout
+
+
+def test_devices_after_jax_started_with_another_count_is_refused(tmp_path):
+    # JAX reads XLA_FLAGS when it starts: a process that computed before
+    # keeps its one CPU device, and --devices 2 would silently not apply.
+    scene = write(tmp_path, TEE_SCENE)
+    code = (
+        "import os, jax, numpy; jax.device_put(numpy.ones(1)); from lierk.app import cli; "
+        f"status = cli.main(['--devices', '2', 'simulate', {str(scene)!r}, '--out', {str(tmp_path / 'out')!r}, "
+        "'--quiet']); print('flags left', os.environ.get('XLA_FLAGS')); raise SystemExit(status)"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600, env=env)
+    assert p.returncode == 2, p.stderr
+    assert "--devices 2 must be set before JAX starts; it already runs with 1 CPU devices" in p.stderr, p.stderr
+    assert not (tmp_path / "out").exists() and "flags left None" in p.stdout  # the environment as it was
 
 
 # ---------------------------------------------------------------------------

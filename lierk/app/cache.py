@@ -30,10 +30,10 @@ program built for one CPU to another.  JAX reads a corrupted entry as a miss
 and compiles again.
 
 JAX finds a program in its cache by the lowered program, so a warm run still
-traces and lowers it.  `compiled` keeps a whole executable instead, under a
-key made without tracing (what the function closes over, the arguments'
-values, lierk's source, the machine, JAX's settings): the command line's
-scene solves go through it, and a warm run loads them without tracing.
+traces and lowers each program to look it up; it skips XLA's compilation.
+JAX keeps no program that contains a host callback (an ``eqx.error_if``
+check of a traced value): such a program is compiled in every run, and
+`CacheUse` counts it apart.
 """
 
 from __future__ import annotations
@@ -44,13 +44,11 @@ import os
 import platform
 import sys
 import tempfile
-import threading
-import time
 import warnings
 from collections.abc import Iterator
 from pathlib import Path
 
-__all__ = ["CacheUse", "compilation_cache_dir", "compiled", "default_cache_root", "machine_fingerprint", "using_cache"]
+__all__ = ["CacheUse", "compilation_cache_dir", "default_cache_root", "machine_fingerprint", "using_cache"]
 
 
 def default_cache_root() -> Path:
@@ -136,30 +134,20 @@ class CacheUse:
     def __init__(self):
         self.path: str | None = None
         self.counts = {"hits": 0, "misses": 0, "unsaved": 0, "unreadable": 0, "unwritable": 0}
-        # JAX's events, and `compiled`'s own executables, counted apart.
-        self._jax = {"requests": 0, "hits": 0, "misses": 0}
-        self._own = {"hits": 0, "misses": 0, "unsaved": 0}
+        self._requests = 0  # compilations that asked JAX's cache
 
     def _listen(self, event: str, **_) -> None:
-        for name, key in (("compile_requests_use_cache", "requests"), ("cache_hits", "hits"),
-                          ("cache_misses", "misses")):
-            if event == f"/jax/compilation_cache/{name}":
-                self._jax[key] += 1
-        self._tally()
-
-    def _count(self, key: str) -> None:
-        """One of `compiled`'s executables: ``"hits"``, ``"misses"``,
-        ``"unsaved"`` or ``"unreadable"``."""
-        if key == "unreadable":
-            self.counts[key] += 1
+        """One of JAX's cache events: a compilation that asked the cache, a
+        hit, a miss (compiled and saved); the rest of those asked were not saved."""
+        if event == "/jax/compilation_cache/compile_requests_use_cache":
+            self._requests += 1
+        elif event == "/jax/compilation_cache/cache_hits":
+            self.counts["hits"] += 1
+        elif event == "/jax/compilation_cache/cache_misses":
+            self.counts["misses"] += 1
         else:
-            self._own[key] += 1
-        self._tally()
-
-    def _tally(self) -> None:
-        j, o = self._jax, self._own
-        self.counts.update(hits=j["hits"] + o["hits"], misses=j["misses"] + o["misses"],
-                           unsaved=j["requests"] - j["hits"] - j["misses"] + o["unsaved"])
+            return
+        self.counts["unsaved"] = self._requests - self.counts["hits"] - self.counts["misses"]
 
     def _count_warning(self, message) -> bool:
         """Count JAX's warning about one entry it could not read or write;
@@ -214,7 +202,6 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
 
     before = {name: getattr(jax.config, name) for name in _CACHE_SETTINGS}
     use = CacheUse()
-    _active.append(use)
     listening = False
     try:
         with warnings.catch_warnings():
@@ -239,7 +226,6 @@ def using_cache(enabled: bool = True) -> Iterator[CacheUse]:
             reset_cache()
             yield use
     finally:
-        _active.remove(use)
         if listening:
             jax.monitoring.unregister_event_listener(use._listen)
         for name, value in before.items():
@@ -263,424 +249,3 @@ def _cache_path(given: str | None) -> str | None:
     return str(path)
 
 
-# --------------------------------------------------------------------------
-# Whole executables, keyed without tracing
-
-# JAX's cache is keyed by the lowered program, so a warm run still traces and
-# lowers every program to find its entry.  `compiled` keys a program by what
-# determines it instead (the function with everything it reads, the
-# arguments, lierk's source, the machine and JAX's settings) and keeps the
-# executable itself.  A stale key would return another program's numbers
-# without a word, so whatever the key cannot describe exactly means no key.
-
-_EXECUTABLES = "executables"
-# Executables kept at most (a few MB each; every change to lierk's source makes new keys): the least recently used go.
-_KEEP = 64
-_active: list[CacheUse] = []
-# Classes whose objects are described by their fields: their methods are in these packages' source or versions.
-_KNOWN = ("lierk.", "equinox.")
-
-
-class _Slot:
-    """Where an output array goes in a kept executable's output."""
-
-    def __init__(self, index: int):
-        self.index = index
-
-
-class _Unkeyable(Exception):
-    """A value `_fingerprint` cannot describe exactly: no key, no cache."""
-
-
-def _source_hash() -> str:
-    """The hash of lierk's Python sources: any change to the library is a new key."""
-    if not hasattr(_source_hash, "value"):
-        h = hashlib.sha256()
-        root = Path(__file__).resolve().parents[1]
-        for path in sorted(root.rglob("*.py")):
-            h.update(str(path.relative_to(root)).encode())
-            h.update(path.read_bytes())
-        _source_hash.value = h.hexdigest()
-    return _source_hash.value
-
-
-def _known(cls) -> bool:
-    return cls.__module__.startswith(_KNOWN) or cls.__module__ in ("lierk", "equinox")
-
-
-def _fingerprint(x, h, memo: dict, depth: int = 0) -> None:
-    """Feed ``h`` a description of ``x`` that another process gives for an
-    equal value: arrays by dtype, weak type, shape, placement and bytes;
-    functions by their code object, defaults, closure and the module globals
-    they name; containers in the order JAX flattens them; lierk's and
-    equinox's dataclasses and objects by class and fields.  Raises
-    `_Unkeyable` for anything else (a class of a user's own, whose methods the
-    key cannot see; a tracer)."""
-    import builtins
-    import collections
-    import dataclasses
-    import enum
-    import functools
-    import marshal
-    import types
-
-    import jax
-    import numpy as np
-
-    if depth > 60:
-        raise _Unkeyable("too deep")
-    if id(x) in memo:
-        h.update(f"@{memo[id(x)][0]};".encode())
-        return
-    if x is None or type(x) in (bool, int, float, complex, str, bytes):
-        h.update(f"{type(x).__name__}:{x!r};".encode())
-        return
-    # The value is held with its number: a temporary freed during the walk
-    # could otherwise lend its id to a later, different value.
-    memo[id(x)] = (len(memo), x)
-    down = functools.partial(_fingerprint, h=h, memo=memo, depth=depth + 1)
-    if isinstance(x, jax.core.Tracer):
-        raise _Unkeyable("a tracer")
-    if isinstance(x, (np.ndarray, np.generic, jax.Array)):
-        a = np.asarray(x)
-        placed = f"{x.committed}:{x.sharding}" if isinstance(x, jax.Array) else ""
-        h.update(f"array:{type(x).__name__}:{a.dtype.str}:{getattr(x, 'weak_type', False)}:{a.shape}:{placed};".encode())
-        h.update(np.ascontiguousarray(a).tobytes())
-    elif type(x) in (tuple, list) or (isinstance(x, tuple) and hasattr(type(x), "_fields")):
-        fields = getattr(type(x), "_fields", ())
-        h.update(f"{type(x).__module__}.{type(x).__qualname__}{fields}[{len(x)}];".encode())
-        for item in x:
-            down(item)
-    elif type(x) in (set, frozenset):
-        # JAX does not flatten sets: only their members' values matter.
-        h.update(f"{type(x).__name__}[{len(x)}];".encode())
-        for item in sorted(x, key=repr):
-            down(item)
-    elif type(x) in (dict, collections.OrderedDict, collections.defaultdict):
-        # A dict flattens in sorted key order, the others in insertion order.
-        keys = sorted(x, key=repr) if type(x) is not collections.OrderedDict else list(x)
-        h.update(f"{type(x).__qualname__}[{len(x)}];".encode())
-        if type(x) is collections.defaultdict:
-            down(x.default_factory)
-        for k in keys:
-            down(k)
-            down(x[k])
-    elif isinstance(x, types.CodeType):
-        # Every field of the code, nested code objects included.
-        h.update(b"code;")
-        h.update(marshal.dumps(x))
-    elif isinstance(x, types.FunctionType):
-        h.update(f"function:{x.__module__}.{x.__qualname__};".encode())
-        down(x.__code__)
-        down(x.__defaults__)
-        down(x.__kwdefaults__)
-        try:
-            down(tuple(c.cell_contents for c in (x.__closure__ or ())))
-        except ValueError:  # an empty cell
-            raise _Unkeyable("an empty closure cell") from None
-        if not (x.__module__ or "").startswith(_KNOWN):
-            # A global named in the code (an attribute name too: they share
-            # co_names) is part of the program: lierk's own are in its source.
-            for name in sorted(_names(x.__code__)):
-                if name in x.__globals__:
-                    h.update(f"global:{name};".encode())
-                    down(x.__globals__[name])
-                elif not hasattr(builtins, name):
-                    h.update(f"unbound:{name};".encode())
-    elif isinstance(x, types.MethodType):
-        h.update(b"method;")
-        down(x.__func__)
-        down(x.__self__)
-    elif isinstance(x, functools.partial):
-        h.update(f"partial:{type(x).__qualname__};".encode())
-        down(x.func)
-        down(x.args)
-        down(x.keywords)
-    elif isinstance(x, types.ModuleType):
-        h.update(f"module:{x.__name__};".encode())
-    elif isinstance(x, (types.BuiltinFunctionType, np.ufunc)):
-        # Library code, whose versions are in the key; a bound builtin's object too.
-        h.update(f"builtin:{getattr(x, '__module__', None)}.{getattr(x, '__qualname__', x.__name__)};".encode())
-        owner = getattr(x, "__self__", None)
-        if owner is not None and not isinstance(owner, types.ModuleType):
-            down(owner)
-    elif isinstance(x, type):
-        if not _known(x) and x.__module__ not in ("builtins", "numpy", "jax.numpy"):
-            raise _Unkeyable(f"class {x.__module__}.{x.__qualname__}")
-        h.update(f"type:{x.__module__}.{x.__qualname__};".encode())
-    elif isinstance(x, enum.Enum) and _known(type(x)):
-        h.update(f"enum:{type(x).__module__}.{type(x).__qualname__}.{x.name};".encode())
-    elif isinstance(getattr(x, "__wrapped__", None), types.FunctionType) and _known(x.__wrapped__):
-        # lierk's jitted functions: their options are in lierk's source.
-        h.update(f"wrapped:{type(x).__name__};".encode())
-        down(x.__wrapped__)
-    elif dataclasses.is_dataclass(x) and _known(type(x)):
-        # equinox Modules among them: every field, static or not.
-        h.update(f"dataclass:{type(x).__module__}.{type(x).__qualname__};".encode())
-        for f in dataclasses.fields(x):
-            h.update(f"{f.name}=".encode())
-            down(getattr(x, f.name, None))
-    elif hasattr(x, "__dict__") and _known(type(x)):
-        h.update(f"object:{type(x).__module__}.{type(x).__qualname__};".encode())
-        down(vars(x))
-    else:
-        raise _Unkeyable(f"{type(x).__module__}.{type(x).__qualname__}")
-
-
-def _names(code) -> set:
-    """The global (and attribute) names a code object and those nested in it use."""
-    import types
-
-    names = set(code.co_names)
-    for c in code.co_consts:
-        if isinstance(c, types.CodeType):
-            names |= _names(c)
-    return names
-
-
-def _prune(directory: Path, keep: int = _KEEP) -> None:
-    """Delete all but the ``keep`` most recently used executables in
-    ``directory``, and temporary files a writer left over an hour ago."""
-    entries = []
-    for p in directory.iterdir():
-        with contextlib.suppress(OSError):
-            if p.suffix == ".bin":
-                entries.append((p.stat().st_mtime, p))
-            elif p.suffix == ".tmp" and time.time() - p.stat().st_mtime > 3600:
-                p.unlink()
-    for _, p in sorted(entries, reverse=True)[keep:]:
-        with contextlib.suppress(OSError):
-            p.unlink()
-
-
-_CACHE_OFF = threading.Lock()
-
-
-@contextlib.contextmanager
-def _jax_cache_off():
-    """JAX's persistent cache off for the block (it decides once per process
-    whether to use it: `reset_cache` makes it read the setting anew).  One
-    block at a time: a thread leaving it must not turn the cache back on
-    under another's compilation."""
-    import jax
-    from jax.experimental.compilation_cache.compilation_cache import reset_cache
-
-    with _CACHE_OFF:
-        jax.config.update("jax_enable_compilation_cache", False)
-        reset_cache()
-        try:
-            yield
-        finally:
-            jax.config.update("jax_enable_compilation_cache", True)
-            reset_cache()
-
-
-def _settings() -> str:
-    """JAX's settings that are part of its own jit key (x64, the default
-    device, PRNG, dtype promotion, ...) and lierk's host-checking context."""
-    import re
-
-    import jax
-    from jax._src import config
-
-    from ..checks import checking_on_host
-
-    # Object reprs carry addresses, which differ in every process.
-    text = re.sub(r" at 0x[0-9a-f]+", "", repr(config.trace_context()))
-    return f"{text} {jax.config.jax_enable_x64} {checking_on_host()}"
-
-
-def _aval(a) -> str:
-    """What an executable sees of an array argument: its type, dtype, weak
-    type, shape and placement."""
-    import jax
-    import numpy as np
-
-    placed = f"{a.committed}:{a.sharding}" if isinstance(a, jax.Array) else ""
-    return f"{type(a).__name__}:{np.dtype(a.dtype).str}:{getattr(a, 'weak_type', False)}:{np.shape(a)}:{placed}"
-
-
-def _executable_key(fun, args, compiler_options=None) -> str | None:
-    """The key of ``fun(*args)``'s executable compiled with
-    ``compiler_options``, or None where some value in them cannot be
-    described exactly."""
-    import equinox as eqx
-    import jax
-    import numpy as np
-
-    h = hashlib.sha256()
-    try:
-        # XLA's flags, equinox's error mode and JAX's own settings in the environment.
-        env = sorted((k, v) for k, v in os.environ.items() if k.startswith(("XLA_", "JAX_", "EQX_")) and "CACHE" not in k)
-        h.update(f"{_source_hash()} {machine_fingerprint()} {sys.version} equinox {eqx.__version__} "
-                 f"numpy {np.__version__} {jax.default_backend()} {jax.devices()} {env} {_settings()} "
-                 f"{sorted((compiler_options or {}).items())}".encode())
-        # The order in which the arguments' arrays reach the executable.
-        paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(args)[0]]
-        h.update(repr(paths).encode())
-        # The arguments' arrays are the executable's inputs: their values are
-        # not in it, so another trajectory or inertia of the same shapes is
-        # the same key (keyed by bytes, every new value compiled again).
-        dynamic, static = eqx.partition(args, eqx.is_array)
-        h.update(repr([_aval(a) for a in jax.tree_util.tree_leaves(dynamic)]).encode())
-        _fingerprint((fun, static), h, {})
-    except Exception:  # noqa: BLE001 - _Unkeyable, or anything else the walk meets: no key, no cache
-        return None
-    return h.hexdigest()[:32]
-
-
-def keeps_executables() -> bool:
-    """Whether `compiled` keeps and loads executables now: inside a
-    `using_cache` block with JAX's cache on, in a local directory.
-    Elsewhere it compiles on every call, so a function called more than
-    once is better jitted."""
-    import jax
-
-    directory = jax.config.jax_compilation_cache_dir if _active and jax.config.jax_enable_compilation_cache else None
-    return bool(directory) and "://" not in str(directory)
-
-
-def compiled(fun, *args, compiler_options: dict | None = None):
-    """``eqx.filter_jit(fun).lower(*args).compile(compiler_options)``: a callable of arguments
-    like ``args`` (the same structure and non-array values, arrays of the
-    same shapes and dtypes) returning what ``fun`` returns.
-
-    Inside a `using_cache` block with the cache on, the executable is kept
-    in the cache directory (``executables/``) under a key made without
-    tracing: ``fun``'s code, everything it closes over and the module
-    globals it names, the non-array values in ``args`` and the types,
-    shapes, dtypes and placement of its arrays (their values are the
-    executable's inputs, not part of it), lierk's source, the versions
-    of Python, jax, jaxlib, equinox and NumPy, the machine and its devices,
-    JAX's settings and its ``XLA_``, ``JAX_`` and ``EQX_`` environment.  A
-    later process with the same key loads it without tracing or lowering
-    (counted as loaded in `CacheUse`).  A value the key cannot describe
-    exactly (an object of a class of one's own, which may have any methods),
-    an executable that cannot be kept (a host callback, a custom call other
-    than LAPACK's) and an entry that cannot be read compile as usual,
-    through JAX's cache.  The entries are pickles: the cache directory must
-    not be writable by anyone the user does not trust.
-
-    ``compiler_options``: XLA's options for this compilation (part of the
-    key), e.g. `lierk.one_body_compiler_options` for one body's solve.
-
-    Raises:
-        ValueError: the callable was given arguments of another structure or
-            other non-array values than ``args``.
-    """
-    import pickle
-
-    import equinox as eqx
-    import jax
-
-    jitted = eqx.filter_jit(fun)
-    directory = jax.config.jax_compilation_cache_dir
-    key = _executable_key(fun, args, compiler_options) if keeps_executables() else None
-    if key is None:
-        return jitted.lower(*args).compile(compiler_options)
-    if key in _in_process:
-        # Called again in this process (a loop of diagnostics): as a jitted
-        # function's second call, no reading and loading again.
-        return _in_process[key]
-    dynamic, static = eqx.partition(args, eqx.is_array)
-    leaves, tree = jax.tree_util.tree_flatten(dynamic)
-    path = Path(directory) / _EXECUTABLES / f"{key}.bin"
-    name = f"jit({getattr(fun, '__name__', type(fun).__name__)})"
-    start = time.time()
-    executable = None
-    try:
-        data = path.read_bytes()
-        # The checksum first: a damaged executable must never reach XLA.
-        if hashlib.sha256(data[32:]).digest() != data[:32]:
-            raise ValueError("checksum")
-        payload, in_tree, out_tree, skeleton, lapack, device_ids = pickle.loads(data[32:])
-        from jax.experimental.serialize_executable import deserialize_and_load
-
-        if lapack:
-            # JAX sets LAPACK's function table up when it lowers a LAPACK
-            # call; an executable loaded without lowering finds it empty
-            # (a segmentation fault).
-            from jaxlib import lapack as jaxlib_lapack
-
-            jaxlib_lapack._lapack.initialize()
-        by_id = {d.id: d for d in jax.devices()}
-        # On the devices it was compiled for (by default it would be loaded
-        # onto every device: a one-device program then refused its arguments).
-        executable = deserialize_and_load(payload, in_tree, out_tree,
-                                          execution_devices=[by_id[i] for i in device_ids])
-    except FileNotFoundError:
-        pass
-    except Exception:  # noqa: BLE001 - a damaged or foreign entry is a miss
-        _active[-1]._count("unreadable")
-    if executable is not None:
-        from .compilations import LOADED
-
-        with contextlib.suppress(OSError):
-            os.utime(path)  # recently used: the last to be pruned
-        jax.monitoring.record_event_time_span(LOADED, start, time.time(), fun_name=name)
-        _active[-1]._count("hits")
-    else:
-        shapes = {}
-
-        def flat(leaves):
-            out = fun(*eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static))
-            out_dynamic, shapes["static"] = eqx.partition(out, eqx.is_array)
-            out_leaves, shapes["tree"] = jax.tree_util.tree_flatten(out_dynamic)
-            return out_leaves
-
-        # Compiled here, not loaded from JAX's cache: an executable that JAX
-        # loaded from its cache serializes without its kernels' code (jax
-        # 0.10: "Function ... not found" when the copy runs).
-        with _jax_cache_off():
-            lowered = jax.jit(flat).lower(leaves)
-            keepable = "callback" not in lowered.as_text()
-            executable = lowered.compile(compiler_options) if keepable else None
-        if not keepable:
-            # A host callback (an equinox run-time check) cannot be kept: the
-            # program is compiled as without a key, through JAX's cache.
-            _active[-1]._count("unsaved")
-            _in_process[key] = jitted.lower(*args).compile(compiler_options)
-            return _in_process[key]
-        # The output's structure travels as the output itself with a slot
-        # for each array: a pickled PyTreeDef of equinox Modules does not
-        # unflatten in another process.
-        slots = [_Slot(i) for i in range(shapes["tree"].num_leaves)]
-        skeleton = eqx.combine(jax.tree_util.tree_unflatten(shapes["tree"], slots), shapes["static"])
-        try:
-            import re
-
-            from jax.experimental.serialize_executable import serialize
-
-            # Kept only with the custom calls a load can set up (LAPACK's),
-            # or none: others may need set-up that only lowering does.
-            targets = set(re.findall(r'custom_call_target="([^"]+)"', executable.as_text()))
-            if any(not t.startswith("lapack_") for t in targets):
-                raise ValueError(f"custom calls {sorted(targets)}")
-            shardings = jax.tree_util.tree_leaves((executable.input_shardings, executable.output_shardings))
-            device_ids = sorted({d.id for s in shardings for d in s.device_set})
-            payload, in_tree, out_tree = serialize(executable)
-            blob = pickle.dumps((payload, in_tree, out_tree, skeleton, bool(targets), device_ids))
-            path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_suffix(f".{os.getpid()}.{threading.get_ident()}.tmp")
-            tmp.write_bytes(hashlib.sha256(blob).digest() + blob)
-            os.replace(tmp, path)
-            _active[-1]._count("misses")
-            _prune(path.parent)
-        except Exception:  # noqa: BLE001 - not serializable or not writable: compiled, not kept
-            _active[-1]._count("unsaved")
-
-    def call(*call_args):
-        call_dynamic, call_static = eqx.partition(call_args, eqx.is_array)
-        call_leaves, call_tree = jax.tree_util.tree_flatten(call_dynamic)
-        if call_tree != tree or not eqx.tree_equal(call_static, static):
-            raise ValueError(f"{name}: called with arguments of another structure or other non-array values than it "
-                             "was compiled for")
-        out = executable(call_leaves)
-        return jax.tree_util.tree_map(lambda x: out[x.index] if isinstance(x, _Slot) else x, skeleton)
-
-    _in_process[key] = call
-    return call
-
-
-# Executables `compiled` loaded or compiled in this process, by key.
-_in_process: dict = {}

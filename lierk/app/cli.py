@@ -61,11 +61,8 @@ class CLIError(Exception):
 
 def _configure(args) -> None:
     """Devices must be settled before JAX computes anything."""
+    given_flags = os.environ.get("XLA_FLAGS")
     if args.devices is not None:
-        from jax._src import xla_bridge
-
-        if xla_bridge.backends_are_initialized():
-            raise CLIError("--devices must be set before JAX starts; run lierk in a fresh process")
         flags = re.sub(r"--xla_force_host_platform_device_count=\S+", "", os.environ.get("XLA_FLAGS", ""))
         os.environ["XLA_FLAGS"] = f"{flags} --xla_force_host_platform_device_count={args.devices}".strip()
     if args.command == "sweep":
@@ -75,6 +72,19 @@ def _configure(args) -> None:
             distributed.initialize(args.coordinator_address, args.num_processes, args.process_id)
         except ValueError as e:
             raise CLIError(_one_line(e)) from None
+    if args.devices is not None:
+        import jax
+
+        # JAX reads XLA_FLAGS when it starts its CPU backend (here, unless it
+        # already has): a backend started before runs with its own count.
+        found = jax.local_device_count("cpu")
+        if found != args.devices:
+            if given_flags is None:
+                del os.environ["XLA_FLAGS"]
+            else:
+                os.environ["XLA_FLAGS"] = given_flags
+            raise CLIError(f"--devices {args.devices} must be set before JAX starts; it already runs with {found} "
+                           "CPU devices: run lierk in a fresh process")
 
 
 def _load(args):

@@ -26,13 +26,10 @@ from collections.abc import Iterator
 __all__ = ["Compilations", "counting"]
 
 _COMPILE = "/jax/core/compile/backend_compile_duration"
-# An executable `lierk.app.cache.compiled` loaded whole: no tracing, no lowering.
-LOADED = "/lierk/cache/executable_load_duration"
 _PHASES = (
     "/jax/core/compile/jaxpr_trace_duration",
     "/jax/core/compile/jaxpr_to_mlir_module_duration",
     _COMPILE,
-    LOADED,
 )
 
 
@@ -82,7 +79,7 @@ def counting() -> Iterator[Compilations]:
             return
         with lock:
             seen.spans.append((start, end))
-            if event in (_COMPILE, LOADED):
+            if event == _COMPILE:
                 seen.names.append(str(kwargs.get("fun_name", "?")))
 
     jax.monitoring.register_event_time_span_listener(on_span)

@@ -47,7 +47,8 @@ class Diagnostics(NamedTuple):
     flip_interval: float | None = None
 
 
-def _compute_body(problem, R, y, euler_convention):
+@eqx.filter_jit
+def _compute(problem, R, y, euler_convention):
     from lierk import exact, so3
 
     omega = problem.angular_velocity(R, y)
@@ -61,24 +62,14 @@ def _compute_body(problem, R, y, euler_convention):
             so3.orthogonality_error(R), so3.to_quaternion(R), euler, flip)
 
 
-_compute = eqx.filter_jit(_compute_body)
-
-
 def diagnostics(problem, sol, *, euler_convention: str | None = None) -> Diagnostics:
     """The `Diagnostics` of ``sol``, an unbatched solve of the rigid body
     ``problem``, over its valid saved points; with ``euler_convention``
     (``"zyx"`` or ``"zxz"``, see `lierk.so3.to_euler`) the Euler angles too."""
     import jax
 
-
-    from . import cache
-
     _, R, y = sol.trajectory()
-    # Where the command line keeps whole executables, this one is loaded
-    # without being traced: its trace and lookup in JAX's cache were 0.3 s
-    # of a 2.7 s warm `lierk simulate`.
-    run = cache.compiled(_compute_body, problem, R, y, euler_convention) if cache.keeps_executables() else _compute
-    omega, L, inv, orth, q, euler, flip = jax.device_get(run(problem, R, y, euler_convention))
+    omega, L, inv, orth, q, euler, flip = jax.device_get(_compute(problem, R, y, euler_convention))
     inv = {k: np.asarray(v) for k, v in inv.items()}
     drift = {k: _drift(v) for k, v in inv.items()}
     euler = None if euler is None else np.asarray(euler)

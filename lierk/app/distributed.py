@@ -18,9 +18,9 @@ import jax
 
 __all__ = ["initialize"]
 
-# The variables jax's own cluster detection requires (jax/_src/clusters/
-# slurm_cluster.py and ompi_cluster.py): with them present it can fill in the
-# coordinator address, the process count and this process's id.
+# The variables jax's own cluster detection requires (its SLURM and Open MPI
+# clusters): with them present it can fill in the coordinator address, the
+# process count and this process's id.
 _SLURM = ("SLURM_JOB_ID", "SLURM_STEP_NODELIST", "SLURM_NTASKS", "SLURM_PROCID", "SLURM_LOCALID")
 _OMPI = "OMPI_MCA_orte_hnp_uri"
 

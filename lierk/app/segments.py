@@ -14,7 +14,6 @@ from lierk import EventRecord
 from lierk import RESULTS, SaveAt, Solution
 from lierk import checked_on_host, num_steps, one_body_compiler_options, solve
 from ._device import to_device
-from .cache import compiled
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
 
@@ -42,8 +41,8 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         # rather than by a run-time check in the program.
         saveat = scene.saveat()
         with bar.compiling():
-            run = compiled(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs),
-                           problem, compiler_options=one_body_compiler_options())
+            run = _compiled(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs),
+                            problem)
         sol = jax.block_until_ready(run(problem))
         code = int(sol.result)
         if throw and code == RESULTS.target_error_not_reached:
@@ -99,7 +98,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         return args if group is None else args + (to_device(group, dtype),)
 
     with bar.compiling():
-        piece = compiled(piece, *arguments(problem, *pieces[0]), compiler_options=one_body_compiler_options())
+        piece = _compiled(piece, *arguments(problem, *pieces[0]))
 
     # Host-side bookkeeping is NumPy: an eager jax.numpy operation would
     # compile a program of its own.
@@ -149,6 +148,14 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         result=to_device(code),
         events=tuple(_joined(e, records) for e, records in zip(events, found)) if events else None,
     )
+
+
+def _compiled(fun, *args):
+    """``fun`` compiled for arguments like ``args`` (the same structure and
+    non-array values; arrays of the same shapes and dtypes), one body's
+    solve: compiled here, so that a progress bar reports the compilation
+    apart from the run, and found in JAX's persistent cache where it is on."""
+    return eqx.filter_jit(fun).lower(*args).compile(one_body_compiler_options())
 
 
 def _joined(event, records) -> EventRecord:
