@@ -65,7 +65,8 @@ def resolve(rev: str) -> tuple[str, str]:
     checkout's HEAD with "+ working tree" for ``"."``."""
     sha = git("rev-parse", "--verify", ("HEAD" if rev == "." else rev) + "^{commit}")
     label = git("log", "-1", "--format=%h %s", sha)
-    return sha, (label[:72] + (" + working tree" if rev == "." else ""))
+    label = label if len(label) <= 64 else label[:61] + "..."
+    return sha, label + (" + working tree" if rev == "." else "")
 
 
 def aggregate(runs: list[dict]) -> dict:
@@ -240,7 +241,8 @@ def main(argv: list[str] | None = None) -> int:
     lines = [f"# {args.base} against {args.head}: headline cells (`python -m benchmarks compare`)", "",
              f"BASE = {sides['BASE'][2]}; HEAD = {sides['HEAD'][2]}.", "",
              machine_line(meta) + f" {args.repeat} run(s) of each, alternating; a time is the smallest of a cell's "
-             f"medians. Flagged: more than {args.threshold:.0%} worse (time, or error above {ERROR_FLOOR:g}).", "",
+             f"medians. Flagged: more than {args.threshold:.0%} worse (time, or error above {ERROR_FLOOR:g}). "
+             "The cells are described in `benchmarks/headline.py`.", "",
              *table(rows), "",
              (f"{len(flagged)} cell(s) flagged: {', '.join(flagged)}." if flagged else "No cell flagged.")
              + f" ({time.perf_counter() - start:.0f} s)"]
