@@ -11,6 +11,11 @@ so none may share a process.  Without ``--out`` a script writes
 script says its exit status and wall time; the exit status is non-zero if
 any failed.  ``--list`` prints the names with the first sentence of each
 script's docstring.  ``make bench`` runs them all.
+
+``python -m benchmarks compare BASE HEAD [--repeat K] [--cells ...] [--out
+FILE.md]`` is a command, not a benchmark: it runs ``headline.py`` against two
+commits, alternating, and flags the cells more than 10% worse at HEAD
+(`compare.py`).
 """
 
 from __future__ import annotations
@@ -41,6 +46,11 @@ def benchmarks() -> dict[str, tuple[Path, str]]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["compare"]:
+        from .compare import main as compare
+
+        return compare(argv[1:])
     known = benchmarks()
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n")[0])
     parser.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all; see --list)")

@@ -75,6 +75,11 @@ def timed(f, *args, repeats: int, min_time: float = 0.0, max_repeats: int = 51):
     return out, float(np.median(times)), first
 
 
+def format_seconds(s: float) -> str:
+    """``"12.3 ms"`` under a second, else ``"1.23 s"``."""
+    return f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s"
+
+
 def max_err(R, R_ref) -> float:
     """Largest Frobenius norm ``||R - R_ref||`` over the batch."""
     import jax.numpy as jnp
@@ -206,15 +211,16 @@ def backend_text(m: dict) -> str:
     return f"JAX on the {backend.upper()} ({n} x {m.get('device_kind', backend)})"
 
 
-def git_commit() -> str | None:
-    """The commit of the working tree (with "+changes" if it differs), or
-    None outside a git checkout: which code a stored row was measured with."""
+def git_commit(root: Path | None = None) -> str | None:
+    """The commit of the checkout ``root`` (default: this one), with
+    "+changes" if its ``lierk/`` differs from it, or None outside a git
+    checkout: which code a stored row was measured with."""
     import subprocess
 
-    here = Path(__file__).resolve().parent
+    root = Path(__file__).resolve().parent.parent if root is None else Path(root)
     try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=here, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "../lierk"], cwd=here, capture_output=True, text=True)
+        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
+        dirty = subprocess.run(["git", "status", "--porcelain", "--", "lierk"], cwd=root, capture_output=True, text=True)
     except (OSError, subprocess.CalledProcessError):
         return None
     return rev.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")
