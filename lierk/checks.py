@@ -13,12 +13,12 @@ build the problem inside `inertia_warned` so that nothing is warned twice.
 - `state_range_error`: why a body's state does not fit a float type.
 - `inertia_warned`: build bodies without repeating those warnings.
 - `show`: a value on one line, as lierk's messages print them.
-- `checking_on_host`: whether solves traced now skip their run-time checks
-  (inside `lierk.checked_on_host`).
+- `checking_on_host`: deprecated, always False (`lierk.checked_on_host`
+  does nothing now).
 
 They are host checks, of concrete values (NumPy arrays or numbers):
-`check_attitude` also accepts a traced attitude, which it then checks at
-run time.
+`check_attitude` also accepts a traced attitude, which it then checks in
+the program (NaN where it fails, which a solve reports).
 """
 
 from ._validation import check_attitude as check_attitude

@@ -167,19 +167,18 @@ def test_using_cache_counts_what_the_cache_did_and_passes_other_warnings_on(keep
 
 
 def test_programs_jax_cannot_keep_are_counted_apart(keep_every_program):
-    # A run-time check on a traced value is a host callback: JAX compiles the
-    # program and does not save it.  Inside `checked_on_host` it has none.
+    # A host callback (equinox's run-time error) keeps JAX from saving a
+    # program.  A solve's checks of traced inputs are made in the program,
+    # so with throw=False it has none and is kept.
     import equinox as eqx
 
-    from lierk import _validation as validation
-
-    def f(x):
-        return validation.check(x, lambda v: v > 0, "x must be > 0, got {value}") * 2.0
-
+    body = lierk.FreeRigidBody(np.array([1.0, 2.0, 3.0]), np.array([0.3, 1.0, 0.2]))
+    rng = np.random.default_rng()
     with lierk.app.cache.using_cache() as use:
-        eqx.filter_jit(f)(np.float64(1.5 + np.random.default_rng().random()))
-        with validation.checked_on_host():
-            eqx.filter_jit(lambda x: f(x) + 1.0)(np.float64(2.5))
+        eqx.filter_jit(lambda x: eqx.error_if(x, x <= 0, "x must be > 0") * 2.0)(np.float64(1.5 + rng.random()))
+        run = eqx.filter_jit(lambda dt: lierk.solve(body, lierk.RKMK4(), 0.1, dt=dt, max_steps=20, throw=False).result)
+        assert int(run(np.float64(0.01 + 1e-3 * rng.random()))) == 0
+        assert int(run(np.float64(-0.01))) == lierk.RESULTS.invalid_step
     assert use.counts["unsaved"] == 1 and use.counts["hits"] + use.counts["misses"] == 1, use.counts
     assert use.summary().endswith("; 1 compiled and not saved")
 

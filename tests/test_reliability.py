@@ -221,3 +221,78 @@ def test_nearly_singular_inertia_warns():
     # warning reads the argument as given.
     with pytest.warns(UserWarning, match="nearly singular"):
         jax.jit(lambda w: lierk.FreeRigidBody([1e-18, 1e-3, 1e-3], w).y0).trace(jnp.asarray([0.3, 1.0, 0.5]))
+
+
+# --- Traced inputs are checked inside the program -------------------------
+# Each case once came back with result 0 inside `lierk.checked_on_host`.
+# Now every program checks its traced inputs itself, with no host callback
+# (JAX's persistent cache keeps it) and nothing a caller can turn off.
+
+_TOP_I = np.array([2.0, 3.0, 4.0])
+_W = np.array([0.3, 1.0, 0.2])
+
+
+def _fixed(dt=0.05, t1=1.0, R0=None, I=_TOP_I, effects=()):
+    body = lierk.RigidBodyWithEffects(I, _W, R0=R0, effects=effects)
+    return lierk.solve(body, lierk.RKMK4(), t1, dt=dt, max_steps=40, throw=False)
+
+
+def _adaptive(ts):
+    return lierk.solve(lierk.FreeRigidBody(_TOP_I, _W), lierk.DOP853(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(ts=ts), throw=False)
+
+
+_BAD_CASES = {
+    "negative dt": (lambda x: _fixed(dt=x), 0.05, -0.05, lierk.RESULTS.invalid_step),
+    "t1 < t0": (lambda x: _fixed(t1=x), 1.0, -1.0, lierk.RESULTS.invalid_times),
+    "t1 = nan": (lambda x: _fixed(t1=x), 1.0, np.nan, lierk.RESULTS.invalid_times),
+    "unsorted save times": (_adaptive, np.array([0.2, 0.5]), np.array([0.5, 0.2]), lierk.RESULTS.invalid_save_times),
+    "save times past t1": (_adaptive, np.array([0.2, 0.5]), np.array([0.5, 2.0]), lierk.RESULTS.invalid_save_times),
+    "R0 = 2 I": (lambda x: _fixed(R0=x), np.eye(3), 2 * np.eye(3), lierk.RESULTS.invalid_problem),
+    "indefinite inertia": (lambda x: _fixed(I=x), _TOP_I, np.array([2.0, -3.0, 4.0]), lierk.RESULTS.invalid_problem),
+    "negative mass": (lambda x: _fixed(effects=lierk.Gravity([0.0, 0.0, 0.1], x)), 1.0, -1.0, lierk.RESULTS.invalid_problem),
+    "negative damping": (lambda x: _fixed(effects=lierk.Damping(x)), 0.1, -0.1, lierk.RESULTS.invalid_problem),
+    "negative spin inertia": (
+        lambda x: _fixed(effects=lierk.ReactionWheels(np.eye(3), x * jnp.ones(3), np.zeros(3))), 0.01, -0.01,
+        lierk.RESULTS.invalid_problem,
+    ),
+    "unsorted torque times": (
+        lambda x: _fixed(effects=lierk.TimedTorque(np.zeros((3, 3)), x)),
+        np.array([0.0, 0.5, 1.0]), np.array([0.0, 1.0, 0.5]), lierk.RESULTS.invalid_problem,
+    ),
+}
+
+
+@pytest.mark.parametrize("case", list(_BAD_CASES))
+def test_a_bad_traced_input_never_comes_back_as_success(case):
+    """Under jit a bad input gives its own result code and NaN states, and
+    a batch with one bad member solves the others exactly as alone."""
+    fn, good, bad, code = _BAD_CASES[case]
+    run = jax.jit(lambda x: (lambda s: (s.result, s.R))(fn(x)))
+    ok_code, ok_R = run(good)
+    assert int(ok_code) == 0 and np.isfinite(np.asarray(ok_R)).all()
+    bad_code, bad_R = run(bad)
+    assert int(bad_code) == code and np.isnan(np.asarray(bad_R)).all(), (case, int(bad_code))
+    codes, Rs = jax.jit(jax.vmap(lambda x: (lambda s: (s.result, s.R))(fn(x))))(jnp.stack([jnp.asarray(good), jnp.asarray(bad)]))
+    np.testing.assert_array_equal(np.asarray(codes), [0, code])
+    np.testing.assert_allclose(np.asarray(Rs[0]), np.asarray(ok_R), rtol=0, atol=1e-14)
+
+
+def test_checked_on_host_is_a_deprecated_no_op_and_nothing_leaks_out_of_it():
+    """A program traced inside the old block is the program traced outside:
+    JAX keeps traces by function, so a block that dropped checks let an
+    unchecked program run later outside it."""
+    f = jax.jit(lambda dt: _fixed(dt=dt).result)
+    with pytest.warns(DeprecationWarning, match="does nothing"):
+        with lierk.checked_on_host():
+            assert int(f(0.05)) == 0
+    assert int(f(-0.05)) == lierk.RESULTS.invalid_step
+    assert lierk.checks.checking_on_host() is False
+
+
+def test_throw_raises_a_bad_traced_input_by_its_name():
+    run = jax.jit(lambda dt: lierk.solve(BODY, lierk.RKMK4(), 1.0, dt=dt, max_steps=40).R)
+    with pytest.raises(Exception, match="dt must be > 0"):
+        jax.block_until_ready(run(-0.05))
+    with pytest.raises(Exception, match="R0 must be a rotation matrix"):
+        jax.block_until_ready(jax.jit(lambda R0: lierk.solve(lierk.FreeRigidBody(TEE, OMEGA_GENERIC, R0=R0), lierk.RKMK4(), 1.0,
+                                                              dt=0.05).R)(2 * jnp.eye(3)))

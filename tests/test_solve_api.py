@@ -392,8 +392,7 @@ def test_fixed_steps_at_save_times_differentiate_and_estimate_their_error():
 def test_fixed_steps_at_save_times_are_bounded_by_max_steps_and_a_bad_step_is_not_success():
     """``max_steps`` bounds the whole run: cut short, the rows not reached are
     NaN and uncounted, and the result says so; a step that is not a positive
-    finite number (its check skipped by `lierk.checked_on_host`) gives a
-    non-finite state, not R0 with success."""
+    finite number gives NaN states and its code, not R0 with success."""
     body, ts = _tee(), np.linspace(0.0, 1.0, 5)
     full = lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.05, saveat=lierk.SaveAt(ts=ts, t1=True))
     cut = lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.05, saveat=lierk.SaveAt(ts=ts, t1=True), max_steps=12, throw=False)
@@ -405,11 +404,12 @@ def test_fixed_steps_at_save_times_are_bounded_by_max_steps_and_a_bad_step_is_no
 
     @jax.jit
     def run(dt):
-        with lierk.checked_on_host():
-            return lierk.solve(body, lierk.RKMK4(), 1.0, dt=dt, saveat=lierk.SaveAt(ts=ts), throw=False).result
+        sol = lierk.solve(body, lierk.RKMK4(), 1.0, dt=dt, saveat=lierk.SaveAt(ts=ts), throw=False)
+        return sol.result, sol.R
 
     for bad in (np.nan, -0.1, 0.0):
-        assert int(run(np.float64(bad))) == lierk.RESULTS.nonfinite, bad
+        code, R = run(np.float64(bad))
+        assert int(code) == lierk.RESULTS.invalid_step and np.isnan(np.asarray(R)).all(), bad
 
 
 def test_finer_options_reproduce_estimate_error():

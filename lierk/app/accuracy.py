@@ -551,21 +551,18 @@ class _Programs:
     def _jitted(self, key):
         import equinox as eqx
 
-        from lierk import SaveAt, checked_on_host, one_body_compiler_options, solve
+        from lierk import SaveAt, one_body_compiler_options, solve
 
         m, kind, steps = key
         if kind == "fixed":
 
             def run(problem, t0, t1, ts, dt):
-                # The times and steps are this module's own, checked here.
-                with checked_on_host():
-                    return solve(problem, m.solver, t1, t0=t0, dt=dt, saveat=SaveAt(ts=ts), throw=False)
+                return solve(problem, m.solver, t1, t0=t0, dt=dt, saveat=SaveAt(ts=ts), throw=False)
         else:
 
             def run(problem, t0, t1, ts, controller):
-                with checked_on_host():
-                    return solve(problem, m.solver, t1, t0=t0, controller=controller, saveat=SaveAt(ts=ts),
-                                 max_steps=steps, throw=False)
+                return solve(problem, m.solver, t1, t0=t0, controller=controller, saveat=SaveAt(ts=ts),
+                             max_steps=steps, throw=False)
 
         # One body per program: XLA's one-body settings compile it sooner.
         return eqx.filter_jit(run, compiler_options=one_body_compiler_options())

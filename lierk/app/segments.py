@@ -12,7 +12,7 @@ import numpy as np
 from lierk import Progress
 from lierk import EventRecord
 from lierk import RESULTS, SaveAt, Solution
-from lierk import checked_on_host, num_steps, one_body_compiler_options, solve
+from lierk import num_steps, one_body_compiler_options, solve
 from ._device import to_device
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
@@ -69,10 +69,8 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
 
         def piece(problem, ta, tb):
             # Padding steps past tb are exact no-ops, so every piece has the
-            # same static length and compiles once.  The times are this
-            # function's own (finite, increasing): checked on the host.
-            with checked_on_host():
-                return solve(problem, solver, tb, t0=ta, max_steps=per, saveat=SaveAt(steps=every), throw=False, **kw)
+            # same static length and compiles once.
+            return solve(problem, solver, tb, t0=ta, max_steps=per, saveat=SaveAt(steps=every), throw=False, **kw)
 
         pieces = [(times[k], times[k + 1], None) for k in range(len(times) - 1)]
     else:
@@ -82,8 +80,7 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         max_steps = scene.solve_kwargs.get("max_steps")
 
         def piece(problem, ta, tb, ts):
-            with checked_on_host():
-                return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
+            return solve(problem, solver, tb, t0=ta, saveat=SaveAt(ts=ts), max_steps=max_steps, throw=False, **kw)
 
         pieces, ta = [], 0.0
         for k in range(0, len(rest), size):
