@@ -504,8 +504,17 @@ def test_sweep_on_two_devices_matches_exact_and_finite_differences(tmp_path):
     J_solve = lierk.sensitivity(lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), 1.0, dt=0.01, estimate_error=False)
     true = np.linalg.norm(np.asarray(J_solve.jacobian_R) - J_exact)
     assert true / 10 <= data["sensitivity_error"][i, j] <= 100 * true
+    # The finite-time Lyapunov exponent: of the attitude's and the body
+    # angular velocity's Jacobians, by central differences.
     J_alg = np.einsum("ji,jkl->ikl", R, J)[[2, 0, 1], [1, 2, 0]]
-    lam = np.log(np.linalg.svd(J_alg, compute_uv=False)[0] / 1.0) / 1.0
+
+    def final_omega(v):
+        problem = lierk.FreeRigidBody(inertia, v)
+        return np.linalg.solve(inertia, np.asarray(lierk.solve(problem, lierk.RKMK4(), 1.0, dt=0.01).y[-1]))
+
+    J_omega = np.stack([(final_omega(w + h * e) - final_omega(w - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+    state = np.vstack([np.linalg.norm(w) * J_alg, J_omega])
+    lam = np.log(np.linalg.svd(state, compute_uv=False)[0]) / 1.0
     assert data["lyapunov"][i, j] == pytest.approx(lam, rel=1e-6)
 
     with Image.open(out / "tee_test_sweep.png") as im:
