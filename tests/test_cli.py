@@ -439,6 +439,36 @@ def test_simulate_target_error_meets_it_against_the_exact_solution(tmp_path, cap
     assert f"estimated error at t1 {est[-1]:.2e}" in stdout
 
 
+def test_simulate_target_error_keeps_the_events(tmp_path, capsys):
+    """--target-error with events: the setting is chosen without them, then
+    one more solve at that setting finds them.  The flip (added for a body
+    with an intermediate axis) against the closed form's; a terminating
+    scene event ends the saved run there; the states meet the target."""
+    text = TEE_SCENE.replace("t1 = 100.0", "t1 = 30.0").replace("omega = [1.0, 0.05, 0.3]", "omega = [1.0, 0.05, 0.0]")
+    eps = 1e-8
+    out = tmp_path / "out"
+    argv = ["simulate", write(tmp_path, text), "--out", out, "--target-error", eps, "--quiet", "--no-gif"]
+    code, stdout, stderr = run_inprocess(argv, capsys)
+    assert code == 0, stderr
+    data = _npz(out / "tee_test.npz")
+    inertia, w0 = data["inertia"], data["omega0"]
+    first = float(lierk.exact.flip_interval(inertia, w0)) / 2  # from omega_z = 0, the first flip at half the interval
+    np.testing.assert_allclose(data["event_flip"], [first], atol=1e-7)
+    assert "  event flip: 1 at t = " in stdout and "events found by one more solve" in stdout
+    assert _exact_errors(data).max() <= eps
+    # A flip event that ends the run: the saved times stop before it.
+    stop = text + '\n[[events]]\nkind = "flip"\nterminate = true\n'
+    code, stdout, stderr = run_inprocess(["simulate", write(tmp_path, stop), "--out", out, "--target-error", eps,
+                                          "--quiet", "--no-gif"], capsys)
+    assert code == 0, stderr
+    data = _npz(out / "tee_test.npz")
+    np.testing.assert_allclose(data["event_flip"], [first], atol=1e-7)
+    spacing = 30.0 / 1500  # as many saved times as the dt run's 3000 steps, saving every 2nd
+    assert first - spacing < data["ts"][-1] <= first, data["ts"][-1]
+    assert f"the run ended at the flip event, t = {data['event_flip'][0]:.9g} s" in stdout
+    assert _exact_errors(data).max() <= eps and np.isfinite(data["error_estimate"]).all()
+
+
 def test_simulate_target_error_with_dense_saved_times(tmp_path, capsys):
     text = SMALL_TARGET_SCENE.replace("n_save = 5", "n_save = 41")  # 0.05 s apart
     out = tmp_path / "out"
