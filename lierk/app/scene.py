@@ -719,7 +719,6 @@ _SPACECRAFT = {
 # --- events --------------------------------------------------------------------
 
 _CROSSING = {"both": 0, "up": 1, "down": -1}
-_EXTREMUM = {"both": 0, "max": 1, "min": -1}
 
 
 def _events(items: list, problem, pivot_to_com: np.ndarray | None) -> tuple:
@@ -743,7 +742,7 @@ def _events(items: list, problem, pivot_to_com: np.ndarray | None) -> tuple:
         elif kind == "tilt":
             event = conditions.tilt(ev.angle, axis, terminate=terminate, direction=crossing)
         elif kind == "tilt_extremum":
-            event = conditions.tilt_extremum(problem, axis, terminate=terminate, direction=_EXTREMUM[ev.extremum])
+            event = conditions.tilt_extremum(problem, axis, terminate=terminate, extremum=ev.extremum)
         elif kind == "pointing":
             event = conditions.pointing(axis, np.array(ev.target), ev.angle, terminate=terminate, direction=crossing)
         else:
