@@ -3,6 +3,7 @@ with their documented sizes, and every mistake ends in one line on stderr
 with a non-zero exit status."""
 
 import io
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -108,8 +109,9 @@ def test_parse_range_rejects(text):
 
 
 def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
-    # It used to print four identical lines, each "1.4 s".
-    clock = iter(np.arange(0.0, 100.0, 0.25)).__next__
+    # It used to print four identical lines, each "1.4 s"; then lines that
+    # mixed "0.0 s elapsed" with "00:00 left" and read "12335.99members/s".
+    clock = iter(np.arange(0.0, 1000.0, 1.5)).__next__
     stream = io.StringIO()
     p = cli_progress.Progress("run", 100.0, " s", stream=stream, clock=clock)
     with p.compiling():
@@ -117,12 +119,21 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
     for t in range(5, 101, 5):
         p.update(t)
     lines = stream.getvalue().splitlines()
-    assert lines[:2] == ["run: compiling", "run: compiled in 0.2 s"]
+    assert lines[:2] == ["run: compiling", "run: compiled in 1.5 s"]
     percent = [int(line.split("%")[0].split()[-1]) for line in lines[2:]]
-    elapsed = [float(line.split("[")[1].split(" s elapsed")[0]) for line in lines[2:]]
+    clocks = [re.search(r"\[(\d\d):(\d\d) elapsed, (\d\d):(\d\d) left, ([\d.]+) s/s\]$", line) for line in lines[2:]]
+    assert all(clocks), lines
+    elapsed = [60 * int(m[1]) + int(m[2]) for m in clocks]
+    left = [60 * int(m[3]) + int(m[4]) for m in clocks]
     assert percent == list(range(10, 101, 10))
-    assert all(b > a for a, b in zip(elapsed, elapsed[1:]))
-    assert all(" left, " in line and "s/s]" in line for line in lines[2:])  # time left and rate
+    assert all(b > a for a, b in zip(elapsed, elapsed[1:])) and left[-1] == 0 and left[0] > left[-2]
+    # The rate with an SI prefix and a space before the unit.
+    members = io.StringIO()
+    m = cli_progress.Progress("sweep", 20000, "members", stream=members, lines=1,
+                              clock=iter([0.0, 1.0, 1.0, 2.0]).__next__)
+    m.update(20000)
+    assert members.getvalue().strip().endswith("20.0k/20.0k members [00:01 elapsed, 00:00 left, 20.0k members/s]"), (
+        members.getvalue())
     quiet = io.StringIO()
     q = cli_progress.Progress("run", 1.0, quiet=True, stream=quiet)
     q.update(1.0)
@@ -136,7 +147,6 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["simulate", "{missing}", "--out", "{out}"], 2, "scene file not found"),
         (["simulate", "{bad_key}", "--out", "{out}"], 2, "unknown key 'colour'"),
         (["simulate", "{bad_toml}", "--out", "{out}"], 2, "not valid TOML"),
-        (["simulate", "{scene}"], 2, "required: --out"),
         (["simulate", "{scene}", "--out", "{out}", "--t1", "-1"], 2, "--t1 must be a positive"),
         (["simulate", "{scene}", "--out", "{out}", "--frames", "0"], 2, "--frames must be a positive integer"),
         (["simulate", "{too_few_steps}", "--out", "{out}", "--quiet"], 1, "max_steps was reached"),
@@ -349,6 +359,16 @@ def test_devices_before_the_command_takes_effect(tmp_path):
 def _npz(path):
     with np.load(path) as f:
         return {k: f[k] for k in f.files}
+
+
+def test_without_out_a_command_writes_to_out_and_the_scene_files_name(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    scene_path = write(tmp_path, TEE_SCENE, "spinning_tee.toml")
+    code, stdout, stderr = run_inprocess(["simulate", scene_path, "--t1", "0.2", "--no-gif", "--quiet"], capsys)
+    assert code == 0, stderr
+    out = Path("out") / "spinning_tee"
+    assert (tmp_path / out / "tee_test.npz").exists()
+    assert f"  {out / 'tee_test.npz'}" in stdout
 
 
 def test_simulate_matches_a_direct_solve(tmp_path):
