@@ -85,7 +85,7 @@ class Sensitivity(eqx.Module):
         jacobian_y_error: the same for `jacobian_y`, in its units (None when
             the problem has no extra state).
         ftle: the finite-time Lyapunov exponent (1/s) of the body's state
-            with respect to ``omega0`` (`wrt="omega0"` only, else None):
+            with respect to ``omega0`` (``wrt="omega0"`` only, else None):
             ``log(sigma_max(Phi)) / T`` with ``T = t1 - t0`` and ``Phi`` the
             ``(6, 3)`` state transition from a perturbation of ``omega0``
             to the final attitude and body angular velocity,
@@ -95,7 +95,8 @@ class Sensitivity(eqx.Module):
             velocity's (in units of ``Omega``) per relative change of
             ``omega0``.  About a steady spin about the intermediate axis it
             tends to the linear growth rate ``Omega sqrt((I1 - I2)(I2 -
-            I3)/(I1 I3))`` as ``T`` grows, with an offset of order ``1/T``.
+            I3)/(I1 I3))`` (``I2`` the intermediate moment) as ``T`` grows,
+            with an offset of order ``1/T``.
             Without exponential growth it still decays only as ``log(T)/T``:
             the attitude's perturbation grows linearly (a sphere has
             ``log(sqrt(1 + (Omega T)^2)) / T``), so compare members at one
@@ -294,9 +295,9 @@ def sensitivity(
             else the derivative (`sensitivity_method` says which).
         estimate_error: also take the Jacobian of a finer solve and fill
             the error bars `Sensitivity.jacobian_error`,
-            `Sensitivity.jacobian_R_error` and `Sensitivity.jacobian_y_error` (about 2.5x the cost; 3x for fixed
-            steps, whose two solves share one compiled loop of the finer
-            solve's length).  Both solves then run under the finer one's
+            `Sensitivity.jacobian_R_error` and `Sensitivity.jacobian_y_error`
+            (about 2.5x the cost; 3x for fixed steps, whose two solves share
+            one compiled loop of the finer solve's length).  Both solves then run under the finer one's
             ``max_steps`` (1.5x or 2x the one given, or the default).
         throw: raise if the solve fails; with False read `Sensitivity.result`.
         **solve_options: passed to `solve`: ``dt=`` (and ``max_steps=``), or
