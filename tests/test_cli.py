@@ -378,7 +378,7 @@ def test_simulate_matches_a_direct_solve(tmp_path):
         ["simulate", scene_path, "--out", out, "--t1", "0.5", "--chunks", "3", "--frames", "4"]
     )
     assert code == 0, stderr
-    assert "compiled in" in stderr and "t: 100% 0.5/0.5 s" in stderr and "Traceback" not in stderr  # progress, not quiet
+    assert "compiled in" in stderr and "t: 100% 0.50/0.50 s" in stderr and "Traceback" not in stderr  # progress, not quiet
 
     scene = lierk.app.scene.load(scene_path)
     import dataclasses
