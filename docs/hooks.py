@@ -1,20 +1,29 @@
-"""mkdocs hooks: the pages generated from the repository, not copied into it.
+"""mkdocs hooks: the pages generated from the repository.
 
-- The benchmarks guide (``docs/guides/benchmarks.md``) holds the marker
-  ``<!-- benchmark-results -->``; it is replaced by every file of
-  ``benchmarks/results/`` (and ``benchmarks/results/h100/``) as the
-  benchmark scripts last wrote them, each under a heading with a sentence on
-  what it measures, and the figures are copied into the site.
-- The scenes guide holds ``<!-- scene-schema -->``, replaced by a table of
-  every key of a scene file, from the schema's own declarations
+- The benchmarks guide (``docs/guides/benchmarks.md``) holds the region
+  ``<!-- benchmark-results -->`` ... ``<!-- /benchmark-results -->``; at
+  build time it is replaced by every file of ``benchmarks/results/`` (and
+  ``benchmarks/results/h100/``) as the benchmark scripts last wrote them,
+  each under a heading with a sentence on what it measures, and the figures
+  are copied into the site.  In a clone the region holds a pointer to the
+  files themselves.
+- The scenes guide holds ``<!-- scene-schema -->`` ... ``<!-- /scene-schema -->``,
+  a table of every key of a scene file, from the schema's own declarations
   (`lierk.app.scene_schema`: each table's fields, types and defaults, and
-  the meanings its docstring gives them), and ``<!-- cli-help -->``,
-  replaced by the ``--help`` of ``lierk`` and each of its commands, from the
-  parser itself (`lierk.app.cli_arguments.build_parser`).
+  the meanings its docstring gives them), and ``<!-- cli-help -->`` ...
+  ``<!-- /cli-help -->``, the ``--help`` of ``lierk`` and each of its
+  commands, from the parser itself (`lierk.app.cli_arguments.build_parser`).
+  These two are committed, so that the page reads whole in a clone and on
+  GitHub; ``python docs/hooks.py`` writes them again, ``tests/test_docs.py``
+  checks that they match their sources, and the build fills them afresh.
+- Figures of ``benchmarks/results/`` are linked from the guides by their
+  path in the repository (``../../benchmarks/results/x.png`` from
+  ``docs/guides/``), which resolves in a clone; the build points the links
+  at the site's copy.
 
-Nothing has to run before ``mkdocs build``: both are read at build time.
-`render_results`, `render_scene_schema` and `render_cli_help` are plain
-functions so that ``tests/test_docs.py`` can check what they produce.
+Nothing has to run before ``mkdocs build``: everything is read at build
+time.  `render_results`, `render_scene_schema` and `render_cli_help` are
+plain functions so that ``tests/test_docs.py`` can check what they produce.
 """
 
 from __future__ import annotations
@@ -327,11 +336,67 @@ def on_files(files, config):
     return files
 
 
+def end_marker(marker: str) -> str:
+    """``<!-- /name -->`` for ``<!-- name -->``."""
+    return marker.replace("<!-- ", "<!-- /", 1)
+
+
+def fill(markdown: str, marker: str, text: str) -> str:
+    """``markdown`` with the region from ``marker`` to its `end_marker`
+    (or the marker alone, where there is no end) holding ``text``."""
+    end = end_marker(marker)
+    start = markdown.index(marker)
+    stop = markdown.find(end, start)
+    stop = start + len(marker) if stop < 0 else stop + len(end)
+    return markdown[:start] + f"{marker}\n\n{text.strip()}\n\n{end}" + markdown[stop:]
+
+
+def region(markdown: str, marker: str) -> str:
+    """What ``markdown`` holds between ``marker`` and its `end_marker`."""
+    start = markdown.index(marker) + len(marker)
+    return markdown[start:markdown.index(end_marker(marker), start)].strip()
+
+
+# The committed regions: (page, marker, renderer).
+COMMITTED = (("guides/scenes-and-cli.md", SCHEMA_MARKER, "render_scene_schema"),
+             ("guides/scenes-and-cli.md", CLI_MARKER, "render_cli_help"))
+
+
+def write_committed() -> list[Path]:
+    """Write the committed regions from their sources; returns the pages changed."""
+    changed = []
+    for page, marker, renderer in COMMITTED:
+        path = ROOT / "docs" / page
+        old = path.read_text(encoding="utf-8")
+        new = fill(old, marker, globals()[renderer]())
+        if new != old:
+            path.write_text(new, encoding="utf-8")
+            changed.append(path)
+    return changed
+
+
+def site_links(markdown: str, page_dir: str) -> str:
+    """Links into ``benchmarks/results/`` by their path in the repository,
+    pointed at the site's copy (one level less up: the site's root is
+    ``docs/``)."""
+    up = "../" * len(Path(page_dir).parts)
+    return markdown.replace(f"](../{up}benchmarks/results/", f"]({up}benchmarks/results/")
+
+
 def on_page_markdown(markdown, page, config, files):
+    page_dir = str(Path(page.file.src_uri).parent)
     if RESULTS_MARKER in markdown:
-        markdown = markdown.replace(RESULTS_MARKER, render_results(str(Path(page.file.src_uri).parent)))
+        markdown = fill(markdown, RESULTS_MARKER, render_results(page_dir))
     if SCHEMA_MARKER in markdown:
-        markdown = markdown.replace(SCHEMA_MARKER, render_scene_schema())
+        markdown = fill(markdown, SCHEMA_MARKER, render_scene_schema())
     if CLI_MARKER in markdown:
-        markdown = markdown.replace(CLI_MARKER, render_cli_help())
-    return markdown
+        markdown = fill(markdown, CLI_MARKER, render_cli_help())
+    return site_links(markdown, page_dir)
+
+
+if __name__ == "__main__":
+    import sys
+
+    sys.path.insert(0, str(ROOT))
+    for path in write_committed():
+        print(f"wrote {path.relative_to(ROOT)}")

@@ -49,6 +49,7 @@ from ._problems import AbstractRigidBody as AbstractRigidBody
 from ._problems import FreeRigidBody as FreeRigidBody
 from ._problems import RigidBodyWithEffects as RigidBodyWithEffects
 from ._problems import SpatialFreeRigidBody as SpatialFreeRigidBody
+from ._problems import heavy_top as heavy_top
 from ._problems.effects import AbstractEffect as AbstractEffect
 from ._problems.effects import BodyTorque as BodyTorque
 from ._problems.effects import Damping as Damping

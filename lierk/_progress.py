@@ -13,7 +13,9 @@ import time
 
 __all__ = ["Progress"]
 
-_METER = "{desc}: {percentage:3.0f}%{bar} {n:.4g}/{total:.4g} {unit} [{elapsed_s:.1f} s elapsed, {remaining} left, {rate_fmt}]"
+# Elapsed and left on one clock (m:ss, h:mm:ss past an hour), the rate with
+# an SI prefix and a space before its unit: "12.3k members/s", "83.1 s/s".
+_METER = "{desc}: {percentage:3.0f}%{bar} {n_fmt}/{total_fmt}{unit} [{elapsed} elapsed, {remaining} left, {rate_noinv_fmt}]"
 
 
 class Progress:
@@ -55,11 +57,12 @@ class Progress:
         self.done, self.next_line = 0.0, 1
         self.start = clock()
         self.bar = None
+        self._unit = f" {self.unit}" if self.unit else ""  # tqdm's, which it writes after numbers
         if not quiet and self.tty:
             from tqdm import tqdm  # (here: `import lierk` loads no tqdm)
 
-            self.bar = tqdm(total=self.total, desc=label, unit=self.unit, file=self.stream, mininterval=0.2,
-                            bar_format=_METER.replace("{bar}", "|{bar}|"), dynamic_ncols=True)
+            self.bar = tqdm(total=self.total, desc=label, unit=self._unit, unit_scale=True, file=self.stream,
+                            mininterval=0.2, bar_format=_METER.replace("{bar}", "|{bar}|"), dynamic_ncols=True)
 
     @contextlib.contextmanager
     def compiling(self):
@@ -102,7 +105,8 @@ class Progress:
         from tqdm import tqdm
 
         self._write(tqdm.format_meter(min(self.done, self.total), self.total, self.clock() - self.start,
-                                      prefix=self.label, unit=self.unit, bar_format=_METER.replace("{bar}", "")))
+                                      prefix=self.label, unit=self._unit, unit_scale=True,
+                                      bar_format=_METER.replace("{bar}", "")))
 
     def _write(self, text: str) -> None:
         self.stream.write(text + "\n")

@@ -15,10 +15,11 @@ otherwise, as a user's own `jax.jacfwd` of `solve` does) or
 reverse mode (`jax.jacrev`: with the default `ForwardSensitivity` the solve
 carries the derivatives and each output reads them; with a reverse adjoint
 such as `RecursiveCheckpointAdjoint`, one backward pass per output, six of
-them).  Its own error,
-against the exact flow's Jacobian, is estimated like `solve`'s
-``estimate_error``: by Richardson's comparison with the Jacobian of a finer
-solve (``2 dt/3`` for fixed steps, tolerances divided by 10 for adaptive ones).
+them).  The error of each form (`Sensitivity.jacobian_error`,
+`Sensitivity.jacobian_R_error`, `Sensitivity.jacobian_y_error`), against the
+exact flow's Jacobian, is estimated like `solve`'s ``estimate_error``: by
+Richardson's comparison with the Jacobians of a finer solve (``2 dt/3`` for
+fixed steps, tolerances divided by 10 for adaptive ones).
 
 ``method="variational"`` instead integrates the body's variational equations
 with it (`lierk._problems.Variational`): the Jacobian of the exact flow to the
@@ -31,6 +32,7 @@ coarse solve, a check against finite differences of the solve).
 
 from __future__ import annotations
 
+import warnings
 from typing import Any, Callable
 
 import equinox as eqx
@@ -58,6 +60,10 @@ _INPUTS = ("omega0", "R0", "inertia")
 class Sensitivity(eqx.Module):
     """The final state of a solve and its Jacobian with respect to an input ``p``.
 
+    Each Jacobian comes with its own error bar, named after it:
+    `jacobian` with `jacobian_error`, `jacobian_R` with `jacobian_R_error`,
+    `jacobian_y` with `jacobian_y_error`.
+
     Attributes:
         R: ``(3, 3)`` attitude at ``t1`` (body -> space).
         y: the problem's extra state at ``t1`` (the body momentum ``m``,
@@ -69,10 +75,32 @@ class Sensitivity(eqx.Module):
             of the input.  With respect to ``omega0``: ``(3, 3)``, in seconds.
         jacobian_y: ``d y(t1) / d p``, leaves ``y.shape + leaf.shape`` (None
             when the problem has no extra state).
-        error_estimate: estimated Frobenius norm of the error of
-            `jacobian_R` (all inputs together), against the exact flow's
+        jacobian_error: estimated Frobenius norm of the error of `jacobian`
+            (all inputs together, in its units), against the exact flow's
             Jacobian; NaN when not estimated, inf when the finer solve failed.
-            The algebra form's error is ``1/sqrt(2)`` of it.
+        jacobian_R_error: the same for `jacobian_R` (``dR(t1)/dp`` entry by
+            entry).  About ``sqrt(2)`` times `jacobian_error`
+            (``||R hat(v)||_F = sqrt(2) |v|``), plus the attitude's own error
+            carried by ``R``.
+        jacobian_y_error: the same for `jacobian_y`, in its units (None when
+            the problem has no extra state).
+        ftle: the finite-time Lyapunov exponent (1/s) of the body's state
+            with respect to ``omega0`` (``wrt="omega0"`` only, else None):
+            ``log(sigma_max(Phi)) / T`` with ``T = t1 - t0`` and ``Phi`` the
+            ``(6, 3)`` state transition from a perturbation of ``omega0``
+            to the final attitude and body angular velocity,
+            ``Phi = [Omega jacobian; d omega(t1) / d omega0]``,
+            ``omega = I^-1 m`` and ``Omega = |omega0|``.  Both blocks are
+            dimensionless: the attitude's perturbation (rad) and the angular
+            velocity's (in units of ``Omega``) per relative change of
+            ``omega0``.  About a steady spin about the intermediate axis it
+            tends to the linear growth rate ``Omega sqrt((I1 - I2)(I2 -
+            I3)/(I1 I3))`` (``I2`` the intermediate moment) as ``T`` grows,
+            with an offset of order ``1/T``.
+            Without exponential growth it still decays only as ``log(T)/T``:
+            the attitude's perturbation grows linearly (a sphere has
+            ``log(sqrt(1 + (Omega T)^2)) / T``), so compare members at one
+            ``T``.
         result: `RESULTS` code of the solve (0 is success).
         stats: the solve's statistics (`Solution.stats`).
         t0, t1: the interval (s).
@@ -82,7 +110,10 @@ class Sensitivity(eqx.Module):
     y: Any
     jacobian: Any
     jacobian_y: Any
-    error_estimate: Array
+    jacobian_error: Array
+    jacobian_R_error: Array
+    jacobian_y_error: Array | None
+    ftle: Array | None
     result: Array
     stats: dict
     t0: Array
@@ -91,18 +122,33 @@ class Sensitivity(eqx.Module):
     @property
     def jacobian_R(self) -> Any:
         """``dR(t1)/dp`` entry by entry: leaves ``(3, 3) + leaf.shape`` (after
-        any batch axes), ``R hat(jacobian)``."""
+        any batch axes), ``R hat(jacobian)``.  Its error bar is
+        `jacobian_R_error`."""
         return jax.tree_util.tree_map(lambda J: _jacobian_R(self.R, J), self.jacobian)
 
     @property
+    def error_estimate(self) -> Array:
+        """Deprecated: `jacobian_R_error`, the error bar of `jacobian_R`
+        (`jacobian`'s is `jacobian_error`)."""
+        warnings.warn(
+            "Sensitivity.error_estimate is deprecated: it is the error of jacobian_R, now named "
+            "jacobian_R_error; the error of jacobian (the algebra form) is jacobian_error",
+            DeprecationWarning, stacklevel=2,
+        )
+        return self.jacobian_R_error
+
+    @property
     def lyapunov_exponent(self) -> Array:
-        """Finite-time Lyapunov exponent (1/s) of the attitude with respect to
-        ``omega0``: ``log(sigma_max(J) / T) / T`` with ``T = t1 - t0`` and
-        ``sigma_max`` the largest singular value of the ``(3, 3)`` algebra
-        Jacobian.  A body turning steadily (a sphere) has ``J = T I``, hence
-        0; perturbations that grow faster than the elapsed time (near the
-        intermediate axis) give a positive exponent.  Only for
-        ``wrt="omega0"`` (or another ``(3,)`` input)."""
+        """Deprecated: ``log(sigma_max(J) / T) / T`` with ``J`` the ``(3, 3)``
+        algebra Jacobian with respect to ``omega0``, the attitude
+        Jacobian's growth beyond the steady turn's ``J = T I``.  It is not
+        the finite-time Lyapunov exponent of the body's state, which is
+        `ftle`."""
+        warnings.warn(
+            "Sensitivity.lyapunov_exponent is deprecated: it is log(sigma_max(jacobian) / T) / T, not a "
+            "Lyapunov exponent of the body's state; the finite-time Lyapunov exponent is Sensitivity.ftle",
+            DeprecationWarning, stacklevel=2,
+        )
         J = self.jacobian
         if not (isinstance(J, jax.Array | np.ndarray) and J.ndim == self.R.ndim and J.shape[-2:] == (3, 3)):
             raise ValueError("lyapunov_exponent needs the Jacobian with respect to a (3,) input such as omega0")
@@ -248,9 +294,10 @@ def sensitivity(
             estimate reports), or ``"auto"``: variational where it applies,
             else the derivative (`sensitivity_method` says which).
         estimate_error: also take the Jacobian of a finer solve and fill
-            `Sensitivity.error_estimate` (about 2.5x the cost; 3x for fixed
-            steps, whose two solves share one compiled loop of the finer
-            solve's length).  Both solves then run under the finer one's
+            the error bars `Sensitivity.jacobian_error`,
+            `Sensitivity.jacobian_R_error` and `Sensitivity.jacobian_y_error`
+            (about 2.5x the cost; 3x for fixed steps, whose two solves share
+            one compiled loop of the finer solve's length).  Both solves then run under the finer one's
             ``max_steps`` (1.5x or 2x the one given, or the default).
         throw: raise if the solve fails; with False read `Sensitivity.result`.
         **solve_options: passed to `solve`: ``dt=`` (and ``max_steps=``), or
@@ -402,7 +449,7 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
         fine_options, ratio = finer_options(solver, **solve_options)
         pair = _stacked(solve_options, fine_options)
         if pair is None:
-            (J, Jy, R, y, sol), (Jf, _, Rf, _, solf) = run(solve_options), run(fine_options)
+            (J, Jy, R, y, sol), (Jf, Jyf, Rf, _, solf) = run(solve_options), run(fine_options)
         else:
             # One trace of the solve and its Jacobian serves both settings
             # (a scan of 2): the program's largest part appears once, not
@@ -418,20 +465,56 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
                 return arrays
 
             both = jax.lax.map(one, dynamic)
-            (J, Jy, R, y, sol), (Jf, _, Rf, _, solf) = (
+            (J, Jy, R, y, sol), (Jf, Jyf, Rf, _, solf) = (
                 eqx.combine(jax.tree_util.tree_map(lambda x: x[i], both), kept[0]) for i in (0, 1)
             )
-        gap = jax.tree_util.tree_map(lambda a, b: jnp.sum((_jacobian_R(R, a) - _jacobian_R(Rf, b)) ** 2), J, Jf)
-        est = richardson(jnp.sqrt(sum(jax.tree_util.tree_leaves(gap))), ratio)
-        est = jax.lax.stop_gradient(jnp.where(solf.result == RESULTS.successful, est, jnp.inf))
+        failed = solf.result != RESULTS.successful
+
+        def bar(gaps):
+            est = richardson(jnp.sqrt(sum(jax.tree_util.tree_leaves(gaps))), ratio)
+            return jax.lax.stop_gradient(jnp.where(failed, jnp.inf, est))
+
+        sq = lambda a, b: jnp.sum((a - b) ** 2)  # noqa: E731
+        est = bar(jax.tree_util.tree_map(lambda a, b: sq(_jacobian_R(R, a), _jacobian_R(Rf, b)), J, Jf))
+        est_alg = bar(jax.tree_util.tree_map(sq, J, Jf))
+        est_y = None if Jy is None else bar(jax.tree_util.tree_map(sq, Jy, Jyf))
     else:
         J, Jy, R, y, sol = run(solve_options)
-        est = jnp.full((), jnp.nan, R.dtype)
+        est = est_alg = jnp.full((), jnp.nan, R.dtype)
+        est_y = None if Jy is None else est
     t0 = jnp.asarray(solve_options.get("t0", 0.0), R.dtype)
-    out = Sensitivity(R, y, J, Jy, est, sol.result, sol.stats, t0, jnp.asarray(t1, R.dtype))
+    t1 = jnp.asarray(t1, R.dtype)
+    ftle = _ftle(problem, p0, rebuild, R, y, J, Jy, t1 - t0) if isinstance(wrt, str) and wrt == "omega0" else None
+    out = Sensitivity(R, y, J, Jy, est_alg, est, est_y, ftle, sol.result, sol.stats, t0, t1)
     if throw:
         out = eqx.tree_at(lambda s: s.result, out, raise_if_failed(sol, True).result)
     return out
+
+
+def _ftle(problem, omega0, rebuild, R, y, J, Jy, T) -> Array:
+    """`Sensitivity.ftle`: ``log(sigma_max([Omega J; d omega / d omega0])) / T``.
+
+    The body momentum's Jacobian is read from those of the final state
+    ``(R, y)`` and of the problem itself (`SpatialFreeRigidBody` keeps its
+    momentum as ``R^T L``, with ``L`` made from ``omega0``), one input
+    direction at a time.  Held constant under differentiation: the singular
+    values' derivatives are not defined where they coincide (a sphere's
+    three), and would put NaN into the derivatives of everything else."""
+    omega0, R, y, J, Jy = jax.lax.stop_gradient((omega0, R, y, J, Jy))
+    eye = jnp.eye(3, dtype=R.dtype)
+    dR = _jacobian_R(R, J)  # (3, 3, 3), the input direction last
+
+    def momentum(R, y, w):
+        return rebuild(w).body_momentum(R, y)
+
+    def column(k):
+        dy = None if Jy is None else jax.tree_util.tree_map(lambda d: d[..., k], Jy)
+        return jax.jvp(momentum, (R, y, omega0), (dR[..., k], dy, eye[k]))[1]
+
+    dm = jnp.stack([column(k) for k in range(3)], axis=-1)  # (3, 3): d m(t1) / d omega0
+    domega = problem.inertia_inv @ dm
+    phi = jnp.concatenate([jnp.sqrt(jnp.sum(omega0**2)) * J, domega], axis=0)
+    return jnp.log(jnp.linalg.svd(phi, compute_uv=False)[0]) / T
 
 
 def _stacked(coarse: dict, fine: dict) -> tuple[dict, dict] | None:

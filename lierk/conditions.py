@@ -20,6 +20,7 @@ Example:
 from __future__ import annotations
 
 import math
+import warnings
 from typing import Any
 
 import equinox as eqx
@@ -179,15 +180,44 @@ class TiltRate(eqx.Module):
         return (R @ jnp.cross(omega, self.axis.astype(R.dtype)))[2]
 
 
-def tilt_extremum(problem, axis: ArrayLike = (0.0, 0.0, 1.0), *, terminate: bool | int = False, direction: int = 0,
-                  max_count: int | None = None) -> Event:
+_EXTREMA = {"both": 0, "max": 1, "min": -1}
+
+
+def tilt_extremum(problem, axis: ArrayLike = (0.0, 0.0, 1.0), *, extremum: str = "both",
+                  terminate: bool | int = False, max_count: int | None = None, direction: int | None = None) -> Event:
     """The turning points of a body axis's tilt from the vertical (a top's
-    nutation): where ``d tilt/dt = 0``.  ``direction=1`` keeps the largest
-    tilts (the axis lowest), ``-1`` the smallest.  A top released at rest in
-    its nutation starts at a turning point, which does not count (`lierk._event`)."""
+    nutation): where ``d tilt/dt = 0``.  A top released at rest in its
+    nutation starts at a turning point, which does not count (`lierk._event`).
+
+    Args:
+        problem: the rigid body (its angular velocity is read at each state).
+        axis: ``(3,)`` body-frame axis (default body z).
+        extremum: ``"max"`` keeps the largest tilts (the axis lowest),
+            ``"min"`` the smallest, ``"both"`` (default) both; a scene's
+            ``extremum`` key.
+        terminate: as for `Event`.
+        max_count: as for `Event`.
+        direction: deprecated: ``1`` for ``extremum="max"``, ``-1`` for
+            ``"min"``, ``0`` for ``"both"``.
+
+    Raises:
+        ValueError: an unknown ``extremum``, or both ``extremum`` and
+            ``direction`` given.
+    """
+    if direction is not None:
+        if extremum != "both":
+            raise ValueError("tilt_extremum takes extremum= ('max', 'min' or 'both'), not both it and direction=")
+        names = {v: k for k, v in _EXTREMA.items()}
+        if direction not in names:
+            raise ValueError(f"tilt_extremum(direction=...) must be 1, -1 or 0, got {direction!r}; use extremum='max' or 'min'")
+        warnings.warn(f"tilt_extremum(direction={direction}) is deprecated: use extremum={names[direction]!r}",
+                      DeprecationWarning, stacklevel=2)
+        extremum = names[direction]
+    if extremum not in _EXTREMA:
+        raise ValueError(f"extremum must be 'max', 'min' or 'both', got {extremum!r}")
     dtype = problem.R0.dtype
     # At a largest tilt cos(tilt) stops falling: its rate rises through zero.
-    return Event(TiltRate(problem, _unit(axis, "axis", dtype)), terminate=terminate, direction=direction,
+    return Event(TiltRate(problem, _unit(axis, "axis", dtype)), terminate=terminate, direction=_EXTREMA[extremum],
                  max_count=max_count)
 
 

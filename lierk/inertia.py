@@ -47,14 +47,17 @@ def _positive(name: str, value) -> float:
 
 
 def sphere(mass: float, radius: float) -> Array:
-    """Solid sphere: ``2/5 m r^2`` about every axis."""
+    """Solid sphere of ``mass`` (kg) and ``radius`` (m): ``2/5 m r^2`` about
+    every axis.  Returns the ``(3, 3)`` tensor (kg m^2) about its centre."""
     m, r = _positive("mass", mass), _positive("radius", radius)
     return as_jax(np.eye(3) * (0.4 * m * r * r))
 
 
 def solid_cylinder(mass: float, radius: float, length: float, axis: str = "z") -> Array:
-    """Solid cylinder with its symmetry axis along ``axis`` ("x", "y" or "z"):
-    ``m r^2/2`` about that axis, ``m (3 r^2 + l^2)/12`` about the other two."""
+    """Solid cylinder of ``mass`` (kg), ``radius`` and ``length`` (m) with its
+    symmetry axis along ``axis`` ("x", "y" or "z"): ``m r^2/2`` about that
+    axis, ``m (3 r^2 + l^2)/12`` about the other two.  Returns the ``(3, 3)``
+    tensor (kg m^2) about its centre of mass."""
     m, r, length = _positive("mass", mass), _positive("radius", radius), _positive("length", length)
     if axis not in _AXES:
         raise ValueError(f"axis must be one of {sorted(_AXES)}, got {axis!r}")
@@ -64,15 +67,20 @@ def solid_cylinder(mass: float, radius: float, length: float, axis: str = "z") -
 
 
 def box(mass: float, lx: float, ly: float, lz: float) -> Array:
-    """Solid box with edge lengths ``(lx, ly, lz)`` along the body axes."""
+    """Solid box of ``mass`` (kg) with edge lengths ``(lx, ly, lz)`` (m)
+    along the body axes: ``m (ly^2 + lz^2)/12`` about x, and so on.  Returns
+    the ``(3, 3)`` tensor (kg m^2) about its centre."""
     m = _positive("mass", mass)
     lx, ly, lz = _positive("lx", lx), _positive("ly", ly), _positive("lz", lz)
     return as_jax(np.diag(np.array([ly * ly + lz * lz, lx * lx + lz * lz, lx * lx + ly * ly]) * (m / 12.0)))
 
 
 def parallel_axis(inertia_cm: ArrayLike, mass: float, offset: ArrayLike) -> Array:
-    """Inertia about a point displaced by ``-offset`` from the centre of mass:
-    ``I + m (|d|^2 E - d d^T)`` with ``d = offset`` (m)."""
+    """Inertia (kg m^2) about a point displaced by ``-offset`` from the centre
+    of mass: ``I + m (|d|^2 E - d d^T)`` with ``d = offset`` (m) and ``m =
+    mass`` (kg), ``inertia_cm`` the ``(3, 3)`` tensor about the centre of
+    mass.  For a pivot at ``p``, ``offset = com - p`` (`lierk.heavy_top`
+    does this for a top)."""
     return as_jax(_shifted(jnp if is_traced(inertia_cm, mass, offset) else np, inertia_cm, mass, offset))
 
 

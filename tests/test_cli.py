@@ -4,6 +4,7 @@ with a non-zero exit status."""
 
 import io
 import os
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -109,8 +110,9 @@ def test_parse_range_rejects(text):
 
 
 def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
-    # It used to print four identical lines, each "1.4 s".
-    clock = iter(np.arange(0.0, 100.0, 0.25)).__next__
+    # It used to print four identical lines, each "1.4 s"; then lines that
+    # mixed "0.0 s elapsed" with "00:00 left" and read "12335.99members/s".
+    clock = iter(np.arange(0.0, 1000.0, 1.5)).__next__
     stream = io.StringIO()
     p = cli_progress.Progress("run", 100.0, " s", stream=stream, clock=clock)
     with p.compiling():
@@ -118,12 +120,21 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
     for t in range(5, 101, 5):
         p.update(t)
     lines = stream.getvalue().splitlines()
-    assert lines[:2] == ["run: compiling", "run: compiled in 0.2 s"]
+    assert lines[:2] == ["run: compiling", "run: compiled in 1.5 s"]
     percent = [int(line.split("%")[0].split()[-1]) for line in lines[2:]]
-    elapsed = [float(line.split("[")[1].split(" s elapsed")[0]) for line in lines[2:]]
+    clocks = [re.search(r"\[(\d\d):(\d\d) elapsed, (\d\d):(\d\d) left, ([\d.]+) s/s\]$", line) for line in lines[2:]]
+    assert all(clocks), lines
+    elapsed = [60 * int(m[1]) + int(m[2]) for m in clocks]
+    left = [60 * int(m[3]) + int(m[4]) for m in clocks]
     assert percent == list(range(10, 101, 10))
-    assert all(b > a for a, b in zip(elapsed, elapsed[1:]))
-    assert all(" left, " in line and "s/s]" in line for line in lines[2:])  # time left and rate
+    assert all(b > a for a, b in zip(elapsed, elapsed[1:])) and left[-1] == 0 and left[0] > left[-2]
+    # The rate with an SI prefix and a space before the unit.
+    members = io.StringIO()
+    m = cli_progress.Progress("sweep", 20000, "members", stream=members, lines=1,
+                              clock=iter([0.0, 1.0, 1.0, 2.0]).__next__)
+    m.update(20000)
+    assert members.getvalue().strip().endswith("20.0k/20.0k members [00:01 elapsed, 00:00 left, 20.0k members/s]"), (
+        members.getvalue())
     quiet = io.StringIO()
     q = cli_progress.Progress("run", 1.0, quiet=True, stream=quiet)
     q.update(1.0)
@@ -137,7 +148,6 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["simulate", "{missing}", "--out", "{out}"], 2, "scene file not found"),
         (["simulate", "{bad_key}", "--out", "{out}"], 2, "unknown key 'colour'"),
         (["simulate", "{bad_toml}", "--out", "{out}"], 2, "not valid TOML"),
-        (["simulate", "{scene}"], 2, "required: --out"),
         (["simulate", "{scene}", "--out", "{out}", "--t1", "-1"], 2, "--t1 must be a positive"),
         (["simulate", "{scene}", "--out", "{out}", "--frames", "0"], 2, "--frames must be a positive integer"),
         (["simulate", "{too_few_steps}", "--out", "{out}", "--quiet"], 1, "max_steps was reached"),
@@ -368,6 +378,16 @@ def _npz(path):
         return {k: f[k] for k in f.files}
 
 
+def test_without_out_a_command_writes_to_out_and_the_scene_files_name(tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    scene_path = write(tmp_path, TEE_SCENE, "spinning_tee.toml")
+    code, stdout, stderr = run_inprocess(["simulate", scene_path, "--t1", "0.2", "--no-gif", "--quiet"], capsys)
+    assert code == 0, stderr
+    out = Path("out") / "spinning_tee"
+    assert (tmp_path / out / "tee_test.npz").exists()
+    assert f"  {out / 'tee_test.npz'}" in stdout
+
+
 def test_simulate_matches_a_direct_solve(tmp_path):
     scene_path = write(tmp_path, TEE_SCENE)
     out = tmp_path / "out"
@@ -375,7 +395,7 @@ def test_simulate_matches_a_direct_solve(tmp_path):
         ["simulate", scene_path, "--out", out, "--t1", "0.5", "--chunks", "3", "--frames", "4"]
     )
     assert code == 0, stderr
-    assert "compiled in" in stderr and "t: 100% 0.5/0.5 s" in stderr and "Traceback" not in stderr  # progress, not quiet
+    assert "compiled in" in stderr and "t: 100% 0.50/0.50 s" in stderr and "Traceback" not in stderr  # progress, not quiet
 
     scene = lierk.app.scene.load(scene_path)
     import dataclasses
@@ -456,6 +476,36 @@ def test_simulate_target_error_meets_it_against_the_exact_solution(tmp_path, cap
     assert f"estimated error at t1 {est[-1]:.2e}" in stdout
 
 
+def test_simulate_target_error_keeps_the_events(tmp_path, capsys):
+    """--target-error with events: the setting is chosen without them, then
+    one more solve at that setting finds them.  The flip (added for a body
+    with an intermediate axis) against the closed form's; a terminating
+    scene event ends the saved run there; the states meet the target."""
+    text = TEE_SCENE.replace("t1 = 100.0", "t1 = 30.0").replace("omega = [1.0, 0.05, 0.3]", "omega = [1.0, 0.05, 0.0]")
+    eps = 1e-8
+    out = tmp_path / "out"
+    argv = ["simulate", write(tmp_path, text), "--out", out, "--target-error", eps, "--quiet", "--no-gif"]
+    code, stdout, stderr = run_inprocess(argv, capsys)
+    assert code == 0, stderr
+    data = _npz(out / "tee_test.npz")
+    inertia, w0 = data["inertia"], data["omega0"]
+    first = float(lierk.exact.flip_interval(inertia, w0)) / 2  # from omega_z = 0, the first flip at half the interval
+    np.testing.assert_allclose(data["event_flip"], [first], atol=1e-7)
+    assert "  event flip: 1 at t = " in stdout and "events found by one more solve" in stdout
+    assert _exact_errors(data).max() <= eps
+    # A flip event that ends the run: the saved times stop before it.
+    stop = text + '\n[[events]]\nkind = "flip"\nterminate = true\n'
+    code, stdout, stderr = run_inprocess(["simulate", write(tmp_path, stop), "--out", out, "--target-error", eps,
+                                          "--quiet", "--no-gif"], capsys)
+    assert code == 0, stderr
+    data = _npz(out / "tee_test.npz")
+    np.testing.assert_allclose(data["event_flip"], [first], atol=1e-7)
+    spacing = 30.0 / 1500  # as many saved times as the dt run's 3000 steps, saving every 2nd
+    assert first - spacing < data["ts"][-1] <= first, data["ts"][-1]
+    assert f"the run ended at the flip event, t = {data['event_flip'][0]:.9g} s" in stdout
+    assert _exact_errors(data).max() <= eps and np.isfinite(data["error_estimate"]).all()
+
+
 def test_simulate_target_error_with_dense_saved_times(tmp_path, capsys):
     text = SMALL_TARGET_SCENE.replace("n_save = 5", "n_save = 41")  # 0.05 s apart
     out = tmp_path / "out"
@@ -521,8 +571,17 @@ def test_sweep_on_two_devices_matches_exact_and_finite_differences(tmp_path):
     J_solve = lierk.sensitivity(lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), 1.0, dt=0.01, estimate_error=False)
     true = np.linalg.norm(np.asarray(J_solve.jacobian_R) - J_exact)
     assert true / 10 <= data["sensitivity_error"][i, j] <= 100 * true
+    # The finite-time Lyapunov exponent: of the attitude's and the body
+    # angular velocity's Jacobians, by central differences.
     J_alg = np.einsum("ji,jkl->ikl", R, J)[[2, 0, 1], [1, 2, 0]]
-    lam = np.log(np.linalg.svd(J_alg, compute_uv=False)[0] / 1.0) / 1.0
+
+    def final_omega(v):
+        problem = lierk.FreeRigidBody(inertia, v)
+        return np.linalg.solve(inertia, np.asarray(lierk.solve(problem, lierk.RKMK4(), 1.0, dt=0.01).y[-1]))
+
+    J_omega = np.stack([(final_omega(w + h * e) - final_omega(w - h * e)) / (2 * h) for e in np.eye(3)], axis=-1)
+    state = np.vstack([np.linalg.norm(w) * J_alg, J_omega])
+    lam = np.log(np.linalg.svd(state, compute_uv=False)[0]) / 1.0
     assert data["lyapunov"][i, j] == pytest.approx(lam, rel=1e-6)
 
     with Image.open(out / "tee_test_sweep.png") as im:

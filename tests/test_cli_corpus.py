@@ -95,6 +95,13 @@ CORPUS = [
     ("unknown-run-key", scene(run='solver = "RKMK4"\ndt = 0.01\nt1 = 1.0\nsteps = 10'), "run: unknown key 'steps'"),
     ("unknown-effect-key", scene(effects=effect('kind = "damping"\nc = 0.1\nk = 1.0')), "effects[0]: unknown key 'k'"),
     ("tee-mass", scene(body='kind = "tee_handle"\nmass = 1.0'), "body: unknown key 'mass'"),
+    # --- misspelt: the closest name is suggested
+    ("misspelt-key", scene(initial="omgea = [1.0, 0.0, 0.0]"), "initial: unknown key 'omgea' (= [1.0, 0.0, 0.0]); "
+     "did you mean 'omega'?; allowed keys:"),
+    ("misspelt-kind", scene(effects=effect('kind = "gravty"\npivot = [0.0, 0.0, 0.0]')),
+     "effects[0].kind = 'gravty' is not allowed; did you mean 'gravity'?; choose one of:"),
+    ("misspelt-choice", scene(run='solver = "RKMK4"\ndt = 0.01\nt1 = 1.0\nsave_evry = 2'),
+     "did you mean 'save_every'?"),
     ("atol-with-dt", scene(run='solver = "RKMK4"\ndt = 0.01\nt1 = 1.0\natol = 1e-6'), "run.atol applies to adaptive runs"),
     # --- NaN, inf, negative and zero values
     ("omega-nan", scene(initial="omega = [nan, 0.0, 0.0]"), "initial.omega[0] must be a finite number, got nan"),

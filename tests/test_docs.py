@@ -23,8 +23,10 @@ import contextlib
 import importlib.util
 import io
 import math
+import os
 import re
 import shlex
+import shutil
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -187,7 +189,7 @@ def _check_readme(ns):
     times = np.asarray(found.ts[: int(found.count)])
     exact = float(ns["lierk"].exact.flip_interval(ns["body"].inertia, ns["body"].omega0))
     np.testing.assert_allclose(np.diff(times), exact, rtol=1e-9)
-    assert float(ns["s"].error_estimate) < 1e-8
+    assert float(ns["s"].jacobian_error) < 1e-8
 
 
 def _check_t_handle(ns):
@@ -212,6 +214,29 @@ CHECKS = {
 }
 
 
+# A page's own figures: ``![...](figures/NAME.png)``, drawn by its code.
+_OWN_FIGURE = re.compile(r"!\[[^\]]*\]\(figures/([\w.-]+\.png)\)")
+
+
+def check_figures(path: Path, drawn_in: Path) -> None:
+    """Each figure a page shows from its ``figures/`` folder is one its code
+    draws: the code saved a file of that name (in the working directory),
+    of the committed figure's size.  With ``LIERK_WRITE_FIGURES=1`` the
+    drawn figures replace the committed ones (to update them after a
+    change: run the page's test, then commit ``docs/**/figures/``)."""
+    import matplotlib.image
+
+    for name in _OWN_FIGURE.findall(path.read_text()):
+        drawn = drawn_in / name
+        assert drawn.exists(), f"{_id(path)} shows figures/{name}, which its code did not save"
+        committed = path.parent / "figures" / name
+        if os.environ.get("LIERK_WRITE_FIGURES") == "1":
+            committed.parent.mkdir(exist_ok=True)
+            shutil.copyfile(drawn, committed)
+        assert committed.exists(), f"{_id(path)}: figures/{name} is not committed (LIERK_WRITE_FIGURES=1 writes it)"
+        assert matplotlib.image.imread(committed).shape == matplotlib.image.imread(drawn).shape, name
+
+
 @pytest.mark.parametrize("path", _python_pages(), ids=_id)
 def test_page_runs_and_checks_its_claims(path, tmp_path, monkeypatch):
     code = "".join(b.code for b in blocks(path.read_text()) if b.lang == "python" and not b.skip)
@@ -220,6 +245,39 @@ def test_page_runs_and_checks_its_claims(path, tmp_path, monkeypatch):
     check = CHECKS.get(_id(path))
     if check is not None:
         check(namespace)
+    check_figures(path, tmp_path)
+
+
+def test_every_image_resolves_from_its_markdown_file():
+    """As a clone or GitHub shows the page: an image's path is relative to
+    the markdown file (the site build points benchmark figures at its own
+    copy, `docs/hooks.py`'s `site_links`)."""
+    hooks = _hooks()
+    seen = 0
+    for path in pages():
+        for link in re.findall(r"!\[[^\]]*\]\(([^)\s]+)\)", path.read_text()):
+            if "://" in link:
+                continue
+            seen += 1
+            assert (path.parent / link).exists(), f"{_id(path)}: {link} does not exist"
+            if path.is_relative_to(DOCS) and "benchmarks/results/" in link:
+                # On the site the file sits at the same path under docs/ (`on_files`).
+                page_dir = path.parent.relative_to(DOCS).as_posix()
+                site = hooks.site_links(f"]({link})", page_dir)[2:-1]
+                real = (path.parent / link).resolve().relative_to(ROOT)
+                assert (DOCS / page_dir / site).resolve().relative_to(DOCS.resolve()) == real, (link, site)
+    assert seen >= 10, seen
+
+
+def test_the_committed_generated_parts_match_their_sources():
+    """The scene schema and the command reference are committed into the
+    scenes guide, so that it reads whole without a build; they must be what
+    the build would put there (``python docs/hooks.py`` rewrites them)."""
+    hooks = _hooks()
+    for page, marker, renderer in hooks.COMMITTED:
+        text = (DOCS / page).read_text()
+        assert hooks.region(text, marker) == getattr(hooks, renderer)().strip(), (
+            f"docs/{page}: the part under {marker} is stale; run python docs/hooks.py")
 
 
 def test_the_checked_pages_exist_and_few_blocks_are_skipped():

@@ -102,8 +102,8 @@ def test_lagrange_top_tilt_extrema_match_the_quadrature(name):
     top, q = TOPS[name], quadrature(name)
     problem = _problem(top)
     axis = top["chi"] / np.linalg.norm(top["chi"])
-    events = (lierk.conditions.tilt_extremum(problem, axis, direction=1),
-              lierk.conditions.tilt_extremum(problem, axis, direction=-1))
+    events = (lierk.conditions.tilt_extremum(problem, axis, extremum="max"),
+              lierk.conditions.tilt_extremum(problem, axis, extremum="min"))
     sol = _solve(problem, lierk.DOP853(), top["t1"], events, rtol=1e-12, max_steps=8000)
     lows, highs = _times(sol.events[0]), _times(sol.events[1])
     k = np.arange(1, len(lows) + 1)
@@ -294,6 +294,21 @@ def test_bad_conditions_are_refused():
         lierk.solve(BODY, lierk.RKMK4(), 1.0, dt=0.1, event=[])
     with pytest.raises(ValueError, match="target_error"):
         lierk.solve(BODY, lierk.RKMK4(), 1.0, target_error=1e-6, event=lierk.Event(abs))
+
+
+def test_tilt_extremum_names_its_extremum_as_a_scene_does():
+    """``extremum="max" | "min" | "both"``, the scene's key, is the event's
+    direction 1, -1, 0; the old ``direction=`` still gives the same event,
+    with a deprecation warning."""
+    for extremum, direction in (("max", 1), ("min", -1), ("both", 0)):
+        event = lierk.conditions.tilt_extremum(BODY, extremum=extremum)
+        assert event.direction == direction
+        with pytest.warns(DeprecationWarning, match=f"use extremum='{extremum}'"):
+            assert lierk.conditions.tilt_extremum(BODY, direction=direction).direction == direction
+    with pytest.raises(ValueError, match="extremum must be 'max', 'min' or 'both', got 'lowest'"):
+        lierk.conditions.tilt_extremum(BODY, extremum="lowest")
+    with pytest.raises(ValueError, match="not both"):
+        lierk.conditions.tilt_extremum(BODY, extremum="max", direction=1)
 
 
 def test_flip_event_in_float32():

@@ -47,7 +47,7 @@ def test_quick_start_runs_and_meets_its_claims():
     # The Jacobian through the solve is the sensitivity's, entry by entry.
     assert J.shape == (3, 3, 3)
     np.testing.assert_allclose(J, s.jacobian_R, rtol=1e-10, atol=1e-10)
-    assert 0 < float(s.error_estimate) < 1e-8
+    assert 0 < float(s.jacobian_error) < 1e-8
 
 
 def test_solver_table_has_six_rows_of_public_solvers():

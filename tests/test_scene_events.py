@@ -87,14 +87,31 @@ def test_bad_event_tables_name_the_key(table, words):
         assert w in str(e.value), (w, str(e.value))
 
 
-def test_two_events_with_one_name_and_events_with_target_error_are_refused():
+def test_two_events_with_one_name_are_refused():
     with pytest.raises(ValueError, match="events\\[1\\].name = 'flip' is taken"):
         _top([{"kind": "flip"}, {"kind": "tilt", "angle": 0.4, "name": "flip"}])
+
+
+def test_events_with_target_error_are_found_at_the_chosen_setting():
+    """A target_error scene chooses its setting without the events, then
+    finds them by a solve at that setting: the same times as a dt run to
+    the target's order, and a terminating event cuts the saved run there."""
+    events = [{"kind": "tilt_extremum", "extremum": "max", "name": "lowest"},
+              {"kind": "tilt", "angle": 0.4, "crossing": "up", "terminate": 2, "name": "leans"}]
     d = copy.deepcopy(TOP)
-    d["events"] = [{"kind": "flip"}]
-    d["run"] = {"solver": "DOP853", "t1": 1.0, "target_error": 1e-6}
-    with pytest.raises(ValueError, match="target_error takes no events"):
-        S.from_dict(d)
+    d["events"] = events
+    d["run"] = {"solver": "DOP853", "t1": 1.0, "target_error": 1e-8, "n_save": 101}
+    scene = S.from_dict(d)
+    sol = scene.solve()
+    assert int(sol.result) == lierk.RESULTS.event_occurred and "rtol" in sol.stats
+    times = scene.event_times(sol)
+    reference = _top(events, dt=1e-4, save_every=100)
+    want = reference.event_times(reference.solve())
+    for name in ("lowest", "leans"):
+        np.testing.assert_allclose(times[name], want[name], atol=1e-7, err_msg=name)
+    ts, R, _ = sol.trajectory()
+    assert ts[-1] <= times["leans"][1] < ts[-1] + 0.01 and np.isfinite(R).all()
+    assert np.isfinite(np.asarray(sol.error_estimate)[: len(ts)]).all()
 
 
 def test_simulate_prints_saves_and_marks_the_events(tmp_path, capsys):

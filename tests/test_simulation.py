@@ -97,10 +97,12 @@ def test_summary_with_effects_and_with_a_target_error():
     np.testing.assert_array_equal(record["error_estimate"], est[: len(record["ts"])])
     lines = sim.summary().splitlines()
     assert lines[1].startswith(f"RKMK4, target_error = 1e-06 (chose {sim.solution.chosen_setting()}), t1 = 0.5 s: ")
+    # The flip is among its events: found by one more solve at the chosen setting.
     assert lines[2] == (f"  target_error 1e-06: chose {sim.solution.chosen_setting()} after "
-                        f"{sim.solution.stats['num_solves']} solves (steps above: the last, finest solve); "
+                        f"{sim.solution.stats['num_solves']} solves (steps above: the last, finest solve, "
+                        "events found by one more solve at that setting); "
                         f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}")
-    assert est.max() <= 1e-6
+    assert est.max() <= 1e-6 and lines[-1] == "  event flip: none"
 
 
 def test_simulate_in_pieces_saves_what_one_solve_saves():

@@ -301,3 +301,30 @@ def test_example_heavy_top_comments_are_exact():
         printed = match[key]
         half_ulp = 0.5 * 10.0 ** -len(printed.split(".")[1])
         assert abs(value - float(printed)) <= half_ulp, (key, value, printed)
+
+
+@pytest.mark.parametrize("pivot", [[0.0, 0.0, 0.0], [0.01, 0.0, -0.02]])
+def test_heavy_top_builds_what_a_scenes_pivot_builds(pivot):
+    """`lierk.heavy_top` from the inertia about the centre of mass and the
+    vector pivot -> centre of mass is the problem a scene's ``pivot`` builds:
+    the inertia moved to the pivot, the same gravity, the same momentum."""
+    import copy
+    import tomllib
+
+    d = tomllib.loads(EXAMPLE.read_text())
+    d["effects"][0]["pivot"] = pivot
+    scene = lierk.app.scene.from_dict(copy.deepcopy(d))
+    parts = [lierk.inertia.Part(p["mass"], lierk.inertia.solid_cylinder(p["mass"], p["radius"], p["length"], p["axis"]),
+                                p["offset"]) for p in d["body"]["parts"]]
+    body = lierk.inertia.composite(parts)
+    top = lierk.heavy_top(body.inertia, body.mass, np.asarray(body.center_of_mass) - pivot, [0.0, 0.0, 150.0],
+                          lierk.so3.from_euler(0.0, 0.3, 0.0), g=9.81)
+    p = scene.problem
+    np.testing.assert_allclose(np.asarray(top.inertia), np.asarray(p.inertia), rtol=1e-14, atol=1e-18)
+    np.testing.assert_allclose(np.asarray(top.y0), np.asarray(p.y0), rtol=1e-14, atol=1e-18)
+    np.testing.assert_allclose(np.asarray(top.R0), np.asarray(p.R0), atol=1e-15)
+    (mine,), (theirs,) = top.effects, p.effects
+    for field in ("pivot_to_com", "mass", "g"):
+        np.testing.assert_allclose(np.asarray(getattr(mine, field)), np.asarray(getattr(theirs, field)), rtol=1e-14)
+    # Not the centre-of-mass inertia: the pivot's is larger across the axis.
+    assert float(top.inertia[0, 0]) > float(body.inertia[0, 0]) + 0.5 * 0.003

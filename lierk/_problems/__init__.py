@@ -20,5 +20,6 @@ from .base import AbstractProblem as AbstractProblem
 from .base import AbstractRigidBody as AbstractRigidBody
 from .rigid_body import FreeRigidBody as FreeRigidBody
 from .rigid_body import RigidBodyWithEffects as RigidBodyWithEffects
+from .rigid_body import heavy_top as heavy_top
 from .spatial import SpatialFreeRigidBody as SpatialFreeRigidBody
 from .variational import Variational as Variational

@@ -187,7 +187,8 @@ class Gravity(AbstractEffect):
 
     The problem's inertia must be the one about the pivot (the parallel-axis
     theorem: ``lierk.inertia.parallel_axis(I_cm, M, chi)``), and its momentum
-    ``m`` is taken about the pivot.
+    ``m`` is taken about the pivot: `lierk.heavy_top` builds the problem
+    from the inertia about the centre of mass, as a scene's ``pivot`` does.
 
     Conserves:
         - energy ``omega . I omega / 2 + M g e3 . R chi`` (`potential` is the second term);

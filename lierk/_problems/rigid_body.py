@@ -32,12 +32,13 @@ from jax import Array
 from jax.typing import ArrayLike
 
 from .. import exact, so3, _validation as validation
+from ..inertia import parallel_axis
 from .base import AbstractRigidBody
-from .effects import AbstractEffect
+from .effects import AbstractEffect, Gravity
 from .kinematics import kinetic_energy
 from .spacecraft import ReactionWheels, _along, _spin_matrix, _wheel_sum
 
-__all__ = ["RigidBodyWithEffects", "FreeRigidBody"]
+__all__ = ["RigidBodyWithEffects", "FreeRigidBody", "heavy_top"]
 
 
 class RigidBodyWithEffects(AbstractRigidBody):
@@ -620,3 +621,48 @@ def _symmetry_axis(d: np.ndarray) -> int | None:
         if close(d[i], d[j]):
             return k
     return None
+
+
+def heavy_top(
+    inertia_cm: ArrayLike,
+    mass: ArrayLike,
+    pivot_to_com: ArrayLike,
+    omega0: ArrayLike,
+    R0: ArrayLike | None = None,
+    *,
+    g: ArrayLike = 9.81,
+    effects: tuple | list = (),
+) -> RigidBodyWithEffects:
+    """A heavy top: a body turning about a fixed pivot under uniform gravity,
+    built as a scene's ``pivot`` builds it.
+
+    `Gravity` needs the problem's inertia about the pivot; this moves the
+    inertia about the centre of mass there (`lierk.inertia.parallel_axis`)
+    and adds the `Gravity` effect:
+    ``RigidBodyWithEffects(parallel_axis(inertia_cm, mass, pivot_to_com),
+    omega0, R0, (Gravity(pivot_to_com, mass, g), *effects))``.
+
+    Args:
+        inertia_cm: ``(3, 3)`` or ``(3,)`` principal moments (kg m^2), body
+            frame, about the centre of mass.
+        mass: the body's mass (kg), ``> 0``.
+        pivot_to_com: ``(3,)`` body-frame vector from the pivot to the centre
+            of mass (m): for a pivot at body point ``p``, ``com - p``.
+        omega0: ``(3,)`` initial body angular velocity (rad/s).
+        R0: ``(3, 3)`` initial attitude, body -> space (identity if None).
+        g: gravitational acceleration (m/s^2), pulling along space ``-z``.
+        effects: further effects (damping, torques), after the gravity.
+
+    Returns:
+        A `RigidBodyWithEffects` whose momentum is taken about the pivot.
+
+    Example:
+        >>> top = lierk.heavy_top(lierk.inertia.solid_cylinder(0.5, 0.04, 0.01), 0.5, [0.0, 0.0, 0.06],
+        ...                       [0.0, 0.0, 150.0], lierk.so3.from_euler(0.0, 0.3, 0.0))
+    """
+    if isinstance(effects, AbstractEffect):
+        effects = (effects,)
+    gravity = Gravity(pivot_to_com, mass, g)
+    inertia = validation.check_inertia(inertia_cm)
+    return RigidBodyWithEffects(parallel_axis(inertia, gravity.mass, gravity.pivot_to_com), omega0, R0,
+                                (gravity, *tuple(effects)))

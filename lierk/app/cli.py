@@ -46,7 +46,7 @@ import time
 import warnings
 from pathlib import Path
 
-from .cli_arguments import build_parser, parse, parse_range, version
+from .cli_arguments import build_parser, default_out, parse, parse_range, version
 
 __all__ = ["main", "build_parser", "parse_range"]
 
@@ -375,6 +375,8 @@ def main(argv=None) -> int:
 def _dispatch(args, prog: str) -> tuple[int, str | None]:
     """Run the command: ``(exit status, the compilation cache's summary)``."""
     try:
+        if args.out is None:
+            args.out = default_out(args.scene)
         _check_out(args.out)
         _configure(args)
         import jax

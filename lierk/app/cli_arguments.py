@@ -13,7 +13,8 @@ from pathlib import Path
 
 __all__ = ["build_parser", "parse", "parse_range", "version"]
 
-_OUT_HELP = "output directory (created if missing); the files are moved into it only when all are written"
+_OUT_HELP = ("output directory (default: out/ and the scene file's name without .toml, e.g. out/tee_handle_a; "
+             "created if missing); the files are moved into it only when all are written")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -128,11 +129,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _command(sub, common, name: str) -> argparse.ArgumentParser:
     """The parser of one command, with its texts (`_TEXTS`) and the scene
-    file and ``--out`` every command takes."""
+    file and ``--out`` every command takes (`default_out` when not given)."""
     parser = sub.add_parser(name, parents=[common], **_TEXTS[name])
     parser.add_argument("scene", type=Path, metavar="SCENE.toml", help="scene file")
-    parser.add_argument("--out", type=Path, required=True, metavar="DIR", help=_OUT_HELP)
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR", help=_OUT_HELP)
     return parser
+
+
+def default_out(scene: Path) -> Path:
+    """Where a command writes without ``--out``: ``out/<the scene file's
+    stem>`` in the working directory (``out/tee_handle_a`` for
+    ``examples/tee_handle_a.toml``)."""
+    return Path("out") / Path(scene).stem
 
 
 def _t1(parser: argparse.ArgumentParser) -> None:

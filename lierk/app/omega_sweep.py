@@ -6,7 +6,7 @@ every point with `lierk.sensitivity` in chunks (`lierk.sweep_chunks`), kept
 in a resumable `lierk.app.store.ChunkStore` when given a directory, and returns an
 `OmegaSweep`: per point the final attitude angle, the sensitivity
 ``||dR(T)/d omega0||_F`` with its estimated error, the finite-time Lyapunov
-exponent and, for a torque-free body, the exact flip interval
+exponent of the body's state (`lierk.Sensitivity.ftle`) and, for a torque-free body, the exact flip interval
 (`OmegaSweep.summary`: their ranges, as ``lierk sweep`` prints them).
 """
 
@@ -34,7 +34,8 @@ class OmegaSweep:
         values: per quantity an array of shape `shape`: ``"angle"``
             (``|log R(T)|``, rad), ``"sensitivity"`` (``||dR(T)/d omega0||_F``,
             s), ``"sensitivity_error"`` (its estimated error, s),
-            ``"lyapunov"`` (1/s) and, for a torque-free body,
+            ``"lyapunov"`` (the finite-time Lyapunov exponent of the body's
+            state, `lierk.Sensitivity.ftle`, 1/s) and, for a torque-free body,
             ``"flip_interval"`` (s, ``inf``: no flip).  NaN where the point
             failed (except the flip interval, which is exact).
         failed: bool array of shape `shape`: the solve did not succeed.
@@ -240,8 +241,8 @@ def sweep_omega0(
         out = {
             "angle": jnp.linalg.norm(so3.log(s.R), axis=-1),
             "sensitivity": jnp.sqrt(jnp.sum(s.jacobian_R**2)),
-            "sensitivity_error": s.error_estimate,
-            "lyapunov": s.lyapunov_exponent,
+            "sensitivity_error": s.jacobian_R_error,
+            "lyapunov": s.ftle,
             "result": s.result,
         }
         if problem.torque_free:

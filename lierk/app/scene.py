@@ -63,6 +63,7 @@ import tomllib
 import warnings
 from typing import Any
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from msgspec import UNSET
@@ -71,6 +72,7 @@ from lierk import (
     SOLVERS,
     AbstractEffect,
     AbstractProblem,
+    RESULTS,
     BodyTorque,
     Damping,
     FreeRigidBody,
@@ -275,6 +277,8 @@ class Scene:
                 meaning.  With ``throw=False`` the solution up to and
                 including the failed piece comes back with its result code.
         """
+        if self.target_error is not None and self.events:
+            return self._target_error_then_events(n_pieces, progress, overrides)
         if n_pieces is None and not progress:
             kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **self._event_kwargs(), **overrides}
             return _solve(self.problem, self.solver, self.t1, **kwargs)
@@ -288,6 +292,42 @@ class Scene:
         return solve_in_pieces(self, N_PIECES if n_pieces is None else int(n_pieces), progress,
                                overrides.get("throw", True))
 
+    def _target_error_then_events(self, n_pieces, progress, overrides) -> Solution:
+        """A ``target_error`` run with events.  `lierk.solve` takes no events
+        with ``target_error`` (its solves would stop at different times), so
+        the setting is chosen first, by the run without the events, and the
+        events are found by a second solve at the setting it chose.  The
+        solution is the first run's (its saved states and error estimate),
+        with the second's event records, its result and, where a
+        terminating event ended the run, only the saved times up to there
+        (the rest padding, as a solve stopped by an event leaves it);
+        ``stats`` are the first run's, with ``num_solves`` counting the
+        second solve too."""
+        chosen = dataclasses.replace(self, events=()).solve(n_pieces=n_pieces, progress=progress, **overrides)
+        if int(chosen.result) != 0:
+            return chosen  # with throw=False: the failed run, without events, as it came back
+        if "dt" in chosen.stats:
+            setting = {"dt": float(chosen.stats["dt"])}
+        else:
+            rtol = float(chosen.stats["rtol"])
+            setting = {"rtol": rtol, "atol": rtol, "max_steps": self.solve_kwargs.get("max_steps")}
+        found = _solve(self.problem, self.solver, self.t1, saveat=SaveAt(t1=True), throw=overrides.get("throw", True),
+                       **setting, **self._event_kwargs())
+        ts = np.asarray(chosen.ts)
+        keep = np.ones(ts.shape, bool)
+        if int(found.result) == RESULTS.event_occurred:
+            keep = ts <= float(found.trajectory()[0][-1])
+
+        def cut(x):
+            x = np.asarray(x)
+            return jnp.asarray(np.where(keep.reshape(keep.shape + (1,) * (x.ndim - 1)), x, np.nan))
+
+        stats = {**chosen.stats, "num_solves": int(chosen.stats["num_solves"]) + 1}
+        return dataclasses.replace(
+            chosen, R=cut(chosen.R), y=jax.tree_util.tree_map(cut, chosen.y), error_estimate=cut(chosen.error_estimate),
+            n_saved=jnp.asarray(int(keep.sum()), jnp.asarray(chosen.n_saved).dtype), result=found.result,
+            events=found.events, stats=stats)
+
     def _event_kwargs(self) -> dict:
         return {"event": tuple(e for _, e in self.events)} if self.events else {}
 
@@ -295,12 +335,11 @@ class Scene:
         """This scene with the intermediate-axis flip among its events
         (`lierk.conditions.flip`, named ``"flip"``), when its body has three
         distinct principal moments and the scene has no flip event yet; the
-        scene itself otherwise, and for a ``target_error`` run (which takes
-        no events).  ``lierk simulate`` reports and marks flips this way
+        scene itself otherwise.  ``lierk simulate`` reports and marks flips this way
         (`lierk.app.simulation.simulate`); a solver that cannot locate events
         (ExplicitEuler) refuses the event when the scene is solved, and
         ``simulate`` then solves without it and says so."""
-        if self.target_error is not None or any(name == "flip" for name, _ in self.events):
+        if any(name == "flip" for name, _ in self.events):
             return self
         moments = np.linalg.eigvalsh(np.asarray(self.problem.inertia, dtype=float))
         if not (moments[0] < moments[1] < moments[2]):
@@ -419,8 +458,6 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[
         problem = FreeRigidBody(inertia, omega0, R0)
     else:
         problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
-    if f.events and "target_error" in solve_kwargs:
-        raise ValueError("events: a run with target_error takes no events (its solves stop at different times); give dt or rtol")
     scene = Scene(
         events=_events(f.events, problem, pivot_to_com),
         name=_given(f, "name", name),
@@ -682,7 +719,6 @@ _SPACECRAFT = {
 # --- events --------------------------------------------------------------------
 
 _CROSSING = {"both": 0, "up": 1, "down": -1}
-_EXTREMUM = {"both": 0, "max": 1, "min": -1}
 
 
 def _events(items: list, problem, pivot_to_com: np.ndarray | None) -> tuple:
@@ -706,7 +742,7 @@ def _events(items: list, problem, pivot_to_com: np.ndarray | None) -> tuple:
         elif kind == "tilt":
             event = conditions.tilt(ev.angle, axis, terminate=terminate, direction=crossing)
         elif kind == "tilt_extremum":
-            event = conditions.tilt_extremum(problem, axis, terminate=terminate, direction=_EXTREMUM[ev.extremum])
+            event = conditions.tilt_extremum(problem, axis, terminate=terminate, extremum=ev.extremum)
         elif kind == "pointing":
             event = conditions.pointing(axis, np.array(ev.target), ev.angle, terminate=terminate, direction=crossing)
         else:

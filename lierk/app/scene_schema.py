@@ -25,6 +25,7 @@ frame is the frame the body's dimensions are given in.  In a parsed
 
 from __future__ import annotations
 
+import difflib
 import functools
 import inspect as _inspect
 import math
@@ -758,14 +759,26 @@ def _message(text: str, d: dict) -> str:
         table = _pick(types, value)
         if key[1] == "contains unknown":
             allowed = sorted({f.encode_name for f in table.fields} | {table.tag_field} - {None})
-            return f"{path}: unknown key {key[2]!r} (= {value[key[2]]!r}); allowed keys: {', '.join(allowed)}"
+            return (f"{path}: unknown key {key[2]!r} (= {value[key[2]]!r}){_did_you_mean(key[2], allowed)}; "
+                    f"allowed keys: {', '.join(allowed)}")
         if table is None:
             return f"{path}.{key[2]} is missing; choose one of: {', '.join(repr(t.tag) for t in types)}"
         return f"{path}: missing required key {key[2]!r}"
     tables, _ = _resolve(tokens[:-1], d)
     if len(tables) > 1 and all(isinstance(t, msgspec.inspect.StructType) for t in tables) and tokens[-1] == "kind":
-        return f"{path} = {value!r} is not allowed; choose one of: {', '.join(repr(t.tag) for t in tables)}"
+        kinds = [t.tag for t in tables]
+        return (f"{path} = {value!r} is not allowed{_did_you_mean(value, kinds)}; "
+                f"choose one of: {', '.join(map(repr, kinds))}")
     return path + _must(types, extra, value, what, path)
+
+
+def _did_you_mean(given, names: list) -> str:
+    """``"; did you mean 'omega'?"`` for the name closest to a misspelt
+    ``given`` (`difflib`), or nothing when none is close."""
+    if not isinstance(given, str):
+        return ""
+    close = difflib.get_close_matches(given, [str(n) for n in names], n=1, cutoff=0.6)
+    return f"; did you mean {close[0]!r}?" if close else ""
 
 
 def _must(types: list, extra: dict, value: Any, what: str, path: str) -> str:
@@ -780,7 +793,7 @@ def _must(types: list, extra: dict, value: Any, what: str, path: str) -> str:
     t = _pick(types, value)
     integer = isinstance(value, int) and not isinstance(value, bool)
     if isinstance(t, msgspec.inspect.LiteralType):
-        return f" = {value!r} is not allowed; choose one of: {', '.join(map(repr, t.values))}"
+        return f" = {value!r} is not allowed{_did_you_mean(value, list(t.values))}; choose one of: {', '.join(map(repr, t.values))}"
     if isinstance(t, msgspec.inspect.StrType):
         return f" must be a string{got}"
     if isinstance(t, msgspec.inspect.FloatType) and (integer or isinstance(value, float)):

@@ -125,10 +125,13 @@ class Simulation:
         ]
         if scene.target_error is not None:
             est = np.asarray(sol.error_estimate)
+            est = est[~np.isnan(est)]  # NaN: times a terminating event kept the run from
+            where = "t1" if len(est) == len(sol.ts) else "the last saved time"
+            found = ", events found by one more solve at that setting" if scene.events else ""
             lines.append(
                 f"  target_error {scene.target_error:.3g}: chose {sol.chosen_setting()} "
-                f"after {st['num_solves']} solves (steps above: the last, finest solve); "
-                f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
+                f"after {st['num_solves']} solves (steps above: the last, finest solve{found}); "
+                f"estimated error at {where} {est[-1]:.2e}, max over saved times {est.max():.2e}"
             )
         conserved = scene.problem.conserved()
         for k, v in diag.drift.items():
