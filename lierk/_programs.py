@@ -6,7 +6,8 @@ caller reached them:
 
 | the call | where it runs | the solver's form |
 |---|---|---|
-| no argument is a JAX tracer: called from Python, or inside a caller's ``jax.jit`` on values it closes over | lierk's own program, compiled once per argument structure and run at once (inside a caller's trace its result is a constant of the caller's program); on the CPU with `one_body_compiler_options` | one body |
+| no argument is a JAX tracer, called from Python (or under an eager transform of a function closing over it) | lierk's own program, compiled once per argument structure, on the CPU with `one_body_compiler_options` | one body |
+| no argument is a JAX tracer, inside a caller's ``jax.jit`` (values it closes over) | part of the caller's program, with its compile options (JAX gives a nested program no options of its own) | one body |
 | some argument is traced: inside ``jax.jit``, ``jax.grad``, ``jax.jacfwd``, a ``lax.scan`` body | part of the caller's program | one body |
 | a ``jax.vmap`` batches the call, now or later (``jax.vmap`` of the caller's jitted function too) | part of the caller's program, traced again by a batching rule (``jax.custom_batching.custom_vmap``) | batch |
 | a function in the problem closes over a traced value | part of the caller's program | batch |
@@ -198,11 +199,15 @@ class Program:
             if not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves((args, kwargs))):
                 if self._forms is not None:
                     args = self._forms("one body", *args)
-                program = self._own if one_body_compiler_options() else self.default
-                # Run now, also inside a caller's trace (on values it closes
-                # over), where a nested jit could take no compiler options.
-                with jax.ensure_compile_time_eval():
-                    return program(*args, **kwargs)
+                if one_body_compiler_options():
+                    try:
+                        return self._own(*args, **kwargs)
+                    except ValueError as e:
+                        # Inside a caller's trace JAX refuses a nested
+                        # program its own options: it is the caller's.
+                        if "compiler_options" not in str(e):
+                            raise
+                return self.default(*args, **kwargs)
             if self._forms is None:
                 return self.default(*args, **kwargs)
             return by_batch(lambda *a: self.default(*a, **kwargs), self._forms, *args)

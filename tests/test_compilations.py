@@ -223,14 +223,17 @@ def test_a_body_of_constants_inside_jit_inverts_its_inertia_on_the_host(inertia)
     np.testing.assert_allclose(np.asarray(traced), expected, rtol=1e-14)
 
 
-def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transformed_one_with_the_defaults(monkeypatch):
-    """`lierk.solve`, `lierk.sensitivity` and `lierk.exact` called from Python compile with
+def test_a_call_with_no_traced_argument_runs_its_own_program_with_the_one_body_options(monkeypatch):
+    """`lierk._programs`' rule, where a call runs: `lierk.solve`,
+    `lierk.sensitivity` and `lierk.exact` called from Python with no traced
+    argument compile a program of their own with
     `lierk.one_body_compiler_options` (XLA's older CPU emitters, which
-    compile one body sooner), and so does an eager ``jax.jacfwd`` (its
-    directions are no batch of bodies); traced (``jax.vmap``, ``jax.jit``)
-    they keep XLA's defaults, which run batches faster, and so does every
-    call when ``XLA_FLAGS`` chooses the emitters itself (``make test``
-    does)."""
+    compile one body sooner); inside a caller's ``jax.jit`` (on values it
+    closes over, where JAX refuses a nested program options of its own) and
+    with traced arguments (``jax.vmap``, ``jax.jit``, an eager
+    ``jax.jacfwd``'s directions) they are the caller's program, with its
+    settings; and every call keeps XLA's defaults when ``XLA_FLAGS`` chooses
+    the emitters itself (``make test`` does)."""
     from lierk import _sensitivity, _solve
 
     monkeypatch.setenv("XLA_FLAGS", "")
@@ -238,7 +241,7 @@ def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transforme
     calls = []
     for name, program in (("solve", _solve._program), ("jvp", _solve._program_jvp), ("sensitivity", _sensitivity._sensitivity),
                           ("exact", lierk.exact._free_motion_program)):
-        for kind in ("default", "_one_body"):
+        for kind in ("default", "_own"):
             def spy(*args, _f=getattr(program, kind), _tag=(name, kind), **kwargs):
                 calls.append(_tag)
                 return _f(*args, **kwargs)
@@ -250,76 +253,83 @@ def test_a_solve_from_python_compiles_with_the_one_body_options_and_a_transforme
         return lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 0.2, dt=0.1).R[-1]
 
     expected = np.asarray(solve(np.array([1.0, 0.05, 0.3])))
-    assert calls == [("solve", "_one_body")]
+    assert calls == [("solve", "_own")]
     batched = jax.vmap(solve)(np.array([[1.0, 0.05, 0.3], [1.0, 0.05, 0.3]]))
     jitted = jax.jit(solve)(np.array([1.0, 0.05, 0.3]))
     assert calls[1:] == [("solve", "default")] * 2
     np.testing.assert_allclose(batched[0], expected, rtol=1e-14)
     np.testing.assert_allclose(jitted, expected, rtol=1e-14)
+    # Inside a caller's jit on a body it closes over: JAX refuses the
+    # options there, and the solve is the caller's program.
+    closed = jax.jit(lambda: lierk.solve(body, lierk.RKMK4(), 0.2, dt=0.1).R[-1])
+    np.testing.assert_allclose(closed(), expected, rtol=1e-14)
+    assert calls[3:] == [("solve", "_own"), ("solve", "default")]
+    del calls[:]
     lierk.sensitivity(body, lierk.RKMK4(), 0.2, dt=0.1, estimate_error=False)
-    # (Its solve's derivative is traced inside its program: one body's,
-    # called by its batching rule once for one direction and once for all,
-    # the second a cache hit of the first.)
-    assert calls[3:] == [("sensitivity", "_one_body"), ("jvp", "default"), ("jvp", "default")]
-    # An eager jax.jacfwd: one body, its three directions batched.
+    # (Its solve's derivative is traced inside its program.)
+    assert calls == [("sensitivity", "_own"), ("jvp", "default")]
+    # An eager jax.jacfwd: its directions are traced, so the derivative is
+    # a program with XLA's defaults (its Jacobian in the one-body form).
     jax.jacfwd(solve)(np.array([1.0, 0.05, 0.3]))
-    assert calls[6:] == [("jvp", "_one_body")]
+    assert calls[2:] == [("jvp", "default")]
     lierk.exact.free_rigid_body(np.array([2.0, 3.0, 4.0]), np.array([1.0, 0.05, 0.3]), 0.2)
-    assert calls[7:] == [("exact", "_one_body")]
+    assert calls[3:] == [("exact", "_own")]
     monkeypatch.setenv("XLA_FLAGS", "--xla_cpu_use_fusion_emitters=true")
     assert lierk.one_body_compiler_options() == {}
     solve(np.array([1.0, 0.05, 0.3]))
-    assert calls[8:] == [("solve", "default")]
+    assert calls[4:] == [("solve", "default")]
+
+
+def _marking_the_stage_loop(monkeypatch):
+    """Mark the looped form of an RKMK step in the program with an
+    optimization barrier (lierk itself places none)."""
+    stages = lierk.AbstractRKMK._stages
+
+    def spy(self, *args):
+        out = stages(self, *args)
+        if not self.compact:
+            return out
+        arrays, rest = eqx.partition(out, eqx.is_array)
+        return eqx.combine(jax.lax.optimization_barrier(arrays), rest)
+
+    monkeypatch.setattr(lierk.AbstractRKMK, "_stages", spy)
+
+
+def _loops(f, *args) -> bool:
+    return "optimization_barrier" in str(jax.make_jaxpr(f)(*args))
 
 
 def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(monkeypatch):
-    """One short solve of one body on the CPU (at most 4096 steps), called
-    from Python or inside a caller's ``jax.jit``, takes the stage loop of a
-    tableau of more than four stages, which compiles about twice as fast; a
-    batch unrolls the stages (1.6 to 2x faster to run): under ``jit(vmap)``,
-    and under ``vmap(jit)``, whose batching rule replaces the loop that the
-    ``jit`` traced.  So do a longer solve, ``compact=False`` and four-stage
-    tableaux.  The forms agree to rounding."""
-    loop = lierk.AbstractRKMK._stage_loop
-    traced = []
-
-    def spy(self, *args):
-        traced.append(type(self).__name__)
-        # A mark in the program: lierk itself places no optimization barrier.
-        arrays, rest = eqx.partition(loop(self, *args), eqx.is_array)
-        return eqx.combine(jax.lax.optimization_barrier(arrays), rest)
-
-    monkeypatch.setattr(lierk.AbstractRKMK, "_stage_loop", spy)
+    """`lierk._programs`' rule, the form: one short solve of one body on
+    the CPU (at most 4096 steps), called from Python or inside a caller's
+    ``jax.jit``, takes the stage loop of a tableau of five or more stages,
+    which compiles several times faster; a batch unrolls the stages, under
+    ``jit(vmap)`` and under ``vmap(jit)``, whose batching rule replaces the
+    loop that the ``jit`` traced.  So do a longer solve, ``compact=False``
+    and four-stage tableaux.  The forms agree to rounding."""
+    _marking_the_stage_loop(monkeypatch)
 
     def solve(w, solver=lierk.DP54(), max_steps=None):
         top = lierk.RigidBodyWithEffects(np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81))
         return lierk.solve(top, solver, 1.0, rtol=1e-10, atol=1e-10, max_steps=max_steps).R[-1]
 
-    def loops(f, *args) -> bool:
-        return "optimization_barrier" in str(jax.make_jaxpr(f)(*args))
-
     w = np.array([1.0, 0.05, 0.3])
     ws = np.stack([w, w])
-    free = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w)
-    # From Python, lierk's own program: called first, as JAX reuses a trace
-    # for another jit of the same function.
     looped = np.asarray(solve(w))
-    assert traced and set(traced) == {"DP54"}
-    del traced[:]
     long = np.asarray(solve(w, max_steps=5000))
-    assert traced == []
-    assert loops(jax.jit(solve), w)
-    assert loops(jax.jit(lambda w: solve(w, max_steps=4096)), w)
+    assert _loops(jax.jit(solve), w)
+    assert _loops(jax.jit(lambda w: solve(w, max_steps=4096)), w)
+    assert _loops(jax.jit(lambda w: solve(w, lierk.DP54(compact=True), max_steps=5000)), w)
     # Every argument concrete, inside a caller's jit (a body built outside
-    # it): one body in the caller's program.  This once raised
-    # "compiler_options can only be passed to top-level jax.jit".
-    assert loops(jax.jit(lambda: lierk.solve(free, lierk.DP54(), 1.0, rtol=1e-10, atol=1e-10).R[-1]))
-    assert not loops(jax.jit(lambda w: solve(w, max_steps=4097)), w)
-    assert not loops(jax.jit(jax.vmap(solve)), ws)
-    assert not loops(jax.vmap(jax.jit(solve)), ws)
-    assert not loops(jax.jit(lambda w: solve(w, lierk.DP54(compact=False))), w)
-    assert not loops(jax.jit(lambda w: lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0, dt=0.1).R[-1]), w)
-    jax.jit(lambda: lierk.sensitivity(free, lierk.RKMK4(), 1.0, dt=0.1, estimate_error=False).jacobian)()
+    # it): one body in the caller's program.
+    free = lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w)
+    assert _loops(jax.jit(lambda: lierk.solve(free, lierk.DP54(), 1.0, rtol=1e-10, atol=1e-10).R[-1]))
+    assert not _loops(jax.jit(lambda w: solve(w, max_steps=4097)), w)
+    assert not _loops(jax.jit(jax.vmap(solve)), ws)
+    assert not _loops(jax.vmap(jax.jit(solve)), ws)
+    assert not _loops(jax.jit(lambda w: solve(w, lierk.DP54(compact=False))), w)
+    assert not _loops(jax.jit(lambda w: lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0,
+                                                     dt=0.1).R[-1]), w)
     # Values made while tracing one program and kept for another broke
     # JAX's dispatch of the next (a cache of device scalars, tried and
     # dropped: the batch's second call failed).
@@ -340,42 +350,48 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
 
 
 def test_one_bodys_jacobian_loops_over_rkmk4s_stages_and_a_batch_of_them_unrolls(monkeypatch):
-    """A ``jax.jacfwd`` of one body's RKMK4 solve inside a caller's
-    ``jax.jit`` (its directions are no batch of bodies) takes the stage
-    loop: a spacecraft's first ``jit(jacfwd)`` compiled 135 kernels
-    unrolled, 71 looped.  A batch of Jacobians unrolls them (2.7x faster to
-    run for 64 heavy tops), under ``jit(vmap(jacfwd))`` and under
-    ``vmap(jit(jacfwd))``, whose batching rule replaces the loop; so do one
-    direction (``jax.jvp``) and ``jax.grad``.  The forms agree to rounding."""
-    loop = lierk.AbstractRKMK._stage_loop
-
-    def spy(self, *args):
-        arrays, rest = eqx.partition(loop(self, *args), eqx.is_array)
-        return eqx.combine(jax.lax.optimization_barrier(arrays), rest)
-
-    monkeypatch.setattr(lierk.AbstractRKMK, "_stage_loop", spy)
+    """`lierk._programs`' rule for derivatives: one body's Jacobian
+    (``jax.jacfwd``, ``jax.jvp``, ``jax.grad`` inside a caller's
+    ``jax.jit``) takes the one-body form, which loops RKMK4's four stages
+    too; a batch of Jacobians unrolls them, under ``jit(vmap(jacfwd))`` and
+    under ``vmap(jit(jacfwd))``, whose batching rule replaces the loop, and
+    so does ``jacfwd`` of a batch.  The forms agree to rounding."""
+    _marking_the_stage_loop(monkeypatch)
 
     def final(w):
         body = lierk.RigidBodyWithEffects(np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81))
         return lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.1).R[-1]
 
-    def loops(f, *args) -> bool:
-        return "optimization_barrier" in str(jax.make_jaxpr(f)(*args))
-
     w = np.array([1.0, 0.05, 0.3])
     ws = np.stack([w, w + 0.1])
     jacobian = jax.jit(jax.jacfwd(final))
-    assert loops(jacobian, w)
-    assert not loops(jax.jit(jax.vmap(jax.jacfwd(final))), ws)
-    assert not loops(jax.vmap(jacobian), ws)
-    assert not loops(jax.jit(lambda w: jax.jvp(final, (w,), (np.ones(3),))[1]), w)
-    assert not loops(jax.jit(jax.grad(lambda w: jax.numpy.sum(final(w) ** 3))), w)
+    assert _loops(jacobian, w)
+    assert _loops(jax.jit(lambda w: jax.jvp(final, (w,), (np.ones(3),))[1]), w)
+    assert _loops(jax.jit(jax.grad(lambda w: jax.numpy.sum(final(w) ** 3))), w)
+    assert not _loops(jax.jit(jax.vmap(jax.jacfwd(final))), ws)
+    assert not _loops(jax.vmap(jacobian), ws)
+    assert not _loops(jax.jit(jax.jacfwd(jax.vmap(final))), ws)
     each = np.stack([np.asarray(jacobian(v)) for v in ws])
     for batch in (jax.jit(jax.vmap(jax.jacfwd(final))), jax.vmap(jacobian)):
         np.testing.assert_allclose(batch(ws), each, rtol=0, atol=1e-13)
+    of_batch = jax.jit(jax.jacfwd(jax.vmap(final)))(ws)
+    np.testing.assert_allclose(np.stack([of_batch[k, :, :, k] for k in range(2)]), each, rtol=0, atol=1e-13)
     grad = jax.jit(jax.grad(lambda w: jax.numpy.sum(final(w) ** 3)))(w)
     R = np.asarray(final(w))
     np.testing.assert_allclose(grad, np.einsum("ij,ijk->k", 3 * R**2, each[0]), rtol=0, atol=1e-12)
+
+
+def test_the_rule_reads_no_private_jax_and_no_tracer_class():
+    """The rule uses public JAX only: no ``jax._src``, no tracer class
+    names or attributes, anywhere in the package."""
+    import re
+    from pathlib import Path
+
+    root = Path(lierk.__file__).parent
+    for path in root.rglob("*.py"):
+        text = path.read_text()
+        for pattern in (r"jax\._src", r"BatchTracer", r"JaxprTracer", r"JVPTracer", r"\.batch_dim\b", r"trace_state_clean"):
+            assert not re.search(pattern, text), f"{path.relative_to(root.parent)} matches {pattern}"
 
 
 def test_one_bodys_adaptive_solve_compiles_few_kernels():

@@ -297,12 +297,13 @@ def test_exp_coefficients_derivatives_at_zero_and_across_the_switch():
 
 
 def test_the_compact_forms_give_the_same_numbers():
-    """One body's solve takes the compact forms (fewer XLA kernels): the
+    """One body's solve takes the compact forms (fewer XLA kernels; the
+    public functions have one form, `lierk._programs` chooses): the
     coefficients as one stacked division, and the group update row by row,
     without forming exp(u).  The same to rounding, in value and in both
     derivative modes, from 0 through several turns."""
     theta = np.concatenate([[0.0, 1e-9], np.geomspace(1e-6, 60.0, 200)])
-    c = jax.jit(lambda t2: (_so3.exp_coefficients(t2), _so3.exp_coefficients(t2, compact=True)))
+    c = jax.jit(lambda t2: (_so3.exp_coefficients(t2), _so3._coefficients(t2, True)))
     plain, compact = c(theta**2)
     for a, b in zip(plain, compact):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-15, atol=1e-17)
@@ -310,11 +311,11 @@ def test_the_compact_forms_give_the_same_numbers():
     R = np.asarray(so3.exp(_random_vectors((7,))))
 
     def update(compact):
-        return jax.jit(lambda R, u: _so3.right_exp(R, u, compact=compact))
+        return jax.jit(lambda R, u: _so3._right_exp(R, u, compact))
 
     np.testing.assert_allclose(update(True)(R, u), update(False)(R, u), rtol=0, atol=4e-15)
     for mode in (jax.jacfwd, jax.jacrev):
-        d = [jax.jit(jax.vmap(mode(functools.partial(_so3.right_exp, compact=c), (0, 1))))(R, u) for c in (True, False)]
+        d = [jax.jit(jax.vmap(mode(lambda R, u, c=c: _so3._right_exp(R, u, c), (0, 1))))(R, u) for c in (True, False)]
         for a, b in zip(*d):
             np.testing.assert_allclose(a, b, rtol=0, atol=4e-14)
 

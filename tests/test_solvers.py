@@ -51,12 +51,17 @@ def test_a_solver_with_its_own_init_takes_the_stage_loop_and_keeps_its_fields():
     set, without calling its ``__init__``.  Before: a subclass whose
     ``__init__`` takes other arguments failed every call from Python
     (``dataclasses.replace`` passed ``compact=``), and every sensitivity."""
+    from lierk._programs import in_form
+
     mine = _LabelledDOP853("mine")
-    looped = mine.for_one_body(100)
+    looped = in_form(mine, "one body", 100)
     assert (looped.label, looped.compact, mine.compact) == ("mine", True, None)
-    # A long solve, or one whose count is known only at run time, keeps the
-    # unrolled stages: they run several times faster.
-    assert mine.for_one_body(4097) is mine and mine.for_one_body(None) is mine
+    # A long solve, or one whose count is known only at run time, and a
+    # batch take the unrolled stages: they run several times faster.
+    for form, steps in (("one body", 4097), ("one body", None), ("batch", 100)):
+        assert in_form(mine, form, steps).compact is False
+    # A form the user fixed is kept.
+    assert in_form(_LabelledDOP853("x").in_form(False), "one body", 100).compact is False
     body = lierk.FreeRigidBody(TEE, OMEGA_GENERIC)
     R = lierk.solve(body, mine, 1.0, rtol=1e-9, atol=1e-9).R[-1]
     R_dop = lierk.solve(body, lierk.DOP853(), 1.0, rtol=1e-9, atol=1e-9).R[-1]

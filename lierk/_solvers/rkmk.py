@@ -83,7 +83,7 @@ class AbstractRKMK(AbstractSolver):
             raise ValueError(f"compact must be True, False or None (automatic), got {self.compact!r}")
 
     def in_form(self, compact: bool) -> "AbstractRKMK":
-        if self.compact is not None or compact == bool(self.compact):
+        if self.compact is not None:
             return self
         # Not `dataclasses.replace`: that calls the class's own `__init__`,
         # whose arguments a subclass may have changed.
