@@ -122,12 +122,11 @@ class ForwardSensitivity(AbstractAdjoint):
     the state does not move (a steady spin); its value comes from those
     steps, and an undifferentiated solve keeps its own.
 
-    Costs (256 near-axis T-handles, 2-core CPU; `benchmarks/sensitivity.py`):
-    the Jacobian in ``omega0`` costs 5 to 8 forward solves, and so does the
-    gradient of a scalar loss (2.2x less than reverse mode through the
-    scan, 10x less through the checkpointed adaptive loop) and `jax.jacrev`
-    (13x less).  A single `jax.jvp` costs as much as the whole Jacobian in the
-    perturbed inputs: pass `ForwardMode()` for one direction at a time.
+    Costs: the Jacobian in ``omega0`` costs a few forward solves, and so do
+    the gradient of a scalar loss and `jax.jacrev`, less than reverse mode
+    through the loop (``benchmarks/results/sensitivity.md``).  A single
+    `jax.jvp` costs as much as the whole Jacobian in the perturbed inputs:
+    pass `ForwardMode()` for one direction at a time.
 
     Attributes:
         max_inputs: most perturbed input scalars to carry tangents for

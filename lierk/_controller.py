@@ -264,10 +264,10 @@ class Controller(AbstractStepController):
         body angular velocity ``omega`` ``(..., 3)`` (rad/s): ``dtmax``, and
         at most ``max_angle / |omega|``, but never below ``dtmin`` (a bound the
         user set explicitly wins).  The mode bounds (``resolve_modes``) apply
-        where each step starts (`bound`).  ``compact``: ``|omega|`` entry by entry, which XLA fuses with its
-        neighbours, where a reduction is a kernel of its own (about 5 ms of a
-        first compile on CPU), for one body's solve; a batch of 64 free bodies
-        (DP54) ran 4% slower that way.  The same numbers either way."""
+        where each step starts (`bound`).  ``compact`` (one body's form,
+        `lierk._programs`): ``|omega|`` entry by entry, which XLA fuses with
+        its neighbours, where a reduction is a kernel of its own; a batch runs
+        slower that way.  The same numbers either way."""
         speed2 = so3._sq(omega) if compact else jnp.sum(omega * omega, axis=-1)
         turn = jnp.where(speed2 > 0, self.max_angle / jnp.sqrt(jnp.where(speed2 > 0, speed2, 1.0)), jnp.inf)
         return self._within_limits(turn)
@@ -330,8 +330,7 @@ class Controller(AbstractStepController):
         """``h`` within the mode bounds at ``(t, R, y)`` (``resolve_modes``;
         `largest_step`).  Applied where each step starts rather than where
         the last one ended: one linearisation in the program, not a second
-        for the first step (a spacecraft's differentiated DP54 solve: about
-        30 XLA kernels fewer to compile).  The steps are the same: min and
+        for the first step, so fewer kernels to compile.  The steps are the same: min and
         max are exact, and the bound is the one `adapt`'s proposal met
         before (a rejected attempt whose proposal only the bound takes below
         the smallest step now tries once more before it ends as stuck).

@@ -290,7 +290,7 @@ def _evaluate_in_chunks(interp: DenseInterpolation, t: np.ndarray) -> tuple[Arra
     """`_evaluate` for a `PartialStep` on concrete times and solution: the
     steps are looked up in NumPy and the shortened steps taken
     `_CHUNK` at a time, so that one compiled program (a step of the method,
-    large for the elliptic-function drift: 4 to 7 s of CPU to compile) serves
+    large for the elliptic-function drift, seconds to compile) serves
     every number of times and every solve of the same problem type, where
     `_evaluate` compiles anew for each shape of ``t`` and each step count."""
     flat = t.ravel()

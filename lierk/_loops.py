@@ -141,8 +141,7 @@ def _blocks(length: int, pad: bool) -> tuple[int, int, int]:
     blocks of ``block`` steps, about ``sqrt(length)``, then ``rem`` more.
 
     A remainder is a second scan, and each scan length compiles the whole step
-    once more (1000 steps of RKMK(DOP853) on a heavy top: blocks of 31 and a
-    remainder of 8 compiled in 2.0 s, blocks of 25 in 0.9 s).  So ``block``
+    once more (about twice the compile time).  So ``block``
     divides ``length`` when a divisor lies within a factor 2 of the root.
     Otherwise, with ``pad`` (the run's last steps, after which steps are
     exact no-ops), the last block runs past ``length`` by the fewest steps
@@ -656,7 +655,7 @@ def _batched_together(carry, inputs):
     while loop's batching rule traces the body once more for every round in
     which a carry entry turns batched (the step count after the state, the
     result code after the step count); a carry batched from the start saves
-    those rounds (0.3 s each for DOP853 on a heavy top)."""
+    those rounds of tracing."""
     probes = [jnp.isnan(jnp.ravel(x)[0]) for x in jax.tree_util.tree_leaves(inputs)
               if eqx.is_array(x) and x.size and jnp.issubdtype(x.dtype, jnp.inexact)]
     if not probes:
@@ -677,8 +676,7 @@ def _moved_together(state):
     differentiating and batching a loop find the carries that get tangents
     by tracing the body again until nothing changes; the attitude, which got
     one only after a step, cost a second pass of each rule over the whole
-    body (of a Jacobian's trace: ~0.4 s for DP54 on a spacecraft).  The
-    compiled loop is the same."""
+    body.  The compiled loop is the same."""
     return state
 
 

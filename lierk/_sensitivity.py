@@ -453,8 +453,7 @@ def _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, 
         else:
             # One trace of the solve and its Jacobian serves both settings
             # (a scan of 2): the program's largest part appears once, not
-            # twice.  A heavy top's first DOP853 sensitivity: 8.0 -> 5.9 CPU-s,
-            # RKMK4 5.5 -> 4.0.
+            # twice, and compiles once.
             dynamic, static = pair
             kept = []
 

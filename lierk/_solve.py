@@ -263,9 +263,8 @@ def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, e
 # the solve was traced twice, once undifferentiated into that program (whose
 # loops' own derivative rules then discard it) and once more by those rules.
 # Traced by its rule straight from the Python, the derivative's program is
-# the same and the undifferentiated trace is skipped: the heavy top's first
-# `jit(jacfwd)` of an adaptive solve traced in 1.40 s instead of 1.58, its
-# first eager `jax.grad` took 3.4 s instead of 3.9 (docs/guides/contributing.md).
+# the same and the undifferentiated trace is skipped, which shortens a first
+# Jacobian's trace (benchmarks/results/first_result-solve-jacfwd.md).
 @eqx.filter_custom_jvp
 def _differentiable_program(args):
     """``_program(*args)``, with the derivative `_program_jvp`."""

@@ -70,8 +70,8 @@ def as_jax(x, dtype=None):
 
 def as_jax_each(*xs, dtype=None) -> tuple:
     """`as_jax` of each of ``xs`` (in ``dtype`` if given), the concrete
-    values put on the device together: one transfer instead of one per value
-    (each about 20 us of a call from Python).  (Keeping the transfers of
+    values put on the device together: one transfer instead of one per value,
+    each a part of a call from Python.  (Keeping the transfers of
     recurring scalars for later calls was tried: a shared array broke JAX's
     dispatch of a ``jit(vmap)`` of a solve on its second call, "Execution
     supplied 1 arguments but compiled program expected 14", jax 0.10.)"""
@@ -106,10 +106,9 @@ def _traced(x, dtype=None):
 
 def all_finite(tree, *, compact: bool = False) -> jax.Array:
     """Whether every entry of every array leaf of ``tree`` is finite (a traced
-    bool).  ``compact``: one reduction over all the entries, which XLA
-    compiles as one kernel instead of one per leaf (about 5 ms of a first
-    compile on CPU apiece), for one body's solve; a batch of 64 ran 8% slower
-    that way (free bodies, DP54)."""
+    bool).  ``compact`` (one body's form, `lierk._programs`): one reduction
+    over all the entries, which XLA compiles as one kernel instead of one per
+    leaf; a batch runs slower that way."""
     leaves = jax.tree_util.tree_leaves(tree)
     if not leaves:
         return jnp.asarray(True)
@@ -361,8 +360,8 @@ def _in_range(I, w):
     when their computed values are (up to the last rounding), with no
     intermediate that overflows sooner.  Entry by entry, with no logarithm,
     reduction or matrix product: XLA compiles the check as one kernel, where
-    those were kernels of their own (about 5 ms of a first compile on CPU
-    apiece).  (`state_range_error` works in logarithms, to name the sizes.)"""
+    those were kernels of their own.  (`state_range_error` works in
+    logarithms, to name the sizes.)"""
     info = jnp.finfo(w.dtype)
     tiny, big = float(info.tiny), float(info.max)
     tr, minors, det = _principal_invariants(I)

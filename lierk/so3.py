@@ -69,13 +69,12 @@ def _one_program(f=None, *, static: tuple[str, ...] = ()):
 
     Called eagerly, each `jax.numpy` operation of ``f`` would be a small
     program of its own, compiled on first use: ``log`` of a concrete rotation
-    compiled about 40 of them (a tenth of a second each on a 2-core machine),
-    where one program of the whole function compiles once per shape and
+    compiled about 40 of them, where one program of the whole function compiles once per shape and
     dtype.  Traced (inside a caller's `jax.jit`, `jax.vmap` or autodiff), JAX
     traces ``f`` once per shape and dtype and reuses that for every later call
     in the caller's trace, and XLA inlines it: a solver calls these in every
-    stage, and a first DOP853 solve of a heavy top traced and lowered in 0.34 s
-    instead of 0.56 s, to the same optimized program.  ``static``: the
+    stage, so this shortens a first solve's trace, to the same optimized
+    program.  ``static``: the
     arguments that select the program (checked by ``f``'s caller first)."""
     if f is None:
         return functools.partial(_one_program, static=static)
@@ -188,7 +187,7 @@ def exp_coefficients(theta2: Array) -> tuple[Array, Array, Array]:
 
     One ``sin``/``cos`` pair of ``x = theta/2`` serves all three, evaluated from
     polynomials only: XLA on CPU runs ``jnp.sin``/``jnp.cos`` in float64 at
-    about 40 times the cost of a multiply-add, which made them most of an RKMK
+    many times the cost of a multiply-add, which made them most of an RKMK
     stage's arithmetic.  For ``x > pi/4``, ``x`` is reduced to
     ``r = x - n pi/2``, ``|r| <= pi/4`` (three-part Cody-Waite), where the
     power series of ``sin r / r`` and ``cos r`` converge to rounding in 10
@@ -301,7 +300,7 @@ def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     A, B, _ = exp_coefficients(theta2) if coefficients is None else coefficients
     # hat(w)^2 = w w^T - theta^2 I, so exp = (1 - B theta^2) I + A hat(w) + B w w^T,
     # written entry by entry: XLA on CPU runs a batched 3x3 matmul as a separate
-    # dot kernel that no elementwise work fuses into (about 15% of an RKMK4 step).
+    # dot kernel that no elementwise work fuses into.
     w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
     c = 1.0 - B * theta2
     Aw0, Aw1, Aw2 = A * w0, A * w1, A * w2
@@ -422,7 +421,8 @@ def _axis_turn(X: ArrayLike, k: int, phi: ArrayLike) -> Array:
     A, B, _ = exp_coefficients(phi * phi)
     # The trailing axes are added after the coefficients, so that a matrix and
     # a vector turned by the same phi share one evaluation (XLA merges equal
-    # expressions; on (..., 1) arrays it made a heavy-top step 3.6x slower).
+    # expressions; on (..., 1) arrays it made a heavy-top step several times
+    # slower).
     extra = (1,) * (X.ndim - 1 - phi.ndim)
     s, c1 = (A * phi).reshape(phi.shape + extra), (-B * phi * phi).reshape(phi.shape + extra)
     i, j = (k + 1) % 3, (k + 2) % 3
@@ -472,8 +472,7 @@ def _rotate_jvp(primals, tangents):
     # the start, turned, and rotated with the same coefficients.  (A and B are
     # u's own, so their tangents follow from du.)  Differentiated term by term
     # instead, forward mode through a heavy top's stages (each turns the
-    # vertical to the stage point) cost 7 times the step, against 2.6 without
-    # the turn; with this rule 4.
+    # vertical to the stage point) cost more than twice what this rule does.
     (u, x, A, B), (du, dx, _, _) = primals, tangents
     w = dexp(-u, du, (A, B, None))
     return _rotate(u, x, A, B), _rotate(u, dx + cross(w, x), A, B)

@@ -17,7 +17,7 @@ momentum decides when the body flips, so a small phase error turns into a
 large error in the flip time.  Integrating Euler's equations for ``m`` keeps
 the spin's phase error out of the momentum.  On near-intermediate-axis
 batches of four bodies this made RKMK4 30 to 300 times and DOP853 170 to 5000
-times more accurate, and RKMK4 1.8x faster, since a torque-free stage needs no
+times more accurate, and RKMK4 faster, since a torque-free stage needs no
 rotation at all (``benchmarks/results/formulation.md``).  The price is that ``|m|`` and ``L``
 are conserved only to the solver's accuracy, not to rounding.
 """
@@ -93,8 +93,8 @@ class RigidBodyWithEffects(AbstractRigidBody):
     wheel_index: int | None = eqx.field(static=True)
     # Whether the inertia is a concrete diagonal matrix: then omega = I^-1 m is
     # an elementwise product, which XLA fuses with the rest of a stage, where
-    # the 3x3 product is a kernel of its own (a DOP853 step on a heavy top ran
-    # 7% faster).  Found like `symmetry_axis`; a traced inertia is general.
+    # the 3x3 product is a kernel of its own.  Found like `symmetry_axis`; a
+    # traced inertia is general.
     diagonal: bool = eqx.field(static=True)
 
     def __init__(
@@ -608,7 +608,7 @@ def _momentum(inertia: Array, omega0: Array) -> Array:
     compiles one per operation, for concrete values and for the values an
     eager `jax.jacfwd` or `jax.grad` traces; inside `jax.jit` it is
     inlined, entry by entry (`so3.matvec`): a matrix product is an XLA
-    kernel of its own, about 5 ms of a first compile on CPU."""
+    kernel of its own."""
     return so3.matvec(inertia, omega0)
 
 

@@ -172,7 +172,7 @@ def _moment_spread(inertia: Array) -> Array:
     """``I_max - I_min`` (kg m^2) of a symmetric ``(3, 3)`` inertia, from the
     trigonometric solution of its characteristic cubic, not differentiated
     (a tolerance's scale).  ``jnp.linalg.eigvalsh`` is a LAPACK call whose
-    lowering took 0.07 s of every program with gravity gradient.  Within
+    lowering is a noticeable part of every program with gravity gradient.  Within
     1e-8 of the largest moment of eigvalsh's spread (2000 rotated inertias,
     double, triple and 1e12-apart moments included; about sqrt(eps) near a
     double moment): ample for a scale."""

@@ -127,13 +127,12 @@ class AbstractSplitting(AbstractSolver):
         if problem.closed_form_drift:
             # A symmetric body's drift is two rotations: unrolled, XLA fuses
             # each kick into the drift before it and the inner loop's
-            # bookkeeping goes (BlanesMoan6 on a heavy top: 0.68 -> 0.50 us
-            # per body-step).
+            # bookkeeping goes.
             for ab in zip(a[:-1], b):
                 carry, _ = stage(carry, ab)
         else:
             # A loop, not an unrolled sequence: the elliptic-function drift
-            # is a large program, and ten copies of it took up to 17 s to
+            # is a large program, and ten copies of it took many seconds to
             # compile.
             carry, _ = jax.lax.scan(stage, carry, jnp.asarray([a[:-1], b], dtype=R.dtype).T)
         R, y, _ = carry

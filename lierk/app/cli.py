@@ -189,7 +189,7 @@ def simulate(args) -> int:
                    what=f"simulating {scene.saved_count()} saved points")
     except ValueError as e:
         raise CLIError(_one_line(e)) from None
-    # matplotlib's import (about 0.5 s of Python) runs beside the solve,
+    # matplotlib's import (a noticeable part of a warm run) runs beside the solve,
     # whose XLA compilation and run release the GIL.
     preload = threading.Thread(target=_import_plotting, daemon=True)
     preload.start()
@@ -223,9 +223,8 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
     title = f"{scene.name}: {scene.description}\n{settings}" if scene.description else f"{scene.name} — {settings}"
     np.savez(tmp / f"{stem}.npz", **sim.record())
     # Pillow quantizes and encodes the GIF mostly without the GIL, beside the
-    # figures' drawing, which holds it: the part of the GIF's 1.05 s that
-    # overlaps (a warm T-handle simulate, 2 cores, 2.78 -> 2.61 s with the
-    # flip interval in the diagnostics' program).
+    # figures' drawing, which holds it: the two overlap
+    # (benchmarks/results/latency.md).
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
         gif = None
         if not args.no_gif:
@@ -407,8 +406,8 @@ def _dispatch(args, prog: str) -> tuple[int, str | None]:
 def run() -> None:
     """The ``lierk`` program: `main`, then exit at once.  Everything a command
     writes is closed by then; what remains of the process is the teardown of
-    the XLA runtime and of the modules, 0.5 s of a 3 s ``lierk simulate``,
-    which ``os._exit`` skips once the output is flushed."""
+    the XLA runtime and of the modules, a noticeable part of a short
+    ``lierk simulate``, which ``os._exit`` skips once the output is flushed."""
     code = main()
     sys.stdout.flush()
     sys.stderr.flush()

@@ -53,7 +53,7 @@ def _compute(problem, R, y, euler_convention):
 
     omega = problem.angular_velocity(R, y)
     # In this program rather than one of its own: a separate program's trace
-    # and cache lookup were 0.1-0.2 s of a 2.6 s `lierk simulate`.
+    # and cache lookup are a noticeable part of a warm `lierk simulate`.
     flip = exact._flip_interval(problem.inertia, problem.omega0) if problem.torque_free else None
     euler = None if euler_convention is None else so3.to_euler(R, euler_convention)
     # The whole body's (internal rotors included), which they do not change.

@@ -576,7 +576,7 @@ def write_gif(images: list[np.ndarray], path, fps: int = 20) -> Path:
 
     One 256-colour palette serves every frame: it is fitted (median cut) to
     eight frames spread over the run and each frame is mapped to it, which
-    is 5x faster than fitting a palette per frame (Pillow's default) and
+    is several times faster than fitting a palette per frame (Pillow's default) and
     makes a file half the size; the colours differ from per-frame palettes
     by at most a few levels."""
     from PIL import Image
