@@ -1,13 +1,14 @@
 # Two commands do all the set-up on a fresh machine with Python 3.11 and pip:
 #   make demo   create .venv, install, simulate the T-handle scene (figures and GIF in out/)
 #   make test   create .venv if missing, install, run the test suite
+#   make lint   ruff's checks (CI runs them)
 #   make docs   install the docs extra, build the API site into site/ (warnings fail)
 PYTHON ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test bench docs clean
+.PHONY: demo test lint bench docs clean
 
 $(BIN)/python:
 	$(PYTHON) -m venv $(VENV)
@@ -56,6 +57,10 @@ test: $(STAMP)
 	  if XLA_FLAGS="$$(echo $${XLA_FLAGS:-} $$flags)" $(BIN)/python -m pytest -q --durations=10 {} > $$log 2>&1; then \
 	  echo "== {}: $$(tail -n 1 $$log | tr -d =) | $$(grep -h "^compilations:" $$log | cut -d: -f3-)"; \
 	  else echo "== {} FAILED:"; cat $$log; exit 1; fi'
+
+# ruff's lint, configured in pyproject.toml (line length 120).
+lint: $(STAMP)
+	$(BIN)/ruff check .
 
 bench: $(BENCH_STAMP)
 	$(BIN)/python -m benchmarks

@@ -397,8 +397,8 @@ def test_the_rule_reads_no_private_jax_and_no_tracer_class():
 def test_one_bodys_adaptive_solve_compiles_few_kernels():
     # XLA's CPU backend compiles each kernel of a program (a fusion, a matrix
     # product) on its own, about 5 ms apiece whatever its size, so the count
-    # decides a first compile (docs/guides/contributing.md, "A kernel costs
-    # about 5 ms to compile").  A heavy top's adaptive DOP853 solve inside
+    # decides a first compile (CHANGELOG.md, "A kernel costs about 5 ms to
+    # compile").  A heavy top's adaptive DOP853 solve inside
     # jax.jit was 77 kernels; written to fuse, 52 (48 with the suite's quick
     # XLA flags).  diffrax's Dopri8 is 26.
     def final(w, tol):
