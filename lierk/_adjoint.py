@@ -139,15 +139,23 @@ class ForwardSensitivity(AbstractAdjoint):
             with a warning: its cost grows with ``max_steps``) or
             `ForwardMode` (forward only).  For reverse mode with respect to
             many inputs, pass ``adjoint=RecursiveCheckpointAdjoint()``.
+        resolve_modes: whether a differentiated adaptive solve bounds its
+            steps by the body's perturbation modes (default True, see
+            above).  False keeps the undifferentiated solve's steps, and its
+            value bit for bit, at the cost of derivatives that may not be
+            resolved about a steady spin or a body at rest.
     """
 
     kind: ClassVar[str] = "lax"
     max_inputs: int | None = eqx.field(default=None, static=True)
     fallback: AbstractAdjoint = DirectAdjoint()
+    resolve_modes: bool = eqx.field(default=True, static=True)
 
     def __check_init__(self):
         if self.max_inputs is not None and not (isinstance(self.max_inputs, int) and self.max_inputs >= 1):
             raise ValueError(f"ForwardSensitivity(max_inputs=...) must be a positive int or None, got {self.max_inputs!r}")
+        if not isinstance(self.resolve_modes, bool):
+            raise ValueError(f"ForwardSensitivity(resolve_modes=...) must be True or False, got {self.resolve_modes!r}")
         if isinstance(self.fallback, (ForwardSensitivity, RecursiveCheckpointAdjoint)):
             raise ValueError(
                 "ForwardSensitivity(fallback=...) must support forward mode: DirectAdjoint() or ForwardMode(), "
@@ -162,7 +170,7 @@ class ForwardSensitivity(AbstractAdjoint):
         # (DP54 on a symmetric body spinning about its axis: 1e10 off).  So a
         # differentiated adaptive solve takes those steps, value included;
         # the undifferentiated one keeps its own.
-        tangent = loop if fixed else _resolving(loop)
+        tangent = loop if fixed or not self.resolve_modes else _resolving(loop)
         loops = (
             functools.partial(loop, ForwardMode()),
             functools.partial(loop, self.fallback),

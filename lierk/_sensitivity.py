@@ -330,7 +330,8 @@ def sensitivity(
     method = sensitivity_method(problem, solver, wrt, mode, method)
     t1, solve_options = _numbers_traced(problem, t1, solve_options)
     fixed = solve_options.get("dt") is not None
-    if not fixed and method == "derivative":
+    adjoint = solve_options.get("adjoint")
+    if not fixed and method == "derivative" and getattr(adjoint, "resolve_modes", True):
         solve_options = _resolving_modes(solve_options)
     _check_input(problem, wrt)  # bad input raises here, before tracing
     return _sensitivity(problem, solver, t1, wrt, mode, method, estimate_error, throw, solve_options)

@@ -668,3 +668,29 @@ def test_variational_resolves_a_sleeping_top():
     err = np.linalg.norm(np.asarray(s.jacobian_R) - np.asarray(ref.jacobian_R))
     assert int(s.result) == 0 and err < 1e-7 * scale, err / scale
     assert err / 10 <= float(s.jacobian_R_error) <= 10 * err, (err, float(s.jacobian_R_error))
+
+
+def test_the_mode_bounds_of_a_differentiated_solve_can_be_turned_off():
+    """A differentiated adaptive solve takes extra steps about a steady spin
+    (the mode bounds) unless its adjoint says ``resolve_modes=False``: then
+    its value is the undifferentiated solve's, bit for bit, with the same
+    steps, and its derivative is that solve's (against central
+    differences)."""
+    I = np.diag([1.0, 1.0, 2.0])
+    w = np.array([1e-3, 0.0, 5.0])
+
+    def run(v, adjoint=None):
+        sol = lierk.solve(lierk.FreeRigidBody(I, v), lierk.DP54(), 2.0, rtol=1e-6, atol=1e-6, adjoint=adjoint)
+        return sol.R[-1], sol.stats["num_steps"]
+
+    R_plain, steps_plain = jax.jit(run)(w)
+    off = lierk.ForwardSensitivity(resolve_modes=False)
+    (R_off, steps_off), (dR_off, _) = jax.jit(lambda v: jax.jvp(lambda u: run(u, off), (v,), (np.array([0.0, 1.0, 0.0]),)))(w)
+    (R_on, steps_on), _ = jax.jit(lambda v: jax.jvp(run, (v,), (np.array([0.0, 1.0, 0.0]),)))(w)
+    np.testing.assert_array_equal(np.asarray(R_off), np.asarray(R_plain))
+    assert int(steps_off) == int(steps_plain) < int(steps_on)
+    h = 1e-6
+    fd = (np.asarray(jax.jit(run)(w + [0.0, h, 0.0])[0]) - np.asarray(jax.jit(run)(w - [0.0, h, 0.0])[0])) / (2 * h)
+    np.testing.assert_allclose(np.asarray(dR_off), fd, atol=1e-5)
+    with pytest.raises(ValueError, match="resolve_modes"):
+        lierk.ForwardSensitivity(resolve_modes=1)
