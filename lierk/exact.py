@@ -46,7 +46,8 @@ loss of their relative precision; so nothing small is formed by subtracting
 numbers of size one: the initial ``sn u0 = y/A2`` and ``cn u0 = x/A1`` come
 from the momentum (not from the angle ``atan2``, whose rounding would leave
 ``cn u0 ~ 1e-9`` with 1e-7 relative error), ``r`` and ``1 - r`` from their
-own differences of moments.
+own differences of moments, and `free_flow`'s addition theorems from sums of
+terms of one sign.
 
 Inputs are validated as `lierk.FreeRigidBody` validates them
 (`lierk._validation.rigid_body_inputs`): the inertia is ``(3, 3)`` symmetric
@@ -298,7 +299,9 @@ def free_flow(inertia: Array, m: Array, h: Array) -> tuple[Array, Array]:
     ``m_h`` is ``m`` plus its change over ``h`` from Jacobi's addition
     theorems (`_momentum_change`), so that rounding does not add up to a
     drift of the energy over many drifts; its derivative is that of the
-    closed form's ``inertia omega(h)``.
+    closed form's ``inertia omega(h)``.  From next to the intermediate axis
+    ``m_h`` stays within 6.3e-15 ``|m|`` of a 34-digit integration for any
+    ``h`` up to and through the flip (as `free_rigid_body`'s notes).
     """
     # One jitted function, like `free_rigid_body`'s: called on concrete values,
     # one compiled program rather than one per operation; traced (a solver's
@@ -361,27 +364,39 @@ def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
     J1, J2, J3 = c["J"][0], c["J"][1], c["J"][2]
     x, y, z = c["x"], c["y"], c["z"]
     k2, r, rc, stat = c["k2"], c["r"], c["rc"], c["stat"]
-    sn_b, cn_b, dn_b, j, _ = _ellipj_reduced(c["lam"] * h, k2, c["k2c"])
+    k2c = c["k2c"]
+    sn_b, cn_b, dn_b, j, _ = _ellipj_reduced(c["lam"] * h, k2, k2c)
     sign = 1.0 - 2.0 * jnp.mod(j, 2.0)
     sb, cb, db = sign * sn_b, sign * cn_b, dn_b
-    # cn b - 1 and dn b - 1 without cancellation for small b (dn b >= k' > 0).
+    sb2 = sb * sb
+    # cn a = x/A1; A1 = 0 only where m is along e3 (k = 0, no change).
+    A1 = c["A1"]
+    ca = jnp.where(A1 > 0, x / jnp.where(A1 > 0, A1, 1.0), 1.0)
+    # The addition theorems' denominator 1 - k^2 sn^2 a sn^2 b is
+    # D = dn^2 b + k^2 cn^2 a sn^2 b, and the factors of x, y and z below are
+    # cn b - D, cn b dn b - D and dn b - D.  Each is written with cn^2 a, never
+    # sn^2 a = 1 - cn^2 a, and with the small differences of b's functions in
+    # closed form: cn b - dn^2 b = sn^2 b (k^2 cn b - k'^2)/(1 + cn b) and
+    # dn b - cn b = k'^2 sn^2 b/(cn b + dn b) >= 0 where cn b > 0 (where
+    # cn b <= 0 the plain differences have terms of one sign), and 1 - dn b =
+    # k^2 sn^2 b/(1 + dn b).  All are O(b^2) for small b.  From a state next
+    # to the intermediate axis (sn a = +-1 to rounding) D is about dn^2 b,
+    # which falls like exp(-2 |lam h|): formed from sn a, or from terms of
+    # size one, these factors erred by eps/D relative to |m| (1.7e-3 at
+    # lam h = 17 on diag(1, 2, 3)).
     near = cb > 0
-    cbm1 = jnp.where(near, -sb * sb / (1.0 + jnp.where(near, cb, 0.0)), cb - 1.0)
-    dbm1 = -k2 * sb * sb / (1.0 + db)
-    # sn a = y/A2, dn a = z/A3; A2 = 0 or A3 = 0 only at a permanent rotation.
-    A2, A3 = c["A2"], c["A3"]
-    sa = jnp.where(A2 > 0, y / jnp.where(A2 > 0, A2, 1.0), 0.0)
-    da = jnp.where(A3 > 0, z / jnp.where(A3 > 0, A3, 1.0), 1.0)
-    ks = k2 * (sa * sb) ** 2
-    # 1 - k^2 sn^2 a sn^2 b = dn^2 a + k^2 sn^2 a cn^2 b: two non-negative terms.
-    D = da * da + k2 * (sa * cb) ** 2
+    cb_n = jnp.where(near, cb, 0.0)
+    cb_less_db2 = jnp.where(near, sb2 * (k2 * cb - k2c) / (1.0 + cb_n), cb - db * db)
+    db_less_cb = jnp.where(near, k2c * sb2 / jnp.where(near, cb_n + db, 1.0), db - cb)
+    kcs = k2 * (ca * sb) ** 2
+    D = db * db + kcs
     # A1/(A2 A3), A2/(A1 A3) and k^2 A3/(A1 A2), from the invariants: s is
     # 1/sqrt(J1 J2 J3 r Qv), so that lam = +-(J3 - J1) r Qv s.
     s = jax.lax.rsqrt(J1 * J2 * J3 * jnp.where(stat, 1.0, r * c["Qv"]))
     dw = jnp.stack([
-        x * (cbm1 + ks) - (r * J1 * s) * y * z * sb * db,
-        y * (cbm1 * db + dbm1 + ks) + (J2 * s) * x * z * sb,
-        z * (dbm1 + ks) - (rc * J3 * s) * x * y * sb * cb,
+        x * (cb_less_db2 - kcs) - (r * J1 * s) * y * z * sb * db,
+        -y * (db * db_less_cb + kcs) + (J2 * s) * x * z * sb,
+        z * (k2 * sb2 * (db / (1.0 + db) - ca * ca)) - (rc * J3 * s) * x * y * sb * cb,
     ]) / jnp.where(D > 0, D, 1.0)
     dw = jnp.where(stat | (D <= 0), 0.0, dw)
     return c["W"] @ dw
