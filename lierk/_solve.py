@@ -285,6 +285,13 @@ def _program_jvp(args, t_args):
     return eqx.filter_jvp(lambda a: _program.__wrapped__(*a), (args,), (t_args,))
 
 
+def _X64_HINT(dtype) -> str:
+    """The way to float64, for a float32 refusal: float32 is JAX's default."""
+    if np.dtype(dtype) != np.float32:
+        return ""
+    return ' (float32 is JAX\'s default: jax.config.update("jax_enable_x64", True) before making any array gives float64)'
+
+
 def _check_events(event, saveat: SaveAt, estimate_error: bool, target_error) -> tuple[Event, ...]:
     """``event=`` as a tuple of `Event` (empty for None), refused where it
     cannot be honoured."""
@@ -334,7 +341,7 @@ def _check_times(t0, t1, dtype) -> tuple[Array, Array]:
     if not validation.is_traced(t0_given, t1_given) and float(t1_given) > float(t0_given) and float(t1) <= float(t0):
         raise ValueError(
             f"t1 = {float(t1_given)!r} rounds to t0 = {float(t0)!r} in {np.dtype(dtype).name}: the interval is below "
-            "the resolution of the time axis; shift t0 towards 0 or use float64"
+            "the resolution of the time axis; shift t0 towards 0 or use float64" + _X64_HINT(dtype)
         )
     t1 = validation.check(
         t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}", reads=t0
@@ -375,7 +382,7 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
         raise ValueError(
             f"dt = {float(dt)!r} is below the resolution of {np.dtype(dt.dtype).name} times near "
             f"t = {float(max(abs(t0), abs(t1)))!r} (one ulp is about {float(np.spacing(max(abs(t0), abs(t1))))!r}): "
-            "measure time from a closer origin (t0 = 0) or use float64"
+            "measure time from a closer origin (t0 = 0) or use float64" + _X64_HINT(dt.dtype)
         )
     if saveat.ts is not None:
         return dt, max_steps
@@ -433,7 +440,7 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     if total is not None and total < eps:
         raise ValueError(
             f"rtol + atol = {total:g} is below the rounding of "
-            f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}"
+            f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}" + _X64_HINT(dtype)
         )
     adjoint = _check_adjoint(adjoint)
     if dt0 is not None:

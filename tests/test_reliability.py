@@ -296,3 +296,13 @@ def test_throw_raises_a_bad_traced_input_by_its_name():
     with pytest.raises(Exception, match="R0 must be a rotation matrix"):
         jax.block_until_ready(jax.jit(lambda R0: lierk.solve(lierk.FreeRigidBody(TEE, OMEGA_GENERIC, R0=R0), lierk.RKMK4(), 1.0,
                                                               dt=0.05).R)(2 * jnp.eye(3)))
+
+
+def test_a_float32_refusal_says_how_to_get_float64():
+    b32 = lierk.FreeRigidBody(TEE.astype(np.float32), OMEGA_GENERIC.astype(np.float32))
+    with pytest.raises(ValueError, match='below the rounding of float32.*jax_enable_x64", True'):
+        lierk.solve(b32, lierk.DOP853(), 1.0, rtol=1e-9, atol=1e-9)
+    # Not for float64, whose refusal has no other type to point to.
+    with pytest.raises(ValueError) as e:
+        lierk.solve(BODY, lierk.DOP853(), 1.0, rtol=1e-17, atol=1e-17)
+    assert "jax_enable_x64" not in str(e.value)
