@@ -147,6 +147,11 @@ def by_batch(fun: Callable, forms: Callable, *args):
     @one_body.def_vmap
     def rule(axis_size, in_batched, dynamic):
         del axis_size
+        if not any(in_batched[0]):
+            # Nothing batched: JAX's derivative of this rule calls it so, and
+            # batches the derivative's own directions itself.
+            out = run(leaves, tree_one, dynamic)
+            return out, jax.tree_util.tree_map(lambda _: False, out)
         axes = [0 if b else None for b in in_batched[0]]
         out = jax.vmap(lambda d: run(leaves_batch, tree_batch, d), in_axes=(axes,))(dynamic)
         return out, jax.tree_util.tree_map(lambda _: True, out)

@@ -132,9 +132,10 @@ def _validated(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = Non
     return eqx.error_if(inputs, first_invalid(inputs), _INVALID)
 
 
-_INVALID = ("lierk.exact: an input is NaN, or a traced value failed the check that a known value would have failed "
-            "at once with its name (the inertia symmetric positive definite, omega0 finite and within the dtype's "
-            "range, R0 a rotation); call with the concrete values to see which")
+_INVALID = ("lierk.exact: an input is NaN, or a traced value failed the check that a known value fails at once, "
+            "with its name: inertia must be positive definite (symmetric, finite); omega0 has NaN or inf entries, "
+            "or a traced inertia and omega0 give a body state outside the dtype's range; R0 must be a rotation "
+            "matrix. Call with the concrete values to see which")
 
 
 def _working_constants(inertia: Array, omega0: Array):

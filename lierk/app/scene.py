@@ -319,13 +319,14 @@ class Scene:
             keep = ts <= float(found.trajectory()[0][-1])
 
         def cut(x):
+            # NumPy, then one transfer: eager jax.numpy compiles a program per call.
             x = np.asarray(x)
-            return jnp.asarray(np.where(keep.reshape(keep.shape + (1,) * (x.ndim - 1)), x, np.nan))
+            return jax.device_put(np.where(keep.reshape(keep.shape + (1,) * (x.ndim - 1)), x, np.nan))
 
         stats = {**chosen.stats, "num_solves": int(chosen.stats["num_solves"]) + 1}
         return dataclasses.replace(
             chosen, R=cut(chosen.R), y=jax.tree_util.tree_map(cut, chosen.y), error_estimate=cut(chosen.error_estimate),
-            n_saved=jnp.asarray(int(keep.sum()), jnp.asarray(chosen.n_saved).dtype), result=found.result,
+            n_saved=jax.device_put(np.asarray(keep.sum(), np.asarray(chosen.n_saved).dtype)), result=found.result,
             events=found.events, stats=stats)
 
     def _event_kwargs(self) -> dict:
