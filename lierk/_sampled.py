@@ -17,7 +17,6 @@ from typing import Any, Callable
 import equinox as eqx
 import jax
 import jax.numpy as jnp
-from jax import Array
 from jax.typing import ArrayLike
 
 from . import _validation as validation
@@ -57,10 +56,12 @@ def solve_sampled(
     proportional-derivative law, a momentum dump) or only ``k`` (an
     open-loop sequence of commands, ``lambda k, t, R, y: U[k]``, whose
     samples ``U`` are then parameters to differentiate).  The periods run in
-    a `lax.scan`, so the whole run is one program: call it inside
-    `jax.jit` (with `jax.vmap` for a batch of bodies, `jax.grad` with
-    respect to gains or commands), and new values of the commands, gains,
-    states or ``period`` reuse the compiled program.
+    a `lax.scan`, so the whole run is one program: inside `jax.jit` (with
+    `jax.vmap` for a batch of bodies, `jax.grad` with respect to gains or
+    commands) new values of the commands, gains, states or ``period``
+    reuse the compiled program.  Called from Python it is one program too,
+    kept for the same ``law`` and ``control`` functions and step options (a
+    new lambda, or a new ``dt``, compiles again).
 
     In reverse mode each period is recomputed in the backward pass
     (`jax.checkpoint`), so the memory held is one state per period plus one
@@ -129,6 +130,12 @@ def solve_sampled(
     dtype = problem.R0.dtype
     period = validation.check_scalar(period, "period", dtype, bound="positive")
     t0 = validation.check_scalar(t0, "t0", dtype)
+    for name in ("dt", "dt0", "rtol", "atol"):
+        if options.get(name) is not None and not validation.is_traced(options[name]):
+            # Checked here, and a Python number from here on: the program
+            # below keeps it as a constant, so each solve still sees it.
+            bound = "positive" if name.startswith("dt") else "non-negative"
+            options[name] = float(validation.check_scalar(options[name], name, dtype, bound=bound))
     if options.get("dt") is not None and options.get("max_steps") is None:
         if validation.is_traced(period, options["dt"]):
             raise ValueError(
@@ -143,8 +150,8 @@ def solve_sampled(
             "control selects None: build the problem with the command's leaf in place (a ReactionWheels with "
             "torque=jnp.zeros(k), a BodyTorque(jnp.zeros(3))), so that each command replaces it"
         )
-    k0 = jnp.zeros((), jnp.int32)
-    shape = jax.eval_shape(law, k0, t0, problem.R0, problem.y0)
+    shape = jax.eval_shape(law, jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), dtype), problem.R0,
+                           problem.y0)
     want = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), slots)
     if jax.tree_util.tree_structure(shape) != jax.tree_util.tree_structure(want) or any(
         a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(shape), jax.tree_util.tree_leaves(want))
@@ -153,6 +160,21 @@ def solve_sampled(
             f"law returns {_shapes(shape)}, but control selects {_shapes(want)}: the command must have the "
             "structure and shapes of the leaves it replaces"
         )
+
+    # The periods' own times are valid by construction; with the other
+    # values known and checked now, each period's solve needs no run-time
+    # check, which would keep the program out of JAX's persistent cache.
+    checked = not validation.is_traced(period, t0, options)
+    sol, u = _sampled(problem, solver, law, control, slots, period, n, t0, options, checked)
+    return raise_if_failed(sol, throw), u
+
+
+# One program for the whole run when called from Python (the scan and what
+# assembles its output; eager, each of those operations compiled a program
+# of its own); inlined in a caller's `jax.jit`.
+@eqx.filter_jit
+def _sampled(problem, solver, law, control, slots, period, n, t0, options, checked):
+    dtype = problem.R0.dtype
 
     def one(state, k):
         R, y = state
@@ -163,17 +185,16 @@ def solve_sampled(
         end = (sol.R[-1], jax.tree_util.tree_map(lambda a: a[-1], sol.y))
         return end, (end, u, sol.stats, sol.result)
 
-    # The periods' own times are valid by construction; with the other
-    # values known and checked now, each period's solve needs no run-time
-    # check, which would keep the program out of JAX's persistent cache.
-    ours = validation.checked_on_host() if not validation.is_traced(period, t0, options) else contextlib.nullcontext()
-    with ours:
+    with validation.checked_on_host() if checked else contextlib.nullcontext():
         # Reverse mode keeps each period's starting state and recomputes
         # the period: its steps are never all held at once.
         _, ((R, y), u, stats, results) = jax.lax.scan(
             jax.checkpoint(one, prevent_cse=False), (problem.R0, problem.y0), jnp.arange(n, dtype=jnp.int32)
         )
-    first = lambda a, b: jnp.concatenate([a[None], b])  # noqa: E731
+
+    def first(a, b):
+        return jnp.concatenate([a[None], b])
+
     failed = results != RESULTS.successful
     result = jnp.where(jnp.any(failed), results[jnp.argmax(failed)], RESULTS.successful).astype(results.dtype)
     sol = Solution(
@@ -184,7 +205,7 @@ def solve_sampled(
         stats={key: jnp.sum(v) for key, v in stats.items()},
         result=result,
     )
-    return raise_if_failed(sol, throw), u
+    return sol, u
 
 
 def _shapes(tree) -> str:

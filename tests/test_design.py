@@ -63,6 +63,19 @@ def test_it_is_the_loop_of_solves_it_replaces():
     assert int(sol.stats["num_steps"]) == 6 * 3 and int(sol.result) == 0
 
 
+def test_float32_problems_stay_in_float32():
+    def run(dtype):
+        body = lierk.RigidBodyWithEffects(np.diag([3.0, 4.0, 5.0]).astype(dtype), np.array([0.1, -0.2, 0.3], dtype),
+                                          effects=(lierk.BodyTorque(np.zeros(3, dtype)),))
+        law = lambda k, t, R, y: -0.5 * y + 0.01 * so3.to_mrp(R)  # noqa: E731
+        return lierk.solve_sampled(body, lierk.RKMK4(), law, lambda p: p.effects[0].tau, 0.5, 8, dt=0.25)
+
+    (sol32, u32), (sol64, u64) = run(np.float32), run(np.float64)
+    assert sol32.R.dtype == sol32.y.dtype == sol32.ts.dtype == u32.dtype == jnp.float32
+    np.testing.assert_allclose(sol32.R, sol64.R, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(u32, u64, rtol=0, atol=1e-6)
+
+
 def test_a_failed_period_is_reported():
     body = with_wheels(I_ASYM)
     blow_up = lambda k, t, R, y: jnp.where(k == 3, jnp.inf, 0.01) * jnp.ones(3)  # noqa: E731
@@ -85,6 +98,8 @@ def test_bad_input_is_refused_by_name():
         lierk.solve_sampled(body, lierk.RKMK4(), law, motor_torques, 1.0, 0, dt=0.5)
     with pytest.raises(ValueError, match="period must be positive"):
         lierk.solve_sampled(body, lierk.RKMK4(), law, motor_torques, -1.0, 2, dt=0.5)
+    with pytest.raises(ValueError, match="dt must be positive"):
+        lierk.solve_sampled(body, lierk.RKMK4(), law, motor_torques, 1.0, 2, dt=np.float64(-0.5))
     with pytest.raises(ValueError, match="sets saveat"):
         lierk.solve_sampled(body, lierk.RKMK4(), law, motor_torques, 1.0, 2, dt=0.5, saveat=lierk.SaveAt(t1=True))
     with pytest.raises(ValueError, match="pass max_steps="):
