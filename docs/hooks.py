@@ -109,6 +109,9 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
                 "What each lierk command costs from the shell, with and without the compilation cache."),
     "process_spread": ("One program, several processes",
                        "The same compiled program timed in several fresh processes: the two speeds."),
+    "design": ("Gradients of design costs",
+               "One jax.grad of the design examples' costs (a fleet's mean over jax.vmap, a slew's held commands) "
+               "through lierk.solve_sampled, against one evaluation, with jax.jacfwd beside it."),
     "scene_overhead": ("Scenes cost nothing extra",
                        "A scene without effects against FreeRigidBody solved directly."),
 }

@@ -74,6 +74,7 @@ from ._solution import SaveAt as SaveAt
 from ._solution import Solution as Solution
 from ._solve import num_steps as num_steps
 from ._solve import solve as solve
+from ._sampled import solve_sampled as solve_sampled
 from ._solvers import CF4 as CF4
 from ._solvers import DOP853 as DOP853
 from ._solvers import DP54 as DP54

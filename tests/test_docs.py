@@ -205,12 +205,24 @@ def _check_detumble(ns):
     assert float(ns["energy_ratio"]) > 100 and float(ns["final_rate"]) < 1e-6
 
 
+def _check_optimal_slew(ns):
+    # The independent DOP853 solve through the optimised commands arrives.
+    assert float(ns["attitude_error"]) < 1e-6 and float(ns["final_rate"]) < 1e-8
+
+
+def _check_tuned_controller(ns):
+    (s_book, e_book), (s_tuned, e_tuned) = ns["results"]["textbook"], ns["results"]["tuned"]
+    assert len(s_tuned) == 256 and s_tuned.mean() < 0.9 * s_book.mean() and e_tuned.mean() < 0.9 * e_book.mean()
+
+
 CHECKS = {
     "README.md": _check_readme,
     "docs/examples/parameter-identification.md": _check_parameter_identification,
     "docs/examples/t-handle-flip.md": _check_t_handle,
     "docs/examples/heavy-top.md": _check_heavy_top,
     "docs/examples/detumble.md": _check_detumble,
+    "docs/examples/optimal-slew.md": _check_optimal_slew,
+    "docs/examples/tuned-controller.md": _check_tuned_controller,
 }
 
 
