@@ -21,6 +21,7 @@ from jax.typing import ArrayLike
 from . import _validation as validation
 from ._loops import num_steps
 from ._problems import AbstractProblem
+from ._programs import Program
 from ._solution import RESULTS, Solution, raise_if_failed
 from ._solve import solve
 from ._solvers.base import AbstractSolver
@@ -166,8 +167,8 @@ def solve_sampled(
 
 # One program for the whole run when called from Python (the scan and what
 # assembles its output; eager, each of those operations compiled a program
-# of its own); inlined in a caller's `jax.jit`.
-@eqx.filter_jit
+# of its own), chosen by `lierk._programs`' rule like `solve`'s.
+@Program
 def _sampled(problem, solver, law, control, slots, period, n, t0, options):
     dtype = problem.R0.dtype
 
