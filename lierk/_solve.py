@@ -431,17 +431,18 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
             "estimate_error=True compares with a finer solve at the same saved times, and adaptive "
             "SaveAt(steps=True) saves different times in each: use SaveAt(ts=...)"
         )
-    eps = float(np.finfo(dtype).eps)
-    # In NumPy: inside a trace even a sum of concrete arrays is a tracer (a
-    # Controller built outside `jit` and closed over inside it).
-    total = None if not isinstance(controller, Controller) or validation.is_traced(controller.rtol, controller.atol) else (
-        float(np.asarray(controller.rtol)) + float(np.asarray(controller.atol))
+    # The tolerances as given when they are known: inside a trace the
+    # controller's own arrays are tracers even for constants (a Controller
+    # built outside `jit` and closed over inside it, or built here from
+    # rtol= under jit, as a scene's pieces are).
+    tolerances = (rtol, rtol if atol is None else atol) if rtol is not None else None
+    if isinstance(controller, Controller) and (tolerances is None or validation.is_traced(tolerances)):
+        tolerances = (controller.rtol, controller.atol)
+    reason = None if tolerances is None or validation.is_traced(tolerances) else (
+        validation.tolerances_below_rounding(*tolerances, dtype)
     )
-    if total is not None and total < eps:
-        raise ValueError(
-            f"rtol + atol = {total:g} is below the rounding of "
-            f"{np.dtype(dtype).name} (eps = {eps:.2g}): no solve can meet it; ask for at least {eps:.2g}" + _X64_HINT(dtype)
-        )
+    if reason is not None:
+        raise ValueError(reason + _X64_HINT(dtype))
     adjoint = _check_adjoint(adjoint)
     if dt0 is not None:
         dt0 = validation.check(validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")

@@ -368,6 +368,19 @@ def check_like(x, reference, name: str):
     return jax.tree_util.tree_unflatten(structure, out)
 
 
+def tolerances_below_rounding(rtol: float, atol: float, dtype) -> str | None:
+    """Why the tolerances ``rtol`` and ``atol`` (concrete) cannot be met in
+    ``dtype``, or None: their sum is below its rounding (eps), and no step
+    control can hold a solve to that.  `lierk.solve` refuses them with this
+    message, and so does a scene (``run.rtol``, ``run.atol``)."""
+    eps = float(np.finfo(dtype).eps)
+    total = float(np.asarray(rtol)) + float(np.asarray(atol))
+    if total < eps:
+        return (f"rtol + atol = {total:g} is below the rounding of {np.dtype(dtype).name} (eps = {eps:.2g}): "
+                f"no solve can meet it; ask for at least {eps:.2g}")
+    return None
+
+
 def check_vector(x: ArrayLike, name: str, dtype) -> Array:
     x = asarray(x, dtype, name)
     check_shape(x, (3,), name)

@@ -452,6 +452,11 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[
     dtype = jnp.result_type(float)
     _check_state(inertia, omega0, dtype, "body" if pivot_to_com is None else "body about the gravity pivot",
                  "body.inertia" if body.parts is None and pivot_to_com is None else "inertia")
+    if "rtol" in solve_kwargs:
+        # The rule lierk.solve applies, checked before anything runs.
+        reason = validation.tolerances_below_rounding(solve_kwargs["rtol"], solve_kwargs["atol"], dtype)
+        if reason is not None:
+            raise ValueError(f"run.rtol = {solve_kwargs['rtol']:g}, run.atol = {solve_kwargs['atol']:g}: {reason}")
     singular = validation.nearly_singular_inertia(inertia, dtype, "the body's inertia")
     inertia, omega0, R0 = (np.asarray(a, dtype=dtype) for a in (inertia, omega0, R0))
     if not effects:
