@@ -178,6 +178,8 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["simulate", "{tiny_rtol}", "--out", "{out}"], 2,
          "run.rtol = 1e-20, run.atol = 1e-20: rtol + atol = 2e-20 is below the rounding of float64 (eps = 2.2e-16)"),
         (["simulate", "{small_rtol}", "--out", "{out}", "--float32"], 2, "is below the rounding of float32"),
+        # Used to fail after the whole run, with OSError: File name too long.
+        (["simulate", "{long_name}", "--out", "{out}"], 2, "name: the outputs are named after it"),
         (["simulate", "{scene}", "--out", "{a_file}"], 2, "exists and is not a directory"),
         (["simulate", "{scene}", "--out", "{below_a_file}"], 2, "is not a directory"),
         (["simulate", "{scene_dir}", "--out", "{out}"], 2, "scene file is a directory"),
@@ -206,6 +208,7 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
                               "huge_inertia.toml"),
         "tiny_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-20"), "tiny_rtol.toml"),
         "small_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-8"), "small_rtol.toml"),
+        "long_name": write(tmp_path, TEE_SCENE.replace('"tee test"', '"' + "x" * 400 + '"'), "long_name.toml"),
         "a_file": write(tmp_path, "", "a_file"),
         "below_a_file": tmp_path / "a_file" / "out",
         "scene_dir": tmp_path,

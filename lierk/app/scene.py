@@ -97,7 +97,7 @@ from lierk import solve as _solve
 from lierk import checks as validation
 from lierk.checks import check_attitude
 from . import scene_schema as schema
-from .scene_schema import MAX_SAVED, MAX_STEPS
+from .scene_schema import MAX_NAME_BYTES, MAX_SAVED, MAX_STEPS
 
 __all__ = ["Scene", "load", "from_dict", "identifier"]
 
@@ -463,9 +463,17 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[
         problem = FreeRigidBody(inertia, omega0, R0)
     else:
         problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
+    name = _given(f, "name", name)
+    stem = identifier(name)
+    if len(stem.encode()) > MAX_NAME_BYTES:
+        # Found before the run, not when its outputs are written.
+        raise ValueError(
+            f"name: the outputs are named after it ({stem[:20]}..._components.png), and {len(stem.encode())} bytes "
+            f"is more than a file name may take ({MAX_NAME_BYTES} bytes and the suffix); shorten it"
+        )
     scene = Scene(
         events=_events(f.events, problem, pivot_to_com),
-        name=_given(f, "name", name),
+        name=name,
         problem=problem,
         solver=solver,
         t1=t1,
