@@ -294,11 +294,12 @@ def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     The angle ``|w|`` is reduced modulo 2 pi; once its own rounding, ``|w|
     eps``, reaches a turn (``|w|`` above about 3e16 rad in float64, 5e7 in
     float32), every angle is within the rounding of ``w``, and the result
-    is a rotation about ``w/|w|`` by an angle within it (within 0.35 ``|w|
-    eps`` of the exact one, in ``tests/test_so3.py``).  Finite for every finite ``w``: one
-    so large that ``|w|^2`` would overflow (above 3e153 in float64, 4e18 in
-    float32) is first shortened along its axis to that size, which changes
-    its angle only within its rounding.  ``coefficients``: ``(A, B, D)`` of
+    is a rotation about ``w/|w|`` by an angle within it (within ``|w| eps /
+    2`` of the exact one everywhere, ``tests/test_so3.py``).  Finite for
+    every finite ``w``: one so large that ``|w|^2`` would overflow (above
+    3e153 in float64, 4e18 in float32) is first shortened along its axis to
+    that size, which changes its angle only within its rounding.
+    ``coefficients``: ``(A, B, D)`` of
     ``w`` from `exp_coefficients`, if the caller has them.
     """
     w = _float(w)
