@@ -93,9 +93,11 @@ def solve(
     ever finer settings, one at a time, and returns a solution with twice
     its distance to a finer, confirming solve as `Solution.error_estimate`
     (tolerances 100x tighter for DOP853, 18x for DP54 and RKF45; 2/3 of the
-    step for fixed steps): an upper bound on the error whenever the
-    confirming solve is at least twice as accurate, and never below 30 eps
-    per radian the body has turned (rounding that every solve shares).
+    step for fixed steps of order 3 and up, 0.58 of it for order 2 and 1/3
+    for order 1, at least 3x more accurate): an upper bound on the error
+    whenever the confirming solve is at least twice as accurate, and never
+    below 30 eps per radian the body has turned (rounding that every solve
+    shares).
     Success (result 0) means that estimate is at most ``eps`` at every saved
     time; no success above ``eps`` was found on random bodies with inertia
     ratios up to 1:100 and spins up to 1000 rad/s, heavy tops,
@@ -109,10 +111,12 @@ def solve(
     least 9e-6 for DOP853, 4.5e-5 for DP54, 9e-5 for RKF45).  A target that
     cannot be met (below rounding, or needing more than ``max_steps``,
     default 100000 per solve) ends with `RESULTS.target_error_not_reached`
-    and the last solution a finer solve checked, with its estimate (inf if
-    none did; if the first solve runs out of ``max_steps``,
-    `RESULTS.max_steps_reached`).  Not differentiable: to differentiate,
-    solve again at the chosen setting.
+    and the most accurate solution that has an estimate: the finer solve
+    of the pair with the smallest estimate, with that estimate (twice their
+    gap also bounds the finer one's error, whenever it is the more accurate
+    of the two; inf if no pair finished; if the first solve runs out of
+    ``max_steps``, `RESULTS.max_steps_reached`).  Not differentiable: to
+    differentiate, solve again at the chosen setting.
 
     Dense output (``saveat=SaveAt(dense=True)``): every step's interpolant
     on SO(3) is kept, and `Solution.evaluate` gives the state at any time
