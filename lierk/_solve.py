@@ -53,7 +53,9 @@ def solve(
     last one shortened to end exactly at ``t1``.  When ``t0``, ``t1`` or ``dt``
     is traced (for example a swept ``dt`` under `vmap`), the step count
     cannot be read and ``max_steps`` (a Python int) must give it; steps past
-    ``t1`` are exact no-ops, and falling short of ``t1`` is reported as
+    ``t1`` are exact no-ops, skipped in blocks of 16 and more (a generous
+    bound costs next to nothing, but under vmap with a batched end every
+    step runs), and falling short of ``t1`` is reported as
     `RESULTS.max_steps_reached`.  With ``saveat=SaveAt(ts=...)`` the steps
     end on every save time instead (``ceil(gap/dt)`` steps per gap, the last
     shortened), counted at run time: one compilation for every ``dt`` and
