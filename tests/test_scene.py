@@ -490,6 +490,16 @@ def test_pieces_equal_one_solve(name, capsys):
     assert "compiling" in err and "100%" in err
 
 
+def test_pieces_carry_on_an_attitude_off_so3_as_one_solve_does():
+    """ExplicitEuler leaves SO(3); a piece starts where the last ended, as
+    one solve's next step does (`restart` would refuse it as an input)."""
+    scene = S.from_dict(_tee(run={"solver": "ExplicitEuler", "t1": 0.5, "save_every": 5}))
+    one, pieces = scene.solve(), scene.solve(n_pieces=5)
+    assert float(lierk.so3.orthogonality_error(one.R[-1])) > 1e-6
+    np.testing.assert_array_equal(np.asarray(pieces.ts), np.asarray(one.ts))
+    np.testing.assert_allclose(np.asarray(pieces.R), np.asarray(one.R), rtol=0, atol=1e-14)
+
+
 def test_pieces_report_a_failed_piece_by_its_interval():
     d = copy.deepcopy(PIECE_SCENES["adaptive, effects"])
     d["run"]["max_steps"] = 5

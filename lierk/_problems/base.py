@@ -157,8 +157,10 @@ class AbstractProblem(eqx.Module):
         return self._restarted(R0, validation.check_like(y0, self.y0, "y0"))
 
     def _restarted(self, R0: Array, y0: Any) -> "AbstractProblem":
-        """`restart` from values known to be valid (a rotation this library
-        formed), unchecked."""
+        """`restart` from values known to be valid, unchecked: a rotation
+        this library formed, or a solve's own end state (ExplicitEuler's
+        leaves SO(3), and a scene solved in pieces carries it on as one
+        solve does)."""
         problem = eqx.tree_at(lambda p: p.R0, self, R0)
         if self.y0 is not None:
             problem = eqx.tree_at(lambda p: p.y0, problem, y0)
