@@ -106,11 +106,14 @@ def test_restart_checks_the_attitude_as_the_constructor_does():
     restarted = body.restart(R, m)
     np.testing.assert_array_equal(np.asarray(restarted.R0), R)
     np.testing.assert_array_equal(np.asarray(restarted.y0), m)
-    # Traced, it is checked when the program runs, as a traced R0 is.
-    run = jax.jit(lambda R: body.restart(R, m).R0)
-    np.testing.assert_array_equal(np.asarray(run(R)), R)
-    with pytest.raises(Exception, match="R0 must be a rotation matrix"):
-        jax.block_until_ready(run(2 * R))
+    # Traced, it is checked inside the program, as a traced R0 is: a solve
+    # from it ends with invalid_problem and NaN states.
+    run = jax.jit(lambda R: (lambda s: (s.result, s.R))(
+        lierk.solve(body.restart(R, m), lierk.RKMK4(), 0.1, dt=0.05, throw=False)))
+    code, R1 = run(R)
+    assert int(code) == 0 and np.isfinite(np.asarray(R1)).all()
+    code, R1 = run(2 * R)
+    assert int(code) == lierk.RESULTS.invalid_problem and np.isnan(np.asarray(R1)).all()
 
 
 def test_restart_refuses_a_state_of_another_structure_by_name():

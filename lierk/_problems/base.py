@@ -143,7 +143,8 @@ class AbstractProblem(eqx.Module):
 
         ``R0`` is checked as the constructors check it
         (`lierk.checks.check_attitude`: finite, a rotation to 1e-6; a traced
-        one at run time).  ``y0`` must have the structure, shapes and dtypes
+        one inside the program, where a bad one makes a solve end with
+        `lierk.RESULTS.invalid_problem`).  ``y0`` must have the structure, shapes and dtypes
         of this problem's ``y0``: a body's momentum ``(3,)``, with reaction
         wheels the tuple ``(m (3,), speeds (k,))``, None where the problem has
         no state besides ``R`` (Python numbers are converted to the
