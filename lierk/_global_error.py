@@ -5,9 +5,10 @@ Both compare a solve with a finer one: a step ``dt_fine < dt`` (fixed steps)
 or tighter tolerances (adaptive).  With ``K`` the expected accuracy ratio of
 the two, ``||R - R_fine|| K/(K - 1)`` estimates the error of the coarser
 solution (``estimate_error=True``); ``target_error`` returns the coarser
-solution of its last pair with twice their gap, an upper bound whenever the
-finer solve is at least twice as accurate.  `lierk.solve` says what each
-promises.  Neither is differentiated: the finer solves are diagnostics.
+solution of its confirming pair with twice their gap, an upper bound whenever
+the finer solve is at least twice as accurate (when it gives up, the finer
+solution of its best pair, with the same bound).  `lierk.solve` says what
+each promises.  Neither is differentiated: the finer solves are diagnostics.
 """
 
 from __future__ import annotations
@@ -207,13 +208,17 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
     """Solves at ever finer settings, one at a time, until a solution is
     confirmed within ``eps`` by a finer one; see `solve`.
 
-    Each solve is compared with the last one that finished.  What comes back
-    is the coarser solution of the last such pair, with twice their gap as
-    its estimate: ``err <= gap + err_fine``, so that bounds its error
+    Each solve is compared with the last one that finished.  On success
+    what comes back is the coarser solution of that pair, with twice their
+    gap as its estimate: ``err <= gap + err_fine``, so that bounds its error
     whenever the finer solve is at least twice as accurate.  Success needs
     the finer solve of the pair to be a confirming one: tolerances 100x
     tighter for DOP853 and 18x for DP54 and RKF45 (about 1.8x the steps), or
-    2/3 of the step (5x more accurate for RKMK4).
+    2/3 of the step (5x more accurate for RKMK4; for orders 1 and 2, whose
+    2/3 is less than 3x, ``3^(-1/order)`` of it).  When it gives up, the
+    finer solution of the pair with the smallest estimate comes back, with
+    that estimate: the same bound holds for it whenever it is the more
+    accurate of the two.
 
     Returning the finer solution with ``gap/(K - 1)`` instead (K the
     expected accuracy ratio) needs it to be K times more accurate, which at
@@ -262,7 +267,7 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
         s0 = jnp.maximum(eps / _FIRST_TOLERANCE, lowest)
     else:
         # Error ~ dt^order: 2/3 of the step, 5x more accurate for RKMK4, as
-        # for estimate_error=True.
+        # for estimate_error=True (finer below order 3: see min_ratio).
         power, confirm = float(solver.order), 2.0 / 3.0
         # A coarse first try, cheap next to the solves that follow: at most
         # a radian per step and an eighth of the interval.
@@ -282,8 +287,14 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
         floor = (t1 - t0) / max(max_steps - n_ts - 1, 1) * (1.0 + 1e-6)
         lowest = floor / confirm
     # Every solve is at least 3x more accurate, by the error model, than the
-    # last one that finished.
+    # last one that finished; a confirming one too.  For fixed steps of
+    # order 1 and 2, 2/3 of the step is only 1.5x and 2.25x: the search
+    # stopped after one solve (its next setting was not 3x finer), and twice
+    # the gap would not bound an order-1 error (the premise is a confirming
+    # solve at least twice as accurate).  So the confirming step is
+    # 3^(-1/order) of the step there: 1/3 for order 1, 0.577 for order 2.
     min_ratio = 3.0 ** (-1.0 / power)
+    confirm = min(confirm, min_ratio)
 
     def solve(s, go):
         if adaptive:
@@ -343,15 +354,21 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
         # Out of max_steps, a finer setting would take more steps still.
         go = ~success & (sol.result != RESULTS.max_steps_reached) & (s_next <= last * min_ratio * (1 + 1e-6))
 
-        # What comes back: the coarser solution of the last pair of finished
-        # solves with its estimate, else the first solve (not reached, or its
-        # failure), with an estimate of inf.
+        # What comes back: on success the coarser solution of the confirming
+        # pair with its estimate.  Otherwise the most accurate solution with
+        # an estimate: the finer of the pair whose estimate is the smallest
+        # (twice their gap bounds the finer one's error too whenever it is
+        # the more accurate of the two).  The coarser of the last pair was
+        # returned before: RKMK4 at 1000 rad/s gave up with an error of 2.0
+        # where its finer solve had reached 1e-9.  Before any pair, the first
+        # solve (not reached, or its failure), with an estimate of inf.
         first = ~has_prev
+        finer = ~success & confirmed & (jnp.max(est) <= jnp.max(c["out_est"]))
         out = jax.tree_util.tree_map(
-            lambda a, b, o: jnp.where(confirmed, a, jnp.where(first, b, o)), prev, sol, c["out"]
+            lambda a, b, o: jnp.where(success, a, jnp.where(finer | first, b, o)), prev, sol, c["out"]
         )
-        out_est = jnp.where(confirmed, est, jnp.where(first, jnp.inf, c["out_est"]))
-        out_s = jnp.where(confirmed, s_prev, jnp.where(first, s, c["out_s"]))
+        out_est = jnp.where(success | finer, est, jnp.where(first, jnp.inf, c["out_est"]))
+        out_s = jnp.where(success, s_prev, jnp.where(finer | first, s, c["out_s"]))
         not_reached = confirmed | (first & finished)
         code = jnp.where(
             success,

@@ -159,17 +159,43 @@ def _blocks(length: int, pad: bool) -> tuple[int, int, int]:
     return root, length // root, length % root
 
 
-def _chunked(one, carry, n: int, every: int, time):
+class _Idle(NamedTuple):
+    """The steps of a fixed-step loop after its run has ended (past ``t1``,
+    or stopped by an event), which are exact no-ops: ``done(carry)`` says
+    that every step from ``carry`` on is one, ``past(carry, length)`` is the
+    carry after ``length`` of them (the step index moved on)."""
+
+    done: Any
+    past: Any
+
+
+def _chunked(one, carry, n: int, every: int, time, idle: _Idle | None = None):
     """``n`` steps of the scan body ``one`` from ``carry``, in chunks of
     ``every`` steps: ``(carry, middle)``, ``middle`` the chunk ends' times
     (``time`` of their step index) and stacked ``carry[0]``, or None when
-    ``every`` is 0 or exceeds ``n``."""
+    ``every`` is 0 or exceeds ``n``.
+
+    ``idle``: the no-op steps after the run's end (`_Idle`).  A chunk, a
+    remainder or a checkpoint block of at least `_CHECKPOINT_BLOCK_MIN`
+    steps that starts after it is skipped (one ``lax.cond``, which costs
+    next to nothing per 16 steps and more), so that a static step count far
+    beyond the run's, a generous ``max_steps`` or a scene's last piece
+    padded to the others' length, costs no steps.  Where the run ends
+    inside such a block, its steps are taken: at most about ``sqrt(n)``.
+    (Under ``vmap`` with a batched end the ``cond`` is a select, and every
+    step runs, as without it.)"""
     # In reverse mode each step keeps only its starting state and is
     # recomputed in the backward pass: saved as they fall out of the step's
     # fused arithmetic, its residuals were about a hundred small arrays, each
     # written by a kernel of its own (the gradient cost 60 forward steps per
     # step).  Outside reverse mode the checkpoint does nothing.
     step = jax.checkpoint(one, prevent_cse=False)
+
+    def unless_idle(run, carry, length):
+        # `run(carry)`, or the carry moved past `length` no-op steps.
+        if idle is None or length < _CHECKPOINT_BLOCK_MIN:
+            return run(carry)
+        return jax.lax.cond(idle.done(carry), lambda c: idle.past(c, length), run, carry)
 
     def scan(carry, length):
         return jax.lax.scan(step, carry, None, length=length)[0]
@@ -183,14 +209,14 @@ def _chunked(one, carry, n: int, every: int, time):
         if math.isqrt(length) < _CHECKPOINT_BLOCK_MIN:
             return scan(carry, length)
         block, blocks, rem = _blocks(length, pad=last)
-        body = jax.checkpoint(lambda c, _: (scan(c, block), None), prevent_cse=False)
+        body = jax.checkpoint(lambda c, _: (unless_idle(lambda c: scan(c, block), c, block), None), prevent_cse=False)
         carry = jax.lax.scan(body, carry, None, length=blocks)[0]
         return scan(carry, rem) if rem else carry
 
     n_chunks, rem = divmod(n, every) if every else (0, n)
 
     def chunk(carry, _):
-        carry = steps(carry, every, last=False)
+        carry = unless_idle(lambda c: steps(c, every, last=False), carry, every)
         return carry, carry[0]
 
     middle = None
@@ -199,7 +225,7 @@ def _chunked(one, carry, n: int, every: int, time):
         middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
     if rem:
         # The run's last steps: steps past n are exact no-ops (h = 0).
-        carry = steps(carry, rem, last=True)
+        carry = unless_idle(lambda c: steps(c, rem, last=True), carry, rem)
     return carry, middle
 
 
@@ -216,7 +242,9 @@ def solve_fixed(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, events: tup
     state0 = _moved_together((problem.R0, problem.y0))
     every = saveat.every
     n_chunks, rem = divmod(n, every) if every else (0, n)
-    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time)
+    # Past t1 (step `count` on) every step is the identity.
+    idle = _Idle(lambda c: c[1] >= count, lambda c, length: (c[0], c[1] + length, c[2]))
+    carry, middle = _chunked(one, (state0, jnp.asarray(0), jnp.asarray(0)), n, every, time, idle)
     state, _, taken = carry
     # (The last chunk's end is t1 already when the chunks fill the run.)
     end = (time(jnp.asarray(n)), state) if saveat.t1 and (rem or not n_chunks) else None
@@ -358,7 +386,12 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
             saved = jax.tree_util.tree_map(lambda x: x[every - 1 :: every][:n_chunks], states)
             middle = (time((jnp.arange(n_chunks) + 1) * every), saved)
     else:
-        carry, middle = _chunked(one, carry, n, every, time)
+        # Past t1 or a terminating event every step is the identity on what
+        # is read at the end (the dense node is not).
+        def past(c, length):
+            return (c[0], c[1], c[2] + length, *c[3:])
+
+        carry, middle = _chunked(one, carry, n, every, time, _Idle(lambda c: (c[2] >= count) | c[5], past))
     state, _, _, taken, ev, stopped, t_end = carry
     if saveat.dense:
         interpolation = DenseInterpolation(*records, t0=t0, t1=t_end, n=taken, partial=partial)

@@ -224,7 +224,8 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
         # A turn of the initial attitude by exp(hat(p)) in the body frame,
         # with the body angular velocity held fixed.
         def turned(p):
-            return problem.restart(so3.compose(problem.R0, so3.exp(p)), problem.y0).with_omega0(omega0)
+            # A rotation by construction: not checked again.
+            return problem._restarted(so3.compose(problem.R0, so3.exp(p)), problem.y0).with_omega0(omega0)
 
         return jnp.zeros(3, problem.R0.dtype), turned
 

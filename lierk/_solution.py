@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 from typing import Any
 
 import equinox as eqx
@@ -125,6 +126,49 @@ class SaveAt(eqx.Module):
         return int(self.steps) if self.steps is not True else 1
 
 
+class _Bound(eqx.Module):
+    """``instance.method`` for `_plain_method`: a pytree like equinox's bound
+    methods (the instance is its child), but hashed and compared by the
+    instance's identity, as Python's bound methods are.  Equinox's hashes the
+    instance's fields, and a solution's arrays cannot be hashed, so
+    ``jax.jit(sol.evaluate)``, which hashes the function it compiles, raised
+    ``TypeError: unhashable type``."""
+
+    method: Any = eqx.field(static=True)
+    instance: Any
+
+    def __post_init__(self):
+        # The method's name and docstring, for help() and tracebacks.
+        for name in ("__module__", "__name__", "__qualname__", "__doc__"):
+            setattr(self, name, getattr(self.method, name))
+
+    def __call__(self, *args, **kwargs):
+        return self.method(self.instance, *args, **kwargs)
+
+    @property
+    def __wrapped__(self):
+        # For inspect.signature (jax.jit reads it): the method's own arguments.
+        return self.method.__get__(self.instance, type(self.instance))
+
+    def __hash__(self):
+        return hash((id(self.instance), self.method))
+
+    def __eq__(self, other):
+        return isinstance(other, _Bound) and other.instance is self.instance and other.method is self.method
+
+
+class _plain_method:
+    """A method of an `eqx.Module` whose bound form is a `_Bound`: callable
+    under ``jax.jit(instance.method)`` as any Python bound method is."""
+
+    def __init__(self, method):
+        self.method = method
+        functools.update_wrapper(self, method)
+
+    def __get__(self, instance, owner=None):
+        return self.method if instance is None else _Bound(self.method, instance)
+
+
 class Solution(eqx.Module):
     """A solved trajectory.  Leading batch axes appear in front under `vmap`.
 
@@ -168,6 +212,7 @@ class Solution(eqx.Module):
         event stopped it (`RESULTS.finished`)."""
         return (self.result == RESULTS.successful) | (self.result == RESULTS.event_occurred)
 
+    @_plain_method
     def evaluate(self, t) -> tuple[Array, Any]:
         """The attitude and extra state ``(R(t), y(t))`` at any time(s) ``t``
         (s) in ``[t0, t1]`` (to the event time if a terminating event stopped

@@ -302,6 +302,85 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     return as_jax(R0)
 
 
+class _Shown:
+    """A leaf of `describe_tree`'s outline, printed as its text."""
+
+    def __init__(self, text: str):
+        self.text = text
+
+    def __repr__(self):
+        return self.text
+
+
+def describe_tree(tree) -> str:
+    """A pytree as an outline of its arrays' dtypes and shapes, for messages:
+    ``(m, speeds)`` of a body with three wheels is ``"(float64[3], float64[3])"``."""
+    def leaf(x):
+        if hasattr(x, "dtype") and hasattr(x, "shape"):
+            return _Shown(f"{np.dtype(x.dtype).name}{list(np.shape(x))}")
+        return _Shown(type(x).__name__)
+
+    return repr(jax.tree_util.tree_map(leaf, tree)) if tree is not None else "None"
+
+
+def check_like(x, reference, name: str):
+    """``x`` checked to have the structure, shapes and dtypes of the pytree of
+    arrays ``reference`` (a problem's state): returned with the structure of
+    ``reference``, each part a JAX array.
+
+    Where ``reference`` has an array, ``x`` may give an array of its shape
+    and dtype, or Python numbers (a list), which are converted to its dtype;
+    an array of another floating dtype is refused rather than cast (a
+    float32 state would lose a float64 body's digits, and float64 on a
+    float32 body would not run).  A traced ``x`` is checked the same way
+    (shapes and dtypes are known while tracing).  Raises `ValueError` naming
+    the part that differs (``name``, ``name[1]``, ...) and what was due."""
+    due = describe_tree(reference)
+    if reference is None:
+        if x is not None:
+            raise ValueError(f"{name}: this problem has no state besides R (its y0 is None), got {describe_tree(x)}")
+        return None
+    structure = jax.tree_util.tree_structure(reference)
+    wrong = ValueError(f"{name} must have the structure of the problem's state, {due}, got {describe_tree(x)}")
+    try:
+        parts = structure.flatten_up_to(x)
+    except (TypeError, ValueError):
+        raise wrong from None
+    # Numbers in a list stand for an array; arrays in one are another structure.
+    if any(isinstance(p, (list, tuple)) and any(np.ndim(v) for v in jax.tree_util.tree_leaves(p)) for p in parts):
+        raise wrong
+    paths = [jax.tree_util.keystr(p) for p, _ in jax.tree_util.tree_flatten_with_path(reference)[0]]
+    out = []
+    for path, ref, part in zip(paths, jax.tree_util.tree_leaves(reference), parts):
+        where = f"{name}{path}"
+        dtype = np.dtype(ref.dtype)
+        if hasattr(part, "dtype") and hasattr(part, "shape"):
+            if np.dtype(part.dtype).kind == "f" and np.dtype(part.dtype) != dtype:
+                raise ValueError(f"{where} is {np.dtype(part.dtype).name}, and the problem's state {due} is "
+                                 f"{dtype.name}: convert it (.astype({dtype.name}))")
+        part = asarray(part, dtype, where)
+        if np.shape(part) != np.shape(ref):
+            trajectory = np.ndim(part) == np.ndim(ref) + 1 and np.shape(part)[1:] == np.shape(ref)
+            raise ValueError(f"{where} has shape {np.shape(part)}, where the problem's state {due} has "
+                             f"{np.shape(ref)}" + (": a saved trajectory? pass one state (its last row, [-1])"
+                                                   if trajectory else ""))
+        out.append(as_jax(part))
+    return jax.tree_util.tree_unflatten(structure, out)
+
+
+def tolerances_below_rounding(rtol: float, atol: float, dtype) -> str | None:
+    """Why the tolerances ``rtol`` and ``atol`` (concrete) cannot be met in
+    ``dtype``, or None: their sum is below its rounding (eps), and no step
+    control can hold a solve to that.  `lierk.solve` refuses them with this
+    message, and so does a scene (``run.rtol``, ``run.atol``)."""
+    eps = float(np.finfo(dtype).eps)
+    total = float(np.asarray(rtol)) + float(np.asarray(atol))
+    if total < eps:
+        return (f"rtol + atol = {total:g} is below the rounding of {np.dtype(dtype).name} (eps = {eps:.2g}): "
+                f"no solve can meet it; ask for at least {eps:.2g}")
+    return None
+
+
 def check_vector(x: ArrayLike, name: str, dtype) -> Array:
     x = asarray(x, dtype, name)
     check_shape(x, (3,), name)

@@ -11,6 +11,8 @@ build the problem inside `inertia_warned` so that nothing is warned twice.
 - `impossible_inertia`, `nearly_singular_inertia`: the warnings an inertia
   deserves (no rigid body has it; too close to singular for the precision).
 - `state_range_error`: why a body's state does not fit a float type.
+- `tolerances_below_rounding`: why ``rtol`` and ``atol`` cannot be met in
+  a float type (`lierk.solve` refuses them with its message).
 - `inertia_warned`: build bodies without repeating those warnings.
 - `show`: a value on one line, as lierk's messages print them.
 - `checking_on_host`: deprecated, always False (`lierk.checked_on_host`
@@ -28,6 +30,7 @@ from ._validation import inertia_warned as inertia_warned
 from ._validation import nearly_singular_inertia as nearly_singular_inertia
 from ._validation import show as show
 from ._validation import state_range_error as state_range_error
+from ._validation import tolerances_below_rounding as tolerances_below_rounding
 
 __all__ = ["check_attitude", "impossible_inertia", "nearly_singular_inertia", "state_range_error", "inertia_warned", "show",
-           "checking_on_host"]
+           "checking_on_host", "tolerances_below_rounding"]

@@ -288,14 +288,42 @@ def _diagonal(A: Array) -> Array:
 def exp(w: ArrayLike, coefficients: tuple | None = None) -> Array:
     """Exponential map ``so(3) -> SO(3)`` (Rodrigues): ``(..., 3) -> (..., 3, 3)``.
 
-    Exact for any angle, including several full turns in one call, and at
-    ``w = 0`` in value and in both forward- and reverse-mode derivatives (the
-    Jacobian there is the three generators ``hat(e_i)``).  ``coefficients``:
-    ``(A, B, D)`` of ``w`` from `exp_coefficients`, if the caller has them.
+    Exact to rounding for any angle, including several full turns in one
+    call, and at ``w = 0`` in value and in both forward- and reverse-mode
+    derivatives (the Jacobian there is the three generators ``hat(e_i)``).
+    The angle ``|w|`` is reduced modulo 2 pi; once its own rounding, ``|w|
+    eps``, reaches a turn (``|w|`` above about 3e16 rad in float64, 5e7 in
+    float32), every angle is within the rounding of ``w``, and the result
+    is a rotation about ``w/|w|`` by an angle within it (within ``|w| eps /
+    2`` of the exact one everywhere, ``tests/test_so3.py``).  Finite for
+    every finite ``w``: one so large that ``|w|^2`` would overflow (above
+    3e153 in float64, 4e18 in float32) is first shortened along its axis to
+    that size, which changes its angle only within its rounding.
+    ``coefficients``: ``(A, B, D)`` of
+    ``w`` from `exp_coefficients`, if the caller has them.
     """
     w = _float(w)
     if w.shape[-1:] != (3,):
         raise ValueError(f"exp expects shape (..., 3), got {w.shape}")
+    if coefficients is None:
+        w = _squarable(w)
+    return _exp(w, coefficients)
+
+
+def _squarable(v: Array) -> Array:
+    """``v`` ``(..., 3)``, shortened along itself where ``|v|^2`` would
+    overflow, to a length whose square does not (about ``sqrt(max)/4``).
+    Elsewhere ``v`` itself, with derivative 1 (at 0 too: the scale's other
+    branch never sees a 0)."""
+    limit = math.sqrt(float(jnp.finfo(v.dtype).max)) / 4
+    m = jnp.maximum(jnp.maximum(jnp.abs(v[..., 0]), jnp.abs(v[..., 1])), jnp.abs(v[..., 2]))
+    huge = m > limit
+    scale = jnp.where(huge, limit / jnp.where(huge, m, 1.0), 1.0)
+    return v * scale[..., None]
+
+
+def _exp(w: Array, coefficients: tuple | None = None) -> Array:
+    """`exp` of a ``w`` whose ``|w|^2`` is finite (a solver's stage)."""
     theta2 = _sq(w)
     A, B, _ = exp_coefficients(theta2) if coefficients is None else coefficients
     # hat(w)^2 = w w^T - theta^2 I, so exp = (1 - B theta^2) I + A hat(w) + B w w^T,
@@ -359,7 +387,7 @@ def _right_exp(R: ArrayLike, u: ArrayLike, compact: bool, *more: ArrayLike) -> A
 def _compose_exp(R: Array, u: Array, compact: bool = False) -> Array:
     """``R exp(hat(u))``, ``(..., 3, 3), (..., 3) -> (..., 3, 3)``."""
     if not compact:
-        return compose(R, exp(u))
+        return compose(R, _exp(u))
     A, B, _ = _coefficients(_sq(u), True)
     return _turn_rows(R, u, A, B)
 
@@ -688,10 +716,23 @@ def from_mrp(sigma: ArrayLike) -> Array:
     ``R = I + (8 S^2 + 4 (1 - |sigma|^2) S)/(1 + |sigma|^2)^2`` with
     ``S = hat(sigma)`` (the transpose of Schaub and Junkins' ``[BN]``).  A
     rational function: smooth everywhere, ``sigma = 0`` and ``|sigma| = 1``
-    (a half turn) included."""
+    (a half turn) included.  Where ``|sigma| > 1`` it is formed from the
+    shadow set ``-sigma/|sigma|^2`` (the same rotation), computed without
+    forming ``|sigma|^2``: a large ``sigma`` is a rotation near the identity
+    (``[1e160, 0, 0]`` is a turn of 4e-160 rad), which the formula above
+    would give as ``inf/inf``."""
     sigma = _float(sigma)
     if sigma.shape[-1:] != (3,):
         raise ValueError(f"from_mrp expects shape (..., 3), got {sigma.shape}")
+    # With m the largest |component|: |sigma| = m |sigma/m| and the shadow
+    # -(sigma/m)/(m |sigma/m|^2), neither of which overflows.  At sigma = 0
+    # the shadow's branch sees a constant (finite derivatives there).
+    m = jnp.maximum(jnp.maximum(jnp.abs(sigma[..., 0]), jnp.abs(sigma[..., 1])), jnp.abs(sigma[..., 2]))[..., None]
+    moved = m > 0
+    safe_m = jnp.where(moved, m, 1.0)
+    unit = jnp.where(moved, sigma, 1.0) / safe_m
+    unit2 = _sq(unit)[..., None]
+    sigma = jnp.where(m * jnp.sqrt(unit2) > 1.0, -unit / (safe_m * unit2), sigma)
     s2 = _sq(sigma)[..., None, None]
     S = hat(sigma)
     eye = jnp.eye(3, dtype=sigma.dtype)

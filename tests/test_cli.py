@@ -174,6 +174,12 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["simulate", "{huge_inertia}", "--out", "{out}"], 2,
          "body: body.inertia = [1.e+300, 1.e+300, 1.e+300] kg m^2 with initial.omega = [0.3, 1. , 0.2] rad/s: "
          "det(I), the product of the principal moments, = 1e+900 overflows float64"),
+        # Printed as the setting, where lierk.solve refuses it (the same rule).
+        (["simulate", "{tiny_rtol}", "--out", "{out}"], 2,
+         "run.rtol = 1e-20, run.atol = 1e-20: rtol + atol = 2e-20 is below the rounding of float64 (eps = 2.2e-16)"),
+        (["simulate", "{small_rtol}", "--out", "{out}", "--float32"], 2, "is below the rounding of float32"),
+        # Used to fail after the whole run, with OSError: File name too long.
+        (["simulate", "{long_name}", "--out", "{out}"], 2, "name: the outputs are named after it"),
         (["simulate", "{scene}", "--out", "{a_file}"], 2, "exists and is not a directory"),
         (["simulate", "{scene}", "--out", "{below_a_file}"], 2, "is not a directory"),
         (["simulate", "{scene_dir}", "--out", "{out}"], 2, "scene file is a directory"),
@@ -195,9 +201,14 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
                              "unreachable.toml"),
         "tiny_dt": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "dt = 1e-320"), "tiny_dt.toml"),
         "huge_t1": write(tmp_path, TEE_SCENE.replace("t1 = 100.0", "t1 = 1e300"), "huge_t1.toml"),
-        "huge_t1_adaptive": write(tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300"), "huge_adaptive.toml"),
+        # (rtol 1e-6: float32 cannot meet the scene's 1e-10, which is refused first.)
+        "huge_t1_adaptive": write(tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300").replace("1e-10", "1e-6"),
+                                  "huge_adaptive.toml"),
         "huge_inertia": write(tmp_path, ADAPTIVE_SCENE.replace("[1.0, 2.0, 3.0]", "[1e300, 1e300, 1e300]"),
                               "huge_inertia.toml"),
+        "tiny_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-20"), "tiny_rtol.toml"),
+        "small_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-8"), "small_rtol.toml"),
+        "long_name": write(tmp_path, TEE_SCENE.replace('"tee test"', '"' + "x" * 400 + '"'), "long_name.toml"),
         "a_file": write(tmp_path, "", "a_file"),
         "below_a_file": tmp_path / "a_file" / "out",
         "scene_dir": tmp_path,

@@ -318,6 +318,22 @@ def test_evaluate_under_vmap_matches_a_loop():
         np.testing.assert_allclose(Rb[i], solve(w).evaluate(t)[0], atol=1e-15)
 
 
+def test_jit_of_the_bound_evaluate_gives_the_eager_values():
+    """``jax.jit(sol.evaluate)`` raised ``TypeError: unhashable type``
+    (equinox's bound methods hash the solution's arrays); a lambda around it
+    worked.  The bound method is still a pytree: it can be passed into jit."""
+    sol = lierk.solve(BODY, lierk.RKMK4(), 2.0, dt=0.1, saveat=lierk.SaveAt(dense=True))
+    ts = jnp.array([0.0, 0.03, 0.5, 1.37, 2.0])
+    R, m = sol.evaluate(ts)
+    Rj, mj = jax.jit(sol.evaluate)(ts)
+    np.testing.assert_allclose(Rj, R, rtol=0, atol=1e-15)
+    np.testing.assert_allclose(mj, m, rtol=1e-15)
+    Rp, _ = jax.jit(lambda evaluate, t: evaluate(t))(sol.evaluate, ts)
+    np.testing.assert_allclose(Rp, R, rtol=0, atol=1e-15)
+    assert sol.evaluate == sol.evaluate and hash(sol.evaluate) == hash(sol.evaluate)
+    assert sol.evaluate.__doc__ == lierk.Solution.evaluate.__doc__
+
+
 def test_evaluate_is_differentiable_in_t_and_in_the_inputs():
     def R_at(w, t):
         sol = lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 2.0, dt=0.05, saveat=lierk.SaveAt(dense=True))

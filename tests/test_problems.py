@@ -86,3 +86,54 @@ def test_accuracy_uses_the_closed_form_for_the_reports_spatial_body():
     report = lierk.app.accuracy.work_precision(spatial, ["RKMK4"], {"RKMK4": [0.05]}, n_times=3, repeats=1)
     assert report.reference.startswith("lierk.exact") and report.check is None
     assert report.rows[0].ok and report.rows[0].error < 1e-3
+
+
+def test_restart_checks_the_attitude_as_the_constructor_does():
+    """`restart` took any array as the attitude: ``2 R`` solved with result 0
+    to ``||R^T R - I|| = 5.2``, and a trajectory of attitudes gave ``R`` of
+    shape ``(1, 5, 3, 3)``."""
+    body = lierk.FreeRigidBody(TEE, W)
+    R = np.asarray(lierk.so3.exp(jnp.array([0.2, -0.4, 0.7])))
+    m = np.asarray(body.y0)
+    bad = {"twice": (2 * R, "rotation matrix"), "reflected": (-R, "rotation matrix"),
+           "trajectory": (np.stack([R] * 5), r"shape \(3, 3\), got shape \(5, 3, 3\)"),
+           "NaN": (np.where(np.eye(3) > 0, np.nan, R), "NaN")}
+    for name, (R_bad, match) in bad.items():
+        with pytest.raises(ValueError, match=match):
+            lierk.FreeRigidBody(TEE, W, R0=R_bad)
+        with pytest.raises(ValueError, match=match):
+            body.restart(R_bad, m)
+    restarted = body.restart(R, m)
+    np.testing.assert_array_equal(np.asarray(restarted.R0), R)
+    np.testing.assert_array_equal(np.asarray(restarted.y0), m)
+    # Traced, it is checked inside the program, as a traced R0 is: a solve
+    # from it ends with invalid_problem and NaN states.
+    run = jax.jit(lambda R: (lambda s: (s.result, s.R))(
+        lierk.solve(body.restart(R, m), lierk.RKMK4(), 0.1, dt=0.05, throw=False)))
+    code, R1 = run(R)
+    assert int(code) == 0 and np.isfinite(np.asarray(R1)).all()
+    code, R1 = run(2 * R)
+    assert int(code) == lierk.RESULTS.invalid_problem and np.isnan(np.asarray(R1)).all()
+
+
+def test_restart_refuses_a_state_of_another_structure_by_name():
+    """A state unlike the problem's failed inside the solve with JAX's errors
+    ("add got incompatible shapes", "scan body function carry input and
+    carry output must have equal types")."""
+    body = lierk.FreeRigidBody(TEE, W)
+    R, m = np.eye(3), np.asarray(body.y0)
+    cases = {
+        "a trajectory": (np.stack([m] * 5), r"y0 has shape \(5, 3\).*a saved trajectory"),
+        "float32": (m.astype(np.float32), "y0 is float32.*float64"),
+        "a pair": ((m, m), r"y0 must have the structure of the problem's state, float64\[3\]"),
+        "two numbers": ([1.0, 2.0], r"y0 has shape \(2,\)"),
+    }
+    for name, (y, match) in cases.items():
+        with pytest.raises(ValueError, match=match):
+            body.restart(R, y)
+    # Numbers in a list are converted; the spatial body has no state besides R.
+    np.testing.assert_array_equal(np.asarray(body.restart(R, m.tolist()).y0), m)
+    spatial = lierk.SpatialFreeRigidBody(TEE, W)
+    assert spatial.restart(R, None).y0 is None
+    with pytest.raises(ValueError, match="no state besides R"):
+        spatial.restart(R, m)

@@ -138,6 +138,10 @@ def test_controller_settings_that_cannot_converge_are_refused(kw, key):
 def test_tolerance_below_rounding_is_refused():
     with pytest.raises(ValueError, match="below the rounding of float64"):
         lierk.solve(BODY, lierk.DP54(), 1.0, rtol=1e-17, atol=1e-17)
+    # Given as numbers inside jit too (as a scene's pieces solve): the
+    # controller's arrays are traced there, and the check was skipped.
+    with pytest.raises(ValueError, match=r"rtol \+ atol = 2e-20 is below the rounding of float64"):
+        jax.jit(lambda t1: lierk.solve(BODY, lierk.DP54(), t1, rtol=1e-20).R)(1.0)
 
 
 @pytest.mark.parametrize("bad", [[1.0 + 1e-3j, 0.0, 0.0], [True, False, True], "abc", ["1", "2", "3"]])

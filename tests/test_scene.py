@@ -236,6 +236,20 @@ def test_bad_run_combinations():
         S.from_dict(_tee(body={"kind": "tensor", "inertia": [1.0, -1.0, 1.0]}))
 
 
+def test_a_name_too_long_for_the_outputs_files_is_refused_on_loading():
+    """A 400-character name ran, and failed when its outputs were written
+    (``OSError: File name too long``)."""
+    with pytest.raises(ValueError, match=r"name: the outputs are named after it \(x{20}\.\.\._components.png\), and 400 "
+                                         r"bytes is more than a file name may take \(240 bytes"):
+        S.from_dict(_tee(name="x" * 400))
+    # Counted in bytes, as file systems count them (2 a letter here), after
+    # the characters a file name leaves out.
+    with pytest.raises(ValueError, match="and 242 bytes"):
+        S.from_dict(_tee(name="é" * 121))
+    longest = S.from_dict(_tee(name="x" * 240 + " ?!"))
+    assert longest.file_stem == "x" * 240 and len(f"{longest.file_stem}_components.png") == 255
+
+
 def test_load_reports_the_file(tmp_path):
     bad = tmp_path / "broken.toml"
     bad.write_text("[body\nkind = 'sphere'\n")
@@ -474,6 +488,16 @@ def test_pieces_equal_one_solve(name, capsys):
         assert pieces.stats["num_steps"] == int(one.stats["num_steps"]) == 1037
     err = capsys.readouterr().err
     assert "compiling" in err and "100%" in err
+
+
+def test_pieces_carry_on_an_attitude_off_so3_as_one_solve_does():
+    """ExplicitEuler leaves SO(3); a piece starts where the last ended, as
+    one solve's next step does (`restart` would refuse it as an input)."""
+    scene = S.from_dict(_tee(run={"solver": "ExplicitEuler", "t1": 0.5, "save_every": 5}))
+    one, pieces = scene.solve(), scene.solve(n_pieces=5)
+    assert float(lierk.so3.orthogonality_error(one.R[-1])) > 1e-6
+    np.testing.assert_array_equal(np.asarray(pieces.ts), np.asarray(one.ts))
+    np.testing.assert_allclose(np.asarray(pieces.R), np.asarray(one.R), rtol=0, atol=1e-14)
 
 
 def test_pieces_report_a_failed_piece_by_its_interval():

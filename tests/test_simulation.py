@@ -117,6 +117,22 @@ def test_simulate_in_pieces_saves_what_one_solve_saves():
         simulate(scene, n_pieces=0)
 
 
+def test_a_save_interval_longer_than_the_run_saves_its_ends_in_pieces():
+    """dt = 0.01, t1 = 1 and save_every = 10^9: each piece took max_steps =
+    save_every, and ran its padding: ``lierk simulate`` and
+    ``Scene.solve(n_pieces=...)`` spun at full CPU after compiling.  The
+    start and the end, as one solve saves them."""
+    scene = _scene(t1=1.0, save_every=10**9)
+    whole, pieces = simulate(scene), simulate(scene, n_pieces=4)
+    a, b = whole.record(), pieces.record()
+    np.testing.assert_array_equal(b["ts"], [0.0, 1.0])
+    np.testing.assert_array_equal(b["ts"], a["ts"])
+    np.testing.assert_allclose(b["R"], a["R"], rtol=0, atol=1e-13)
+    assert pieces.solution.stats["num_steps"] == int(whole.solution.stats["num_steps"]) == 100
+    plain = scene.solve(n_pieces=3)
+    np.testing.assert_allclose(np.asarray(plain.R), a["R"], rtol=0, atol=1e-13)
+
+
 @pytest.mark.parametrize("solver, tracked", [("ExplicitEuler", False), ("LieEuler", True), ("NaiveLieRK4", True)])
 def test_flips_are_tracked_where_the_solver_can_locate_events(solver, tracked):
     """The T-handle is asymmetric, so the flip event is added; ExplicitEuler

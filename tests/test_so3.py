@@ -219,6 +219,34 @@ def test_exp_float32_matches_float64():
     assert np.all(so3.orthogonality_error(R32) < 1e-6)
 
 
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_exp_of_huge_angles_is_a_rotation_within_their_rounding(dtype):
+    """|w| of 1e300 in float64 or 1e20 in float32 gave NaN: |w|^2
+    overflowed.  The angle is exact to within its rounding (|w| eps; NumPy's
+    sin and cos reduce a float64 exactly), and once that passes a turn any
+    angle is: then the result must be a rotation about w, finite."""
+    eps, big = float(np.finfo(dtype).eps), float(np.finfo(dtype).max)
+    angles = np.geomspace(1e3, big / 2, 60).astype(dtype)
+    w = np.zeros((len(angles), 3), dtype)
+    w[:, 2] = angles
+    R = np.asarray(so3.exp(w), np.float64)
+    assert np.all(np.isfinite(R))
+    np.testing.assert_allclose(R[:, :, 2], np.broadcast_to([0.0, 0.0, 1.0], (len(angles), 3)), atol=4 * eps)
+    assert np.max(np.asarray(so3.orthogonality_error(R))) < 4 * eps
+    theta = angles.astype(np.float64)
+    gap = np.angle(np.exp(1j * (np.arctan2(R[:, 1, 0], R[:, 0, 0]) - np.arctan2(np.sin(theta), np.cos(theta)))))
+    assert np.all(np.abs(gap) <= 0.5 * theta * eps + 4 * eps), (theta[np.abs(gap) > 0.5 * theta * eps], gap)
+    # Any direction, the largest vectors there are; finite derivatives too.
+    w = np.array([[big, -big, big], [big / 3, 0.0, -big / 7], [1e30, 2e30, -1e30]], dtype)
+    R = np.asarray(so3.exp(w), np.float64)
+    assert np.all(np.isfinite(R)) and np.max(np.asarray(so3.orthogonality_error(R))) < 4 * eps
+    scaled = w.astype(np.float64) / np.max(np.abs(w.astype(np.float64)), axis=-1, keepdims=True)
+    axes = scaled / np.linalg.norm(scaled, axis=-1, keepdims=True)
+    np.testing.assert_allclose(np.einsum("nij,nj->ni", R, axes), axes, atol=8 * eps)
+    for jac in (jax.jit(jax.jacfwd(so3.exp)), jax.jit(jax.jacrev(so3.exp))):
+        assert np.all(np.isfinite(np.asarray(jac(w[0]))))
+
+
 def test_exp_is_a_one_parameter_group():
     """exp(s w) exp(t w) = exp((s + t) w) across the series/closed-form threshold."""
     w = _vectors_with_norms(np.array([1.0]))[0]
@@ -802,6 +830,28 @@ def test_from_mrp_matches_scipy_for_either_set():
         np.testing.assert_allclose(np.asarray(so3.from_mrp(jnp.asarray(sig))), Rotation.from_mrp(sig).as_matrix(),
                                    atol=1e-14)
     assert float(jnp.max(so3.orthogonality_error(so3.from_mrp(jnp.asarray(shadow[:24]))))) < 1e-14
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_from_mrp_of_huge_shadow_sets_is_the_turn_near_the_identity(dtype):
+    """sigma = [1e160, 0, 0] is the shadow of [-1e-160, 0, 0], a turn of
+    4e-160 rad about -x; the formula's (1 + |sigma|^2)^2 overflowed and it
+    gave NaN.  Now formed from the shadow wherever |sigma| > 1."""
+    huge = float(np.sqrt(np.finfo(dtype).max))
+    for sigma in ([huge * 1e3, 0.0, 0.0], [huge, -2 * huge, 3 * huge], [3.0, -4.0, 12.0]):
+        sigma = np.asarray(sigma, dtype)
+        m = float(np.max(np.abs(sigma)))
+        unit = sigma.astype(np.float64) / m
+        shadow = -unit / (m * np.sum(unit**2))  # -sigma/|sigma|^2, without overflow
+        R = np.asarray(so3.from_mrp(sigma))
+        assert R.dtype == dtype and np.all(np.isfinite(R))
+        np.testing.assert_allclose(R, Rotation.from_mrp(shadow).as_matrix(), rtol=0,
+                                   atol=4 * float(np.finfo(dtype).eps))
+        if float(np.linalg.norm(shadow)) < 1e-3:
+            # I + 4 hat(shadow) to first order: the tiny turn is kept, not rounded away.
+            np.testing.assert_allclose(R - np.eye(3), 4 * np.asarray(so3.hat(shadow)), rtol=1e-6)
+        for jac in (jax.jit(jax.jacfwd(so3.from_mrp)), jax.jit(jax.jacrev(so3.from_mrp))):
+            assert np.all(np.isfinite(np.asarray(jac(sigma))))
 
 
 @pytest.mark.parametrize("w", [np.zeros(3), 1e-9 * np.ones(3), _HALF[0], _HALF[3], (1 - 1e-4) * _HALF[3]],

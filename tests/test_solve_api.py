@@ -155,6 +155,21 @@ class _OwnLieEuler(lierk.AbstractSolver):
         return Step(lierk.so3.right_exp(R, h * omega), y + h * ydot, None, None)
 
 
+def _counted_body():
+    """A 1:2:3 body whose (zero) torque counts its evaluations at run time,
+    a host callback: ``(problem, calls)``, ``calls[0]`` the count."""
+    calls = [0]
+
+    def bump():
+        calls[0] += 1
+
+    def torque(t):
+        jax.debug.callback(bump)
+        return jnp.zeros(3) * t
+
+    return lierk.RigidBodyWithEffects(np.diag([1.0, 2.0, 3.0]), [0.1, 1.0, 0.05], effects=(lierk.TimedTorque(torque),)), calls
+
+
 def test_stats_count_every_field_evaluation():
     """``num_fevals`` against a count of the field's evaluations at run time
     (a host callback in the torque): stages, the first-step estimate, and
@@ -165,16 +180,7 @@ def test_stats_count_every_field_evaluation():
     each step's start was computed twice (122), with fixed steps or an
     adaptive loop whose controller keeps no field (`ConstantStep`).  A
     splitting counts its drifts, and runs one kick more a step."""
-    calls = [0]
-
-    def bump():
-        calls[0] += 1
-
-    def torque(t):
-        jax.debug.callback(bump)
-        return jnp.zeros(3) * t
-
-    problem = lierk.RigidBodyWithEffects(np.diag([1.0, 2.0, 3.0]), [0.1, 1.0, 0.05], effects=(lierk.TimedTorque(torque),))
+    problem, calls = _counted_body()
     event = lierk.Event(lambda t, R, y: t - 0.55)
     dense = lierk.SaveAt(t1=True, dense=True)
     cases = [
@@ -197,6 +203,32 @@ def test_stats_count_every_field_evaluation():
     stats = jax.device_get(lierk.solve(problem, lierk.BlanesMoan4(), 2.0, dt=0.1).stats)
     jax.effects_barrier()
     assert int(stats["num_fevals"]) == 20 * lierk.BlanesMoan4().stages and calls[0] == int(stats["num_fevals"]) + 20
+
+
+def test_steps_past_t1_are_skipped_not_run():
+    """A static step count far past the run's (a generous max_steps, or a
+    scene's last piece padded to the others' length) ran every padding step
+    as a no-op: ``lierk simulate`` with ``save_every = 10^9`` spun for ever.
+    Chunks and checkpoint blocks that start past the end are skipped now;
+    counted by a host callback in the torque, with and without events (the
+    two fixed-step loops), saving chunks or not.  The same numbers."""
+    problem, calls = _counted_body()
+    event = lierk.Event(lambda t, R, y: t - 0.55)
+    for kw in (dict(saveat=lierk.SaveAt(t0=True, steps=25, t1=True)), dict(saveat=lierk.SaveAt(t1=True), event=event)):
+        counts, sols = [], []
+        for max_steps in (None, 10**5):
+            calls[0] = 0
+            sols.append(jax.device_get(lierk.solve(problem, lierk.RKMK4(), 1.0, dt=0.01, max_steps=max_steps, **kw)))
+            jax.effects_barrier()
+            counts.append(calls[0])
+        exact, padded = sols
+        # The run's 100 steps, and at most the rest of the block of ~316 it ends in.
+        assert int(exact.stats["num_steps"]) == int(padded.stats["num_steps"]) == 100
+        assert counts[0] <= counts[1] <= counts[0] + 5 * 320, (kw, counts)
+        n = int(exact.n_saved)
+        np.testing.assert_array_equal(padded.R[: n - 1], exact.R[: n - 1])
+        np.testing.assert_array_equal(padded.R[-1], exact.R[-1])
+        np.testing.assert_array_equal(padded.ts[-1], exact.ts[-1])
 
 
 def test_max_steps_too_small_is_reported():

@@ -481,3 +481,25 @@ Z = "axes = [[0.0, 0.0, 1.0]]\nspin_inertia = [0.1]\n"  # one wheel about body z
 def test_bad_scene_wheels_are_refused_by_key_path(wheels, match):
     with pytest.raises(ValueError, match=match):
         lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=wheels)), "sat")
+
+
+def test_restart_refuses_a_state_unlike_the_wheels_by_name():
+    """A restart whose state is not ``(m (3,), speeds (k,))`` failed inside the
+    solve with JAX's errors ("too many values to unpack", "scan body function
+    carry input and carry output must have equal types")."""
+    body = pyramid()
+    m, speeds = (np.asarray(x) for x in body.y0)
+    pair = r"\(float64\[3\], float64\[4\]\)"
+    cases = {
+        "the speeds' trajectory": ((m, np.stack([speeds] * 5)), r"y0\[1\] has shape \(5, 4\).*a saved trajectory"),
+        "one array": (np.concatenate([m, speeds]), "y0 must have the structure of the problem's state, " + pair),
+        "a list": ([m, speeds], "y0 must have the structure .*, got \\[float64\\[3\\], float64\\[4\\]\\]"),
+        "three speeds for four wheels": ((m, speeds[:3]), r"y0\[1\] has shape \(3,\), where the problem's state " + pair),
+        "float32": ((m, speeds.astype(np.float32)), r"y0\[1\] is float32"),
+    }
+    for name, (y, match) in cases.items():
+        with pytest.raises(ValueError, match=match):
+            body.restart(R0, y)
+    restarted = body.restart(R0, (m, speeds))
+    for a, b in zip(restarted.y0, (m, speeds)):
+        np.testing.assert_array_equal(np.asarray(a), b)

@@ -139,8 +139,30 @@ class AbstractProblem(eqx.Module):
 
     def restart(self, R0: ArrayLike, y0: Any) -> "AbstractProblem":
         """The same problem started from attitude ``R0`` ``(3, 3)`` and state ``y0``
-        (for solving in pieces)."""
-        problem = eqx.tree_at(lambda p: p.R0, self, validation.as_jax(R0, self.R0.dtype))
+        (for solving in pieces: ``problem.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))``).
+
+        ``R0`` is checked as the constructors check it
+        (`lierk.checks.check_attitude`: finite, a rotation to 1e-6; a traced
+        one inside the program, where a bad one makes a solve end with
+        `lierk.RESULTS.invalid_problem`).  ``y0`` must have the structure, shapes and dtypes
+        of this problem's ``y0``: a body's momentum ``(3,)``, with reaction
+        wheels the tuple ``(m (3,), speeds (k,))``, None where the problem has
+        no state besides ``R`` (Python numbers are converted to the
+        problem's dtype; an array of another float dtype is refused).
+
+        Raises:
+            ValueError: ``R0`` is not a rotation ``(3, 3)``, or ``y0`` differs
+                from the problem's state; the message names the part.
+        """
+        R0 = validation.check_attitude(R0, self.R0.dtype)
+        return self._restarted(R0, validation.check_like(y0, self.y0, "y0"))
+
+    def _restarted(self, R0: Array, y0: Any) -> "AbstractProblem":
+        """`restart` from values known to be valid, unchecked: a rotation
+        this library formed, or a solve's own end state (ExplicitEuler's
+        leaves SO(3), and a scene solved in pieces carries it on as one
+        solve does)."""
+        problem = eqx.tree_at(lambda p: p.R0, self, R0)
         if self.y0 is not None:
             problem = eqx.tree_at(lambda p: p.y0, problem, y0)
         return problem

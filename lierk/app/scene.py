@@ -97,7 +97,7 @@ from lierk import solve as _solve
 from lierk import checks as validation
 from lierk.checks import check_attitude
 from . import scene_schema as schema
-from .scene_schema import MAX_SAVED, MAX_STEPS
+from .scene_schema import MAX_NAME_BYTES, MAX_SAVED, MAX_STEPS
 
 __all__ = ["Scene", "load", "from_dict", "identifier"]
 
@@ -453,15 +453,28 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[
     dtype = jnp.result_type(float)
     _check_state(inertia, omega0, dtype, "body" if pivot_to_com is None else "body about the gravity pivot",
                  "body.inertia" if body.parts is None and pivot_to_com is None else "inertia")
+    if "rtol" in solve_kwargs:
+        # The rule lierk.solve applies, checked before anything runs.
+        reason = validation.tolerances_below_rounding(solve_kwargs["rtol"], solve_kwargs["atol"], dtype)
+        if reason is not None:
+            raise ValueError(f"run.rtol = {solve_kwargs['rtol']:g}, run.atol = {solve_kwargs['atol']:g}: {reason}")
     singular = validation.nearly_singular_inertia(inertia, dtype, "the body's inertia")
     inertia, omega0, R0 = (np.asarray(a, dtype=dtype) for a in (inertia, omega0, R0))
     if not effects:
         problem = FreeRigidBody(inertia, omega0, R0)
     else:
         problem = RigidBodyWithEffects(inertia, omega0, R0, effects)
+    name = _given(f, "name", name)
+    stem = identifier(name)
+    if len(stem.encode()) > MAX_NAME_BYTES:
+        # Found before the run, not when its outputs are written.
+        raise ValueError(
+            f"name: the outputs are named after it ({stem[:20]}..._components.png), and {len(stem.encode())} bytes "
+            f"is more than a file name may take ({MAX_NAME_BYTES} bytes and the suffix); shorten it"
+        )
     scene = Scene(
         events=_events(f.events, problem, pivot_to_com),
-        name=_given(f, "name", name),
+        name=name,
         problem=problem,
         solver=solver,
         t1=t1,

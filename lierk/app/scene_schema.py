@@ -47,6 +47,7 @@ __all__ = [
     "GravityGradientEffect", "MagneticEffect", "RotorEffect", "ReactionWheelsEffect",
     "EventKeys", "FlipEvent", "TiltEvent", "TiltExtremumEvent", "PointingEvent", "EnergyEvent", "MomentumEvent",
     "Body", "Part", "Effect", "Event", "parse", "json_schema", "MAX_STEPS", "MAX_SAVED",
+    "MAX_NAME_BYTES",
     # The types of values.
     "Positive", "NonNegative", "Count", "SaveCount", "Angle", "Vec3", "Vec4", "Matrix3", "Vectors", "Axes", "Numbers",
     "PositiveNumbers", "Rows", "NumbersOrRows", "Times", "Inertia", "Terminate", "Crossing", "SolverName",
@@ -59,6 +60,12 @@ MAX_STEPS = 2**31 - 1
 MAX_SAVED = 10**7
 """The most states a scene may save (``run.n_save``, or ``t1/dt`` over
 ``run.save_every``): 10^7 states are about 1 GB in memory and on disk."""
+
+MAX_NAME_BYTES = 240
+"""The longest file stem a scene's ``name`` may give
+(`lierk.app.scene.identifier` of it, in UTF-8 bytes): the command line names
+its outputs after it (``<stem>_components.png``, 15 bytes more), and file
+systems take names of up to 255 bytes."""
 
 
 def _default(function, name: str):
@@ -606,7 +613,10 @@ class SceneFile(_Table, kw_only=True):
     events, and a run.
 
     Attributes:
-        name: default the file's name without .toml.
+        name: default the file's name without .toml; the command line's
+            outputs are named after it, so it may take at most 240 bytes of
+            UTF-8 once each run of characters other than letters, digits
+            and _ is one _.
         description: free text.
         body: the rigid body, one of the kinds.
         initial: the initial state.
