@@ -392,13 +392,23 @@ def test_bad_input_is_refused_by_name(make, match):
 
 
 def test_a_traced_spin_inertia_is_checked_when_the_program_runs():
+    """Traced, the check is made in the program: the body's values come back
+    NaN, and a solve of it ends with `RESULTS.invalid_problem` (or raises,
+    naming the spin inertias, with ``throw=True``)."""
     import equinox as eqx
 
-    inertia = eqx.filter_jit(lambda js: lierk.RigidBodyWithEffects(
-        [1.0, 2.0, 3.0], [0.0, 0.0, 0.0], effects=(lierk.ReactionWheels([[1.0, 0.0, 0.0]], js, [0.0]),)).inertia)
+    def body(js):
+        return lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.1, 0.0, 0.0],
+                                          effects=(lierk.ReactionWheels([[1.0, 0.0, 0.0]], js, [0.0]),))
+
+    inertia = eqx.filter_jit(lambda js: body(js).inertia)
     assert float(inertia(jnp.array([0.5]))[0, 0]) == 1.0
-    with pytest.raises(Exception, match="effects.0..spin_inertia: .* I - G positive definite"):
-        jax.block_until_ready(inertia(jnp.array([1.5])))
+    assert np.isnan(np.asarray(inertia(jnp.array([1.5])))).all()
+    result = eqx.filter_jit(lambda js: lierk.solve(body(js), lierk.RKMK4(), 0.1, dt=0.05, throw=False).result)
+    assert int(result(jnp.array([0.5]))) == 0
+    assert int(result(jnp.array([1.5]))) == lierk.RESULTS.invalid_problem
+    with pytest.raises(Exception, match="positive-definite spin inertias"):
+        jax.block_until_ready(eqx.filter_jit(lambda js: lierk.solve(body(js), lierk.RKMK4(), 0.1, dt=0.05).R)(jnp.array([1.5])))
 
 
 def test_the_wheels_add_no_torque_of_their_own():
