@@ -176,8 +176,9 @@ class ForwardSensitivity(AbstractAdjoint):
             functools.partial(loop, self.fallback),
             functools.partial(tangent, ForwardMode()),
         )
-        kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed, steps=steps)
-        if _may_capture_tracer(args):
+        converted = _may_capture_tracer(args)
+        kw = dict(limit=limit, fallback=type(self.fallback).__name__, fixed=fixed, steps=steps, converted=converted)
+        if converted:
             # A function in the problem (a torque profile, an orbit, an event
             # condition) may close over a value that is being differentiated,
             # which the custom rule could not see.  Closure-converted, such
@@ -325,7 +326,7 @@ def _is_none(x) -> bool:
 # The primal and the fallback loop ride in the arguments: plain functions
 # are static, closure-converted ones carry their captured values as leaves.
 @eqx.filter_custom_jvp
-def _sensitive(loops_args, *, limit, fallback, fixed, steps):
+def _sensitive(loops_args, *, limit, fallback, fixed, steps, converted):
     (primal, _, _), args = loops_args
     return primal(*args)
 
@@ -340,7 +341,7 @@ def _resolving(loop: Callable) -> Callable:
 
 
 @_sensitive.def_jvp
-def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed, steps):
+def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed, steps, converted):
     (loops_args,), (t_loops_args,) = primals, tangents
     live = jtu.tree_map(lambda t, _: t is not None, t_loops_args, loops_args, is_leaf=_is_none)
     inputs, rest = eqx.partition(loops_args, live)
@@ -382,7 +383,9 @@ def _sensitive_jvp(primals, tangents, *, limit, fallback, fixed, steps):
             return p0, rest
         return p0, ((primal, fallback, _InForm(tangent, form, steps)), args)
 
-    out, J = by_batch(jacobian, forms, p0, rest)
+    # Closure-converted loops have their solver's form traced in already:
+    # the batch form, as `lierk._programs` says for such a call.
+    out, J = jacobian(p0, rest) if converted else by_batch(jacobian, forms, p0, rest)
     return out, jtu.tree_map(_contract(dp), J)
 
 
