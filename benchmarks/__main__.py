@@ -55,7 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks", description=__doc__.split("\n")[0])
     parser.add_argument("names", nargs="*", metavar="NAME", help="benchmarks to run (default: all; see --list)")
     parser.add_argument("--quick", action="store_true", help="each script's quick run, into a temp dir unless --out")
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
+    parser.add_argument(
+        "--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)"
+    )
     parser.add_argument("--list", action="store_true", help="list the benchmarks and exit")
     args = parser.parse_args(argv)
     if args.list:
@@ -66,8 +68,9 @@ def main(argv: list[str] | None = None) -> int:
     names = [n.removesuffix(".py") for n in args.names] or list(known)
     unknown = [n for n in names if n not in known]
     if unknown:
-        parser.error(f"unknown benchmark{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}; "
-                     f"valid: {', '.join(known)}")
+        parser.error(
+            f"unknown benchmark{'s' if len(unknown) > 1 else ''} {', '.join(unknown)}; valid: {', '.join(known)}"
+        )
     # (the scripts run from the repository root: an --out relative to here is made absolute)
     flags = (["--quick"] if args.quick else []) + (["--out", str(Path(args.out).resolve())] if args.out else [])
     status = lambda code: "ok" if code == 0 else f"FAILED (exit {code})"  # noqa: E731

@@ -28,7 +28,9 @@ def cli(doc: str, quick_help: str, run: bool = True, extra: Callable | None = No
     namespace."""
     parser = argparse.ArgumentParser(description=doc.split("\n")[0])
     parser.add_argument("--quick", action="store_true", help=quick_help)
-    parser.add_argument("--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)")
+    parser.add_argument(
+        "--out", default=None, help="results directory (default benchmarks/results; --quick: a temp dir)"
+    )
     if extra is not None:
         extra(parser)
     args = parser.parse_args(argv) if run else parser.parse_args([])
@@ -193,8 +195,11 @@ def backend_info() -> dict:
     import jax
 
     devices = jax.devices()
-    return {"backend": jax.default_backend(), "device_kind": devices[0].device_kind,
-            "devices": [str(d) for d in devices]}
+    return {
+        "backend": jax.default_backend(),
+        "device_kind": devices[0].device_kind,
+        "devices": [str(d) for d in devices],
+    }
 
 
 def backend_text(m: dict) -> str:
@@ -219,8 +224,12 @@ def git_commit(root: Path | None = None) -> str | None:
 
     root = Path(__file__).resolve().parent.parent if root is None else Path(root)
     try:
-        rev = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True)
-        dirty = subprocess.run(["git", "status", "--porcelain", "--", "lierk"], cwd=root, capture_output=True, text=True)
+        rev = subprocess.run(
+            ["git", "rev-parse", "--short", "HEAD"], cwd=root, capture_output=True, text=True, check=True
+        )
+        dirty = subprocess.run(
+            ["git", "status", "--porcelain", "--", "lierk"], cwd=root, capture_output=True, text=True
+        )
     except (OSError, subprocess.CalledProcessError):
         return None
     return rev.stdout.strip() + ("+changes" if dirty.stdout.strip() else "")

@@ -78,8 +78,17 @@ def aggregate(runs: list[dict]) -> dict:
         for name, rec in run.items():
             if name == "_meta":
                 continue
-            cell = cells.setdefault(name, {"what": rec.get("what", ""), "unit": rec.get("unit", "s"), "times": [],
-                                           "errors": [], "extra": {}, "status": []})
+            cell = cells.setdefault(
+                name,
+                {
+                    "what": rec.get("what", ""),
+                    "unit": rec.get("unit", "s"),
+                    "times": [],
+                    "errors": [],
+                    "extra": {},
+                    "status": [],
+                },
+            )
             if rec.get("time") is not None:
                 if not cell["times"] or rec["time"] < min(cell["times"]):
                     cell["extra"] = rec.get("extra", {})
@@ -105,8 +114,16 @@ def compare_cells(base: dict, head: dict, threshold: float = THRESHOLD, floor: f
     rows = []
     for name in list(dict.fromkeys([*base, *head])):
         b, h = base.get(name), head.get(name)
-        row = {"cell": name, "what": (h or b)["what"], "base": b, "head": h, "ratio": None, "error_ratio": None,
-               "flags": [], "notes": []}
+        row = {
+            "cell": name,
+            "what": (h or b)["what"],
+            "base": b,
+            "head": h,
+            "ratio": None,
+            "error_ratio": None,
+            "flags": [],
+            "notes": [],
+        }
         if h is None or h["time"] is None:
             if b is not None and b["time"] is not None:
                 row["flags"].append("gone at HEAD" if h is not None and h["na"] else "fails at HEAD")
@@ -151,18 +168,27 @@ def table(rows: list[dict]) -> list[str]:
     for r in rows:
         ratio = "" if r["ratio"] is None else f"{r['ratio']:.2f}"
         mark = "; ".join([f"**{f}**" for f in r["flags"]] + r["notes"])
-        lines.append(f"| {r['cell']} | {_time(r['base'])} | {_time(r['head'])} | {ratio} | {_error(r['base'])} | "
-                     f"{_error(r['head'])} | {mark} |")
+        lines.append(
+            f"| {r['cell']} | {_time(r['base'])} | {_time(r['head'])} | {ratio} | {_error(r['base'])} | "
+            f"{_error(r['head'])} | {mark} |"
+        )
     extras = []
     for r in rows:
         b, h = (r["base"] or {}).get("extra", {}), (r["head"] or {}).get("extra", {})
         extras += [(r["cell"], k, b.get(k), h.get(k)) for k in dict.fromkeys([*b, *h])]
     if extras:
         lines += ["", "| cell | derived | BASE | HEAD |", "|---|---|---:|---:|"]
-        lines += [f"| {c} | {k} | {'' if b is None else f'{b:.3g}'} | {'' if h is None else f'{h:.3g}'} |"
-                  for c, k, b, h in extras]
-    why = [f"- {r['cell']} at {side}: {s}" for r in rows for side, rec in (("BASE", r["base"]), ("HEAD", r["head"]))
-           if rec is not None and rec["time"] is None for s in dict.fromkeys(rec["status"])]
+        lines += [
+            f"| {c} | {k} | {'' if b is None else f'{b:.3g}'} | {'' if h is None else f'{h:.3g}'} |"
+            for c, k, b, h in extras
+        ]
+    why = [
+        f"- {r['cell']} at {side}: {s}"
+        for r in rows
+        for side, rec in (("BASE", r["base"]), ("HEAD", r["head"]))
+        if rec is not None and rec["time"] is None
+        for s in dict.fromkeys(rec["status"])
+    ]
     return lines + (["", *why] if why else [])
 
 
@@ -178,20 +204,28 @@ def run_headline(root: Path, out: Path, args, env: dict) -> dict:
     result = json.loads(out.read_text())
     imported = Path(result["_meta"]["lierk"])
     if imported != (root / "lierk").resolve():
-        raise RuntimeError(f"headline.py imported lierk from {imported}, not from {root}: is lierk installed "
-                           "somewhere that comes before PYTHONPATH?")
+        raise RuntimeError(
+            f"headline.py imported lierk from {imported}, not from {root}: is lierk installed "
+            "somewhere that comes before PYTHONPATH?"
+        )
     return result
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m benchmarks compare", description=__doc__.split("\n")[0])
-    parser.add_argument("base", metavar="BASE", help="revision to compare against (e.g. main), or . for the working tree")
+    parser.add_argument(
+        "base", metavar="BASE", help="revision to compare against (e.g. main), or . for the working tree"
+    )
     parser.add_argument("head", metavar="HEAD", help="revision to check (e.g. HEAD), or . for the working tree")
     parser.add_argument("--repeat", type=int, default=2, metavar="K", help="runs of each, alternating (default 2)")
-    parser.add_argument("--cells", nargs="*", default=None, metavar="NAME", help="headline cells or prefixes (default all)")
+    parser.add_argument(
+        "--cells", nargs="*", default=None, metavar="NAME", help="headline cells or prefixes (default all)"
+    )
     parser.add_argument("--threshold", type=float, default=THRESHOLD, help="flag a cell this much worse (default 0.10)")
     parser.add_argument("--quick", action="store_true", help="headline.py's tiny sizes: checks the machinery only")
-    parser.add_argument("--out", default=None, metavar="FILE.md", help="also write the table here (raw runs: FILE.json)")
+    parser.add_argument(
+        "--out", default=None, metavar="FILE.md", help="also write the table here (raw runs: FILE.json)"
+    )
     args = parser.parse_args(argv)
     if args.repeat < 1:
         parser.error("--repeat must be at least 1")
@@ -238,21 +272,28 @@ def main(argv: list[str] | None = None) -> int:
     rows = compare_cells(aggregate(runs["BASE"]), aggregate(runs["HEAD"]), args.threshold)
     flagged = [r["cell"] for r in rows if r["flags"]]
     meta = next((r["_meta"] for side in ("HEAD", "BASE") for r in runs[side] if r), None)
-    lines = [f"# {args.base} against {args.head}: headline cells (`python -m benchmarks compare`)", "",
-             f"BASE = {sides['BASE'][2]}; HEAD = {sides['HEAD'][2]}.", "",
-             machine_line(meta) + f" {args.repeat} run(s) of each, alternating; a time is the smallest of a cell's "
-             f"medians. Flagged: more than {args.threshold:.0%} worse (time, or error above {ERROR_FLOOR:g}). "
-             "The cells are described in `benchmarks/headline.py`.", "",
-             *table(rows), "",
-             (f"{len(flagged)} cell(s) flagged: {', '.join(flagged)}." if flagged else "No cell flagged.")
-             + f" ({time.perf_counter() - start:.0f} s)"]
+    lines = [
+        f"# {args.base} against {args.head}: headline cells (`python -m benchmarks compare`)",
+        "",
+        f"BASE = {sides['BASE'][2]}; HEAD = {sides['HEAD'][2]}.",
+        "",
+        machine_line(meta) + f" {args.repeat} run(s) of each, alternating; a time is the smallest of a cell's "
+        f"medians. Flagged: more than {args.threshold:.0%} worse (time, or error above {ERROR_FLOOR:g}). "
+        "The cells are described in `benchmarks/headline.py`.",
+        "",
+        *table(rows),
+        "",
+        (f"{len(flagged)} cell(s) flagged: {', '.join(flagged)}." if flagged else "No cell flagged.")
+        + f" ({time.perf_counter() - start:.0f} s)",
+    ]
     print("\n" + "\n".join(lines))
     if args.out:
         out = Path(args.out)
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text("\n".join(lines) + "\n")
-        out.with_suffix(".json").write_text(json.dumps({"base": sides["BASE"], "head": sides["HEAD"], "runs": runs},
-                                                       indent=1, default=float) + "\n")
+        out.with_suffix(".json").write_text(
+            json.dumps({"base": sides["BASE"], "head": sides["HEAD"], "runs": runs}, indent=1, default=float) + "\n"
+        )
         print(f"wrote {out} and {out.with_suffix('.json')}")
     return 1 if flagged else 0
 
@@ -262,6 +303,9 @@ def machine_line(meta: dict | None) -> str:
     if meta is None:
         return "No run wrote results."
     m = meta["machine"]
-    return (f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}, jax {m['jax']}, load average "
-            f"{m['load_average_at_start'][0]:.1f} at the start of a run." if m.get("load_average_at_start")
-            else f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}, jax {m['jax']}.")
+    return (
+        f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}, jax {m['jax']}, load average "
+        f"{m['load_average_at_start'][0]:.1f} at the start of a run."
+        if m.get("load_average_at_start")
+        else f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}, jax {m['jax']}."
+    )

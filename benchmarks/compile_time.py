@@ -133,7 +133,9 @@ def main(argv=None):
     import common  # only the standard library: the timed children import jax themselves
 
     def extra(parser):
-        parser.add_argument("--repeats", type=int, default=None, help="fresh processes per program (default 3; --quick 1)")
+        parser.add_argument(
+            "--repeats", type=int, default=None, help="fresh processes per program (default 3; --quick 1)"
+        )
         parser.add_argument("--one", nargs=2, metavar=("NAME", "PEER"), help=argparse.SUPPRESS)
 
     quick, out, args = common.cli(__doc__, f"one repeat of {', '.join(QUICK)}, into a temp dir", extra=extra, argv=argv)
@@ -149,21 +151,38 @@ def main(argv=None):
 
     rows = []
     for name in names:
-        row = {"program": name, "description": PROGRAMS[name][0], "lierk_solver": PROGRAMS[name][3],
-               "diffrax_solver": PROGRAMS[name][4]}
+        row = {
+            "program": name,
+            "description": PROGRAMS[name][0],
+            "lierk_solver": PROGRAMS[name][3],
+            "diffrax_solver": PROGRAMS[name][4],
+        }
         for peer in ("lierk", "diffrax"):
             runs = [run(name, peer) for _ in range(repeats)]
             row[peer] = {k: statistics.median(r[k] for r in runs) for k in runs[0]}
             row[peer]["runs"] = runs
         row["ratio"] = row["lierk"]["total"] / row["diffrax"]["total"]
         rows.append(row)
-        print(f"{name}: lierk {row['lierk']['total']:.2f} s, diffrax {row['diffrax']['total']:.2f} s, "
-              f"ratio {row['ratio']:.2f}", flush=True)
+        print(
+            f"{name}: lierk {row['lierk']['total']:.2f} s, diffrax {row['diffrax']['total']:.2f} s, "
+            f"ratio {row['ratio']:.2f}",
+            flush=True,
+        )
     import diffrax
 
-    meta = {"machine": {"cpu_count": os.cpu_count(), "load_average_at_end": os.getloadavg(), "jax": jax.__version__,
-                        "diffrax": diffrax.__version__, "lierk": lierk.__version__}, "repeats": repeats,
-            "T": T, "fixed_steps": STEPS, "adaptive_max_steps": MAX_STEPS}
+    meta = {
+        "machine": {
+            "cpu_count": os.cpu_count(),
+            "load_average_at_end": os.getloadavg(),
+            "jax": jax.__version__,
+            "diffrax": diffrax.__version__,
+            "lierk": lierk.__version__,
+        },
+        "repeats": repeats,
+        "T": T,
+        "fixed_steps": STEPS,
+        "adaptive_max_steps": MAX_STEPS,
+    }
     common.write_results(out, "compile_time", {"meta": meta, "rows": rows}, markdown(meta, rows))
 
 

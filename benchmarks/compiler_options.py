@@ -38,16 +38,24 @@ def main(argv=None):
     def extra(parser):
         parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
 
-    quick, out, args = common.cli(__doc__, "the spacecraft's DP54 Jacobian, one repeat, into a temp dir",
-                                  extra=extra, argv=argv)
+    quick, out, args = common.cli(
+        __doc__, "the spacecraft's DP54 Jacobian, one repeat, into a temp dir", extra=extra, argv=argv
+    )
     repeats = args.repeats or (1 if quick else 3)
     cases = QUICK if quick else [(b, s, w) for b in BODIES for s in SOLVERS for w in WORKS]
-    meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats,
-            "rtol": first_result.RTOL, "calls": first_result.CALLS}
+    meta = {
+        "machine": common.machine_info(),
+        "commit": common.git_commit(),
+        "repeats": repeats,
+        "rtol": first_result.RTOL,
+        "calls": first_result.CALLS,
+    }
     rows = []
     for body, solver, work in cases:
-        cells = [dict(body=body, solver=solver, work=work, peer=peer, compact=None, options=options)
-                 for peer, options in VARIANTS]
+        cells = [
+            dict(body=body, solver=solver, work=work, peer=peer, compact=None, options=options)
+            for peer, options in VARIANTS
+        ]
         # The three take turns, repeat by repeat (this machine's speed drifts).
         runs = [[] for _ in cells]
         for _ in range(repeats):
@@ -55,8 +63,11 @@ def main(argv=None):
                 done.append(first_result._fresh(cell))
         for cell, done in zip(cells, runs):
             rows.append(dict(cell, **{k: statistics.median(r[k] for r in done) for k in done[0]}))
-            print(f"{body:10s} {solver:7s} {work:7s} {cell['peer']:7s} options={cell['options']!s:5s} "
-                  f"{rows[-1]['first']:6.2f} s", flush=True)
+            print(
+                f"{body:10s} {solver:7s} {work:7s} {cell['peer']:7s} options={cell['options']!s:5s} "
+                f"{rows[-1]['first']:6.2f} s",
+                flush=True,
+            )
         meta["machine"]["load_average_at_end"] = os.getloadavg()
         common.write_results(out, "compiler_options", {"meta": meta, "rows": rows}, markdown(meta, rows))
 
@@ -93,7 +104,8 @@ def markdown(meta, rows) -> list[str]:
         lines.append(
             f"| {r['body']} | {r['solver']} | {r['work']} | {first_result._first(r)} | {1e3 * r['one_steady']:.3f} "
             f"| {first_result._first(o)} | {1e3 * o['one_steady']:.3f} | {first_result._first(d)} "
-            f"| {1e3 * d['one_steady']:.3f} | {r['first'] / d['first']:.2f} | {o['first'] / d['first']:.2f} |")
+            f"| {1e3 * d['one_steady']:.3f} | {r['first'] / d['first']:.2f} | {o['first'] / d['first']:.2f} |"
+        )
     return lines
 
 

@@ -29,12 +29,12 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
+import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
-
-import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
-import lierk  # noqa: E402
 import peers  # noqa: E402
+
+import lierk  # noqa: E402
 
 QUICK, OUT = common.cli(__doc__, "the three coarsest steps of each solver, into a temp dir", __name__ == "__main__")
 T = 10.0
@@ -108,8 +108,14 @@ def main():
         hs, errs = errors(solver, inertia, steps, R_ref)
         order, n_fit = fit(hs, errs)
         rows.append(
-            {"solver": label, "expected_order": expected, "fitted_order": order, "points_in_fit": n_fit,
-             "h": hs.tolist(), "error": errs.tolist()}
+            {
+                "solver": label,
+                "expected_order": expected,
+                "fitted_order": order,
+                "points_in_fit": n_fit,
+                "h": hs.tolist(),
+                "error": errs.tolist(),
+            }
         )
         print(f"{label:20s} expected {expected}  fitted {order:5.2f}  ({n_fit} points)")
 

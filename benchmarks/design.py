@@ -57,8 +57,9 @@ def fleet_cost(batch: int, periods: int):
         def law(k, t, R, y):
             return K * so3.to_mrp(R) + P * (inertia_inv @ y[0])
 
-        sol, u = lierk.solve_sampled(body, lierk.RKMK4(), law, lambda p: p.effects[0].torques, period, periods,
-                                     dt=period / 2, throw=False)
+        sol, u = lierk.solve_sampled(
+            body, lierk.RKMK4(), law, lambda p: p.effects[0].torques, period, periods, dt=period / 2, throw=False
+        )
         return jnp.linalg.norm(so3.log(sol.R), axis=-1), u
 
     def cost(log_gains, data):
@@ -89,8 +90,16 @@ def slew_cost(periods: int):
         U = scale * V
         wheels = lierk.ReactionWheels(jnp.eye(3), Js, jnp.zeros(3), torque=jnp.zeros(3))
         body = lierk.RigidBodyWithEffects(inertia, jnp.zeros(3), effects=(wheels,))
-        sol, _ = lierk.solve_sampled(body, lierk.RKMK4(), lambda k, t, R, y: U[k], lambda p: p.effects[0].torques,
-                                     period, periods, dt=period / 4, throw=False)
+        sol, _ = lierk.solve_sampled(
+            body,
+            lierk.RKMK4(),
+            lambda k, t, R, y: U[k],
+            lambda p: p.effects[0].torques,
+            period,
+            periods,
+            dt=period / 4,
+            throw=False,
+        )
         c = jnp.concatenate([so3.log(target.T @ sol.R[-1]), T * jnp.linalg.solve(inertia, sol.y[0][-1])])
         return period * jnp.sum(U**2) / (T * scale**2) + lam @ c + 50.0 * (c @ c)
 
@@ -99,9 +108,8 @@ def slew_cost(periods: int):
 
 
 def measure(name, cost, x, args, inputs) -> dict:
-    import jax
-
     import common
+    import jax
 
     row = {"cost": name, "inputs": inputs}
     for label, f in (("forward", cost), ("grad", jax.grad(cost)), ("jacfwd", jax.jacfwd(cost))):
@@ -119,8 +127,13 @@ def main(argv=None):
 
     quick, out = common.cli(__doc__, "a batch of 8 and 30 periods, into a temp dir", argv=argv)
     batch, periods = (8, 30) if quick else (64, 120)
-    meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": REPEATS,
-            "batch": batch, "periods": periods}
+    meta = {
+        "machine": common.machine_info(),
+        "commit": common.git_commit(),
+        "repeats": REPEATS,
+        "batch": batch,
+        "periods": periods,
+    }
     cost, x, data = fleet_cost(batch, periods)
     rows = [measure(f"fleet of {batch}, {periods} periods", cost, x, data, 2)]
     cost, V, lam = slew_cost(24)
@@ -150,7 +163,8 @@ def markdown(meta, rows) -> list[str]:
     for r in rows:
         lines.append(
             f"| {r['cost']} | {r['inputs']} | {1e3 * r['forward_s']:.2f} | {1e3 * r['grad_s']:.2f} "
-            f"| {r['grad_s'] / r['forward_s']:.1f} | {1e3 * r['jacfwd_s']:.2f} | {r['jacfwd_s'] / r['forward_s']:.1f} |")
+            f"| {r['grad_s'] / r['forward_s']:.1f} | {1e3 * r['jacfwd_s']:.2f} | {r['jacfwd_s'] / r['forward_s']:.1f} |"
+        )
     return lines
 
 

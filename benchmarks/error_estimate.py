@@ -32,20 +32,28 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from common import cli, cpu_model, near_axis, timed, write_results  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import cli, cpu_model, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (40 bodies) to check the script works", __name__ == "__main__")
 N = 40 if QUICK else 1000
 T = 10.0
 REPEATS = 1 if QUICK else 3
 BODIES = {"tee_handle": np.diag(np.asarray(lierk.inertia.tee_handle())), "hlw": np.array([2.0, 1.0, 2 / 3])}
-ESTIMATE_RUNS = [(lierk.RKMK4(), "dt", 0.01), (lierk.CF4(), "dt", 0.01), (lierk.DP54(), "rtol", 1e-8), (lierk.DOP853(), "rtol", 1e-10)]
+ESTIMATE_RUNS = [
+    (lierk.RKMK4(), "dt", 0.01),
+    (lierk.CF4(), "dt", 0.01),
+    (lierk.DP54(), "rtol", 1e-8),
+    (lierk.DOP853(), "rtol", 1e-10),
+]
 TARGETS = [1e-4, 1e-6, 1e-8, 1e-10]
 # Settings scanned for the cheapest one that reaches each target.
-SCAN = {"RKMK4": ("dt", [0.2 / 2 ** (k / 2) for k in range(16)]), "DOP853": ("rtol", [10.0 ** (-k / 2) for k in range(6, 28)])}
+SCAN = {
+    "RKMK4": ("dt", [0.2 / 2 ** (k / 2) for k in range(16)]),
+    "DOP853": ("rtol", [10.0 ** (-k / 2) for k in range(6, 28)]),
+}
 
 
 def batch_solver(solver, key, **extra):
@@ -91,9 +99,18 @@ def main():
             big = err > 1e-12
             ratio = np.asarray(est)[big] / err[big]
             rows_est.append(
-                dict(body=body, solver=solver.name, setting=f"{key}={value:g}", time_plain=t_plain, time_estimate=t_est,
-                     cost_ratio=t_est / t_plain, max_error=float(err.max()), within_10x=float(np.mean((ratio <= 10) & (ratio >= 0.1))),
-                     min_ratio=float(ratio.min()), max_ratio=float(ratio.max()))
+                dict(
+                    body=body,
+                    solver=solver.name,
+                    setting=f"{key}={value:g}",
+                    time_plain=t_plain,
+                    time_estimate=t_est,
+                    cost_ratio=t_est / t_plain,
+                    max_error=float(err.max()),
+                    within_10x=float(np.mean((ratio <= 10) & (ratio >= 0.1))),
+                    min_ratio=float(ratio.min()),
+                    max_ratio=float(ratio.max()),
+                )
             )
             print(rows_est[-1], flush=True)
 
@@ -112,32 +129,57 @@ def main():
                 ok = [(v, tt) for v, tt, e95 in scanned if e95 <= eps]
                 cheapest = min(ok, key=lambda x: x[1]) if ok else (None, float("nan"))
                 rows_target.append(
-                    dict(body=body, solver=name, eps=eps, met=float(np.mean(err <= eps)), codes_ok=float(np.mean(np.asarray(res) == 0)),
-                         success_above_eps=int(np.sum((np.asarray(res) == 0) & (err > eps))),
-                         solves_mean=float(solves.mean()), solves_max=int(solves.max()),
-                         time=t, cheapest_setting=cheapest[0], cheapest_time=cheapest[1], cost_ratio=t / cheapest[1] if ok else None)
+                    dict(
+                        body=body,
+                        solver=name,
+                        eps=eps,
+                        met=float(np.mean(err <= eps)),
+                        codes_ok=float(np.mean(np.asarray(res) == 0)),
+                        success_above_eps=int(np.sum((np.asarray(res) == 0) & (err > eps))),
+                        solves_mean=float(solves.mean()),
+                        solves_max=int(solves.max()),
+                        time=t,
+                        cheapest_setting=cheapest[0],
+                        cheapest_time=cheapest[1],
+                        cost_ratio=t / cheapest[1] if ok else None,
+                    )
                 )
                 print(rows_target[-1], flush=True)
 
-    info = {"cores": os.cpu_count(), "processor": cpu_model(), "jax": jax.__version__,
-            "platform": "CPU", "N": N, "T": T, "quick": QUICK}
-    md = [f"# Global error estimate and accuracy on request\n\nMachine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "
-          f"batch {N}, T = {T} s, float64, medians of {REPEATS}.\n",
-          "## `estimate_error=True` (Richardson against a finer solve)\n",
-          "| body | solver | setting | plain (s) | with estimate (s) | cost | max error | est. within 10x | min est/err |",
-          "|---|---|---|---|---|---|---|---|---|"]
+    info = {
+        "cores": os.cpu_count(),
+        "processor": cpu_model(),
+        "jax": jax.__version__,
+        "platform": "CPU",
+        "N": N,
+        "T": T,
+        "quick": QUICK,
+    }
+    md = [
+        f"# Global error estimate and accuracy on request\n\nMachine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "
+        f"batch {N}, T = {T} s, float64, medians of {REPEATS}.\n",
+        "## `estimate_error=True` (Richardson against a finer solve)\n",
+        "| body | solver | setting | plain (s) | with estimate (s) | cost | max error | est. within 10x | min est/err |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows_est:
-        md.append(f"| {r['body']} | {r['solver']} | {r['setting']} | {r['time_plain']:.3f} | {r['time_estimate']:.3f} | "
-                  f"{r['cost_ratio']:.2f}x | {r['max_error']:.1e} | {100 * r['within_10x']:.0f}% | {r['min_ratio']:.2f} |")
-    md += ["\n## `target_error=eps`\n",
-           "| body | solver | eps | members with error <= eps | success above eps | solves (mean, most) | time (s) | "
-           "cheapest single setting reaching eps (95%) | its time (s) | cost |",
-           "|---|---|---|---|---|---|---|---|---|---|"]
+        md.append(
+            f"| {r['body']} | {r['solver']} | {r['setting']} | {r['time_plain']:.3f} | {r['time_estimate']:.3f} | "
+            f"{r['cost_ratio']:.2f}x | {r['max_error']:.1e} | {100 * r['within_10x']:.0f}% | {r['min_ratio']:.2f} |"
+        )
+    md += [
+        "\n## `target_error=eps`\n",
+        "| body | solver | eps | members with error <= eps | success above eps | solves (mean, most) | time (s) | "
+        "cheapest single setting reaching eps (95%) | its time (s) | cost |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows_target:
         cost = f"{r['cost_ratio']:.2f}x" if r["cost_ratio"] else "n/a"
         setting = f"{r['cheapest_setting']:.3g}" if r["cheapest_setting"] else "none in scan"
-        md.append(f"| {r['body']} | {r['solver']} | {r['eps']:.0e} | {100 * r['met']:.1f}% | {r['success_above_eps']} | "
-                  f"{r['solves_mean']:.2f}, {r['solves_max']} | {r['time']:.3f} | {setting} | {r['cheapest_time']:.3f} | {cost} |")
+        md.append(
+            f"| {r['body']} | {r['solver']} | {r['eps']:.0e} | {100 * r['met']:.1f}% | {r['success_above_eps']} | "
+            f"{r['solves_mean']:.2f}, {r['solves_max']} | {r['time']:.3f} | {setting} | {r['cheapest_time']:.3f} | {cost} |"
+        )
     write_results(OUT, "error_estimate", {"machine": info, "estimate": rows_est, "target": rows_target}, md)
     print("\n".join(md))
 

@@ -50,17 +50,20 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import optimistix as optx  # noqa: E402
+import peers  # noqa: E402
+from common import cli, git_commit, interp_time, machine_info, series_table, timed, write_results  # noqa: E402
 from scipy.integrate import quad  # noqa: E402
 
 import lierk  # noqa: E402
-import peers  # noqa: E402
-from common import cli, git_commit, interp_time, machine_info, series_table, timed, write_results  # noqa: E402
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import lagrange  # noqa: E402
 
-QUICK, OUT = cli(__doc__, "tiny run (4 bodies, two settings per program, no repeats) to check the script works",
-                 __name__ == "__main__")
+QUICK, OUT = cli(
+    __doc__,
+    "tiny run (4 bodies, two settings per program, no repeats) to check the script works",
+    __name__ == "__main__",
+)
 
 N = 4 if QUICK else 256
 SEED = 0
@@ -101,8 +104,17 @@ def family():
         theta_c[i] = 0.5 * (q.theta_min + q.theta_max)
         d, c3 = q.u2 - q.u1, 2 * q.I1 * q.mgl
         s_c = math.asin(math.sqrt((math.cos(theta_c[i]) - q.u1) / d))
-        t_c[i] = 2 * q.I1 * quad(lambda s: 1 / math.sqrt(c3 * (q.u3 - q.u1 - d * math.sin(s) ** 2)), s_c, math.pi / 2,
-                                 epsabs=0.0, epsrel=1e-13)[0]
+        t_c[i] = (
+            2
+            * q.I1
+            * quad(
+                lambda s: 1 / math.sqrt(c3 * (q.u3 - q.u1 - d * math.sin(s) ** 2)),
+                s_c,
+                math.pi / 2,
+                epsabs=0.0,
+                epsrel=1e-13,
+            )[0]
+        )
     return omega0, R0, theta_c, t_c
 
 
@@ -127,8 +139,9 @@ def diffrax_fn(solver):
     def one(w, R0, theta_c, tol):
         # R_zz, the cosine of the symmetry axis's tilt, is y[11] (R row-major).
         event = diffrax.Event(lambda t, y, args, **kw: jnp.cos(theta_c) - y[11], root_finder, direction=True)
-        sol = peers.diffrax_solution(field, solver, T_MAX, peers.initial_state(INERTIA, w, R0), rtol=tol,
-                                     max_steps=MAX_STEPS, event=event)
+        sol = peers.diffrax_solution(
+            field, solver, T_MAX, peers.initial_state(INERTIA, w, R0), rtol=tol, max_steps=MAX_STEPS, event=event
+        )
         return sol.ts[-1], sol.stats["num_steps"], sol.result != diffrax.RESULTS.event_occurred
 
     return jax.jit(jax.vmap(one, in_axes=(0, 0, 0, None)))
@@ -154,24 +167,52 @@ def main():
             (t_event, steps, missed), seconds, first = timed(fn, *args, p, repeats=REPEATS, min_time=MIN_TIME)
             missed = int(np.sum(np.asarray(missed)))
             err = float(np.max(np.abs(np.asarray(t_event) - t_c))) if not missed else float("inf")
-            records.append(dict(method=method, kind=kind, param=p, error=err, time_s=seconds, first_call_s=first,
-                                mean_steps=float(np.mean(np.asarray(steps))), missed=missed))
-            print(f"  {method:15s} {kind} {p:.0e}: event time error {err:.2e} s, {seconds * 1e3:.2f} ms, "
-                  f"{records[-1]['mean_steps']:.0f} steps" + (f", {missed} members without the event" if missed else ""))
+            records.append(
+                dict(
+                    method=method,
+                    kind=kind,
+                    param=p,
+                    error=err,
+                    time_s=seconds,
+                    first_call_s=first,
+                    mean_steps=float(np.mean(np.asarray(steps))),
+                    missed=missed,
+                )
+            )
+            print(
+                f"  {method:15s} {kind} {p:.0e}: event time error {err:.2e} s, {seconds * 1e3:.2f} ms, "
+                f"{records[-1]['mean_steps']:.0f} steps" + (f", {missed} members without the event" if missed else "")
+            )
     ratios = []
     for level in LEVELS:
         best = {}
         for prog in ("lierk", "diffrax"):
-            hits = [interp_time([(r["error"], r["time_s"]) for r in records if r["method"] == m], level)
-                    for m in dict.fromkeys(r["method"] for r in records) if m.startswith(prog)]
+            hits = [
+                interp_time([(r["error"], r["time_s"]) for r in records if r["method"] == m], level)
+                for m in dict.fromkeys(r["method"] for r in records)
+                if m.startswith(prog)
+            ]
             hits = [h for h in hits if h is not None]
             best[prog] = min(hits, key=lambda h: h[0]) if hits else None
         if best["lierk"] and best["diffrax"]:
-            ratios.append(dict(level=level, lierk_s=best["lierk"][0], diffrax_s=best["diffrax"][0],
-                               ratio=best["lierk"][0] / best["diffrax"][0],
-                               clamped=best["lierk"][1] or best["diffrax"][1]))
-    result = dict(machine=machine_info(diffrax=diffrax.__version__, optimistix=optx.__version__), commit=git_commit(),
-                  n=N, quick=QUICK, records=records, ratios=ratios, t_c_range=[float(t_c.min()), float(t_c.max())])
+            ratios.append(
+                dict(
+                    level=level,
+                    lierk_s=best["lierk"][0],
+                    diffrax_s=best["diffrax"][0],
+                    ratio=best["lierk"][0] / best["diffrax"][0],
+                    clamped=best["lierk"][1] or best["diffrax"][1],
+                )
+            )
+    result = dict(
+        machine=machine_info(diffrax=diffrax.__version__, optimistix=optx.__version__),
+        commit=git_commit(),
+        n=N,
+        quick=QUICK,
+        records=records,
+        ratios=ratios,
+        t_c_range=[float(t_c.min()), float(t_c.max())],
+    )
     lines = [
         "# Event times against cost (`benchmarks/events.py`)",
         "",
@@ -185,8 +226,10 @@ def main():
         "",
         "| event-time error <= | lierk best (s) | diffrax best (s) | lierk / diffrax |",
         "|---|---:|---:|---:|",
-        *[f"| {r['level']:.0e} | {r['lierk_s']:.3g} | {r['diffrax_s']:.3g} | {r['ratio']:.2f}{' *' if r['clamped'] else ''} |"
-          for r in ratios],
+        *[
+            f"| {r['level']:.0e} | {r['lierk_s']:.3g} | {r['diffrax_s']:.3g} | {r['ratio']:.2f}{' *' if r['clamped'] else ''} |"
+            for r in ratios
+        ],
         "",
         "(* a program's cheapest setting is already below the level: the ratio is an upper bound on its time.)",
     ]

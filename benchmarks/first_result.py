@@ -73,7 +73,12 @@ import time
 
 BODIES = ("free", "top", "spacecraft")
 # name: (fixed, diffrax peer)
-SOLVERS = {"RKMK4": (True, "Tsit5"), "RKMK(DOP853)": (True, "Dopri8"), "DP54": (False, "Dopri5"), "DOP853": (False, "Dopri8")}
+SOLVERS = {
+    "RKMK4": (True, "Tsit5"),
+    "RKMK(DOP853)": (True, "Dopri8"),
+    "DP54": (False, "Dopri5"),
+    "DOP853": (False, "Dopri8"),
+}
 WORKS = ("solve", "call", "jacfwd", "eager", "sensitivity", "steady")
 STEPS, RTOL, BATCH, CALLS = 100, 1e-8, 64, 20
 QUICK = (("top", "DOP853"),)
@@ -82,7 +87,6 @@ QUICK = (("top", "DOP853"),)
 def _setup(body: str):
     """``(inertia, omega0, T, lierk effects factory, peer torque)`` of a problem."""
     import numpy as np
-
     import peers
 
     if body in ("free", "top"):
@@ -126,8 +130,11 @@ def _function(body: str, solver_name: str, peer: str, compact: bool | None):
         import lierk
 
         solver = {"RKMK4": lierk.RKMK4, "DP54": lierk.DP54, "DOP853": lierk.DOP853}.get(solver_name)
-        solver = lierk.RKMK(lierk.tableaux.DOP853, compact=compact) if solver is None else (
-            solver() if compact is None else solver(compact=compact))
+        solver = (
+            lierk.RKMK(lierk.tableaux.DOP853, compact=compact)
+            if solver is None
+            else (solver() if compact is None else solver(compact=compact))
+        )
 
         def f(w, s):
             problem = lierk.RigidBodyWithEffects(inertia, w, effects=effects())
@@ -180,10 +187,16 @@ def run_cell(cell: dict) -> dict:
         inertia = _setup(body)[0]
         kw = dict(dt=T / STEPS, max_steps=STEPS) if fixed else dict(rtol=RTOL, atol=RTOL)
         t = time.perf_counter()
-        sens = lierk.sensitivity(lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, T, throw=False, **kw)
+        sens = lierk.sensitivity(
+            lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, T, throw=False, **kw
+        )
         jax.block_until_ready(sens.jacobian)
-        out.update(first=time.perf_counter() - t, method=lierk.sensitivity_method(
-            lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, method="derivative"))
+        out.update(
+            first=time.perf_counter() - t,
+            method=lierk.sensitivity_method(
+                lierk.RigidBodyWithEffects(inertia, omega0, effects=effects()), solver, method="derivative"
+            ),
+        )
         return out
     if work == "call":
         inertia, _, _, _, torque = _setup(body)
@@ -291,13 +304,17 @@ def main(argv=None):
     def extra(parser):
         parser.add_argument("--repeats", type=int, default=None, help="fresh processes per cell (default 3; --quick 1)")
         parser.add_argument("--one", default=None, help=argparse.SUPPRESS)
-        parser.add_argument("--works", default=None,
-                            help=f"comma-separated subset of {','.join(WORKS)}; writes first_result-<works>.{{json,md}}")
+        parser.add_argument(
+            "--works",
+            default=None,
+            help=f"comma-separated subset of {','.join(WORKS)}; writes first_result-<works>.{{json,md}}",
+        )
         parser.add_argument("--bodies", default=None, help=f"comma-separated subset of {','.join(BODIES)}")
         parser.add_argument("--solvers", default=None, help=f"comma-separated subset of {','.join(SOLVERS)}")
 
-    quick, out, args = common.cli(__doc__, "the heavy top with DOP853, one repeat, into a temp dir", extra=extra,
-                                  argv=argv)
+    quick, out, args = common.cli(
+        __doc__, "the heavy top with DOP853, one repeat, into a temp dir", extra=extra, argv=argv
+    )
     if args.one:
         print(json.dumps(run_cell(json.loads(args.one))))
         return
@@ -316,8 +333,14 @@ def main(argv=None):
                 raise SystemExit(f"unknown {', '.join(unknown)}; choose from {', '.join(known)}")
             pairs = [p for p in pairs if p[i] in chosen]
 
-    meta = {"machine": common.machine_info(), "commit": common.git_commit(), "repeats": repeats, "steps": STEPS,
-            "rtol": RTOL, "batch": BATCH}
+    meta = {
+        "machine": common.machine_info(),
+        "commit": common.git_commit(),
+        "repeats": repeats,
+        "steps": STEPS,
+        "rtol": RTOL,
+        "batch": BATCH,
+    }
     rows = []
     todo = len(list(cells(pairs, works)))
     meta.update(cells=todo, measured=0)
@@ -338,8 +361,10 @@ def main(argv=None):
             rows.append(row)
             value = row.get("first", row.get("steady"))
             compact = "" if cell["compact"] is None else f"compact={cell['compact']}"
-            print(f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s} {compact:13s} {value:8.3f} s",
-                  flush=True)
+            print(
+                f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s} {compact:13s} {value:8.3f} s",
+                flush=True,
+            )
         # After every comparison: a run stopped part-way (a time limit on a
         # lent machine) keeps what it measured, and says how much that is.
         meta["measured"] = len(rows)
@@ -393,8 +418,11 @@ def markdown(meta, rows) -> list[str]:
         f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "
         f"average at start {tuple(round(x, 1) for x in m['load_average_at_start'])}, at end "
         f"{tuple(round(x, 1) for x in m['load_average_at_end'])}."
-        + ("" if meta.get("measured") == meta.get("cells") else
-           f"  Stopped part-way: {meta['measured']} of {meta['cells']} cells measured."),
+        + (
+            ""
+            if meta.get("measured") == meta.get("cells")
+            else f"  Stopped part-way: {meta['measured']} of {meta['cells']} cells measured."
+        ),
         "",
         "## First solve and first Jacobian",
         "",
@@ -403,48 +431,71 @@ def markdown(meta, rows) -> list[str]:
     ]
     for body in BODIES:
         for solver, (_, peer) in SOLVERS.items():
+
             def compared(work, label, target):
                 """The row of ``work`` (lierk beside diffrax), if both were
                 measured: split into its parts where it was; diffrax's cell."""
                 a = _find(rows, body=body, solver=solver, work=work, peer="lierk", compact=None)
                 b = _find(rows, body=body, solver=solver, work=work, peer="diffrax")
                 if a is not None and b is not None:
-                    cells = (f"{_first(a)} | {a['size']} | {_first(b)} | {b['size']}" if "trace" in a
-                             else f"{a['first']:.2f} | | {b['first']:.2f} |")
+                    cells = (
+                        f"{_first(a)} | {a['size']} | {_first(b)} | {b['size']}"
+                        if "trace" in a
+                        else f"{a['first']:.2f} | | {b['first']:.2f} |"
+                    )
                     lines.append(f"| {body} | {solver} vs {peer} | {label} | {cells} | {_verdict(a, b, target)} |")
                 return b
 
             b = compared("solve", "solve", 1.5)
             c = _find(rows, body=body, solver=solver, work="solve", peer="lierk", compact=False)
             if c is not None and b is not None:
-                lines.append(f"| {body} | {solver} `compact=False` | solve | {_first(c)} | {c['size']} | | | "
-                             f"{_verdict(c, b, 1.5)} |")
+                lines.append(
+                    f"| {body} | {solver} `compact=False` | solve | {_first(c)} | {c['size']} | | | "
+                    f"{_verdict(c, b, 1.5)} |"
+                )
             compared("call", "`lierk.solve` from Python", 1.5)
             b = compared("jacfwd", "jacfwd", 2.0)
             compared("eager", "eager `jax.jacfwd`", 2.0)
             s = _find(rows, body=body, solver=solver, work="sensitivity", peer="lierk")
             if s is not None and b is not None:
-                lines.append(f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
-                             f"| {s['first']:.2f} | | | | {_verdict(s, b, 2.0)} |")
+                lines.append(
+                    f"| {body} | {solver} | `lierk.sensitivity` ({s['method']}, with its error estimate) "
+                    f"| {s['first']:.2f} | | | | {_verdict(s, b, 2.0)} |"
+                )
     if any("call_steady" in r for r in rows):
-        lines += ["", "## A call from Python once compiled", "",
-                  f"Median of {CALLS} later calls in the same process, each with a new omega0 (the problem or initial "
-                  "state built in the call), ms: the host's work per call and the one-body program's run.", "",
-                  "| problem | solver | `lierk.solve` (ms) | `diffeqsolve` (ms) | lierk / diffrax |",
-                  "|---|---|---:|---:|---:|"]
+        lines += [
+            "",
+            "## A call from Python once compiled",
+            "",
+            f"Median of {CALLS} later calls in the same process, each with a new omega0 (the problem or initial "
+            "state built in the call), ms: the host's work per call and the one-body program's run.",
+            "",
+            "| problem | solver | `lierk.solve` (ms) | `diffeqsolve` (ms) | lierk / diffrax |",
+            "|---|---|---:|---:|---:|",
+        ]
         lines += _ms_rows(rows, "call", "call_steady")
     if any("one_steady" in r for r in rows):
-        lines += ["", "## One body inside `jax.jit`, once compiled", "",
-                  f"The `solve` cells' compiled programs: median of {CALLS} later calls, each with a new omega0, ms "
-                  "(the run's time and JAX's dispatch).", "",
-                  "| problem | solver | lierk (ms) | lierk `compact=False` (ms) | diffrax (ms) | lierk / diffrax | "
-                  "`compact=False` / diffrax |", "|---|---|---:|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "## One body inside `jax.jit`, once compiled",
+            "",
+            f"The `solve` cells' compiled programs: median of {CALLS} later calls, each with a new omega0, ms "
+            "(the run's time and JAX's dispatch).",
+            "",
+            "| problem | solver | lierk (ms) | lierk `compact=False` (ms) | diffrax (ms) | lierk / diffrax | "
+            "`compact=False` / diffrax |",
+            "|---|---|---:|---:|---:|---:|---:|",
+        ]
         lines += _ms_rows(rows, "solve", "one_steady", compact=False, digits=3)
     if not any(r["work"] == "steady" for r in rows):
         return lines
-    lines += ["", "## Steady state (after compilation)", "",
-              f"| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
-              "|---|---|---:|---:|---:|---:|---:|"]
+    lines += [
+        "",
+        "## Steady state (after compilation)",
+        "",
+        "| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
+        "|---|---|---:|---:|---:|---:|---:|",
+    ]
     lines += _ms_rows(rows, "steady", "steady", compact=True)
     return lines
 

@@ -39,7 +39,6 @@ from __future__ import annotations
 import os
 import platform
 import time
-from pathlib import Path
 
 import jax
 
@@ -47,10 +46,10 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from common import cli, cpu_model, max_err, near_axis, timed, write_results  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-from common import cli, cpu_model, max_err, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
@@ -124,7 +123,9 @@ def main():
         for fname, problem in FORMULATIONS.items()
         for key, solver, dt in FIXED
     }
-    fns.update({(fname, ADAPTIVE_KEY): adaptive_fn(problem, lierk.DOP853(), T) for fname, problem in FORMULATIONS.items()})
+    fns.update(
+        {(fname, ADAPTIVE_KEY): adaptive_fn(problem, lierk.DOP853(), T) for fname, problem in FORMULATIONS.items()}
+    )
 
     bodies = []
     for bname, inertia in BODIES.items():
@@ -150,7 +151,9 @@ def main():
                     "first_call_s": first,
                     "body_steps_per_s": N * lierk.num_steps(0.0, T, dt) / s,
                 }
-            (R, steps, result), s, first = timed(fns[(fname, ADAPTIVE_KEY)], inertia, omegas, DOP853_TOL, repeats=REPEATS)
+            (R, steps, result), s, first = timed(
+                fns[(fname, ADAPTIVE_KEY)], inertia, omegas, DOP853_TOL, repeats=REPEATS
+            )
             res[ADAPTIVE_KEY] = {
                 "error": max_err(R, R_ref),
                 "time_s": s,
@@ -175,13 +178,21 @@ def main():
     inertia = jnp.asarray(lierk.inertia.tee_handle(), jnp.float64)
     w0 = jnp.asarray([LONG_OMEGA0])
     R_ref = exact_final(inertia, w0, LONG_T)
-    long = {"omega0": LONG_OMEGA0, "T": LONG_T, "dt": LONG_DT, "steps": lierk.num_steps(0.0, LONG_T, LONG_DT),
-            "formulations": {}}
+    long = {
+        "omega0": LONG_OMEGA0,
+        "T": LONG_T,
+        "dt": LONG_DT,
+        "steps": lierk.num_steps(0.0, LONG_T, LONG_DT),
+        "formulations": {},
+    }
     for fname, problem in FORMULATIONS.items():
         R, s, first = timed(fixed_fn(problem, lierk.RKMK4(), LONG_DT, LONG_T), inertia, w0, repeats=REPEATS)
         long["formulations"][fname] = {"error": max_err(R, R_ref), "time_s": s, "first_call_s": first}
-        print(f"long horizon {fname:21s} error at t = {LONG_T:g}: {long['formulations'][fname]['error']:.2e}  "
-              f"time {s:.3f} s", flush=True)
+        print(
+            f"long horizon {fname:21s} error at t = {LONG_T:g}: {long['formulations'][fname]['error']:.2e}  "
+            f"time {s:.3f} s",
+            flush=True,
+        )
     long["error_ratio_spatial_over_free"] = (
         long["formulations"]["SpatialFreeRigidBody"]["error"] / long["formulations"]["FreeRigidBody"]["error"]
     )
@@ -236,7 +247,8 @@ def markdown(p) -> list[str]:
         "",
         "## Max error at T, time of DOP853, throughput of RKMK4",
         "",
-        "| body | formulation | " + " | ".join(f"{k} error" for k in keys)
+        "| body | formulation | "
+        + " | ".join(f"{k} error" for k in keys)
         + f" | {ADAPTIVE_KEY} time (s) | DOP853 max steps | {THROUGHPUT_KEY} body-steps/s |",
         "|---|---|" + "---:|" * (len(keys) + 3),
     ]
@@ -244,7 +256,8 @@ def markdown(p) -> list[str]:
         for fname, res in b["formulations"].items():
             a = res[ADAPTIVE_KEY]
             lines.append(
-                f"| {b['body']} | {fname} | " + " | ".join(f"{res[k]['error']:.2e}" for k in keys)
+                f"| {b['body']} | {fname} | "
+                + " | ".join(f"{res[k]['error']:.2e}" for k in keys)
                 + f" | {a['time_s']:.4f} | {a['max_steps']} | {res[THROUGHPUT_KEY]['body_steps_per_s']:.2e} |"
             )
     lines += [

@@ -148,17 +148,28 @@ def run_cell(results: dict, name: str, fn, want) -> None:
         rec = fn()
     except Missing as e:
         rec = {"na": f"needs {e}"}
-    except Exception as e:  # noqa: BLE001: reported in the cell, the run goes on
+    except Exception as e:  # reported in the cell, the run goes on
         traceback.print_exc()
         first = (str(e).strip().splitlines() or [""])[0]
         rec = {"failed": f"{type(e).__name__}: {first}"[:300]}
     # wall_s: the whole cell, compilation and references included (where a run's time goes)
-    rec = {"time": None, "error": None, "unit": "s", "extra": {}, **rec, "what": CELLS[name][1],
-           "wall_s": time.perf_counter() - start}
+    rec = {
+        "time": None,
+        "error": None,
+        "unit": "s",
+        "extra": {},
+        **rec,
+        "what": CELLS[name][1],
+        "wall_s": time.perf_counter() - start,
+    }
     results[name] = rec
     shown = "n/a" if "na" in rec else "FAILED" if "failed" in rec else f"{rec['time']:.4g} s"
-    print(f"    {shown}" + ("" if rec["error"] is None else f", error {rec['error']:.3g}")
-          + f" (cell {rec['wall_s']:.1f} s)", flush=True)
+    print(
+        f"    {shown}"
+        + ("" if rec["error"] is None else f", error {rec['error']:.3g}")
+        + f" (cell {rec['wall_s']:.1f} s)",
+        flush=True,
+    )
 
 
 # --- the groups -------------------------------------------------------------------
@@ -212,8 +223,12 @@ def heavy_tops(n: int):
 def heavy_top(lierk, w, R0):
     import numpy as np
 
-    return lierk.RigidBodyWithEffects(np.asarray(HEAVY["moments"]), w, R0, effects=(
-        lierk.Gravity(np.asarray(HEAVY["chi"]), HEAVY["mass"], HEAVY["g"]),))
+    return lierk.RigidBodyWithEffects(
+        np.asarray(HEAVY["moments"]),
+        w,
+        R0,
+        effects=(lierk.Gravity(np.asarray(HEAVY["chi"]), HEAVY["mass"], HEAVY["g"]),),
+    )
 
 
 def final_R(problem_of, solver, T: float, control: dict, event=None):
@@ -251,8 +266,10 @@ def free_group(run: Run) -> None:
     N, T = (4, 4.0) if run.quick else (256, 10.0)
     inertia, W, axis = tee(N)
     W = jnp.asarray(W)
-    settings = {"rkmk4": (lambda: lierk.RKMK4(), control(T, dt=0.01)),
-                "dop853": (lambda: lierk.DOP853(), control(T, rtol=1e-10))}
+    settings = {
+        "rkmk4": (lambda: lierk.RKMK4(), control(T, dt=0.01)),
+        "dop853": (lambda: lierk.DOP853(), control(T, rtol=1e-10)),
+    }
     body = lambda w, R0=None: lierk.FreeRigidBody(inertia, w)  # noqa: E731
 
     def reference():
@@ -269,8 +286,9 @@ def free_group(run: Run) -> None:
         if "t" not in ref:
             need(lierk, "exact.free_rigid_body")
             G = 1001
-            m2 = jax.jit(jax.vmap(jax.vmap(lambda w, t: lierk.exact.free_rigid_body(inertia, w, t)[1][axis],
-                                           in_axes=(None, 0))))
+            m2 = jax.jit(
+                jax.vmap(jax.vmap(lambda w, t: lierk.exact.free_rigid_body(inertia, w, t)[1][axis], in_axes=(None, 0)))
+            )
             lo, hi = np.zeros(N), np.full(N, T)
             found = np.ones(N, bool)
             for it in range(4):
@@ -286,6 +304,7 @@ def free_group(run: Run) -> None:
 
     ref = {}
     for key, (make, ctrl) in settings.items():
+
         def measure(make=make, ctrl=ctrl):
             need(lierk, "solve", "FreeRigidBody", "RKMK4", "DOP853")
             R, seconds = run.timed(jax.jit(jax.vmap(final_R(body, make(), T, ctrl))), W)
@@ -315,9 +334,9 @@ def top_group(run: Run) -> None:
     import jax
     import jax.numpy as jnp
     import numpy as np
+    import peers
 
     import lierk
-    import peers
 
     N, T = (4, 0.1) if run.quick else (128, 2.0)
     W, R0 = (jnp.asarray(x) for x in heavy_tops(N))
@@ -335,8 +354,11 @@ def top_group(run: Run) -> None:
             ref["R"] = np.asarray(jax.jit(jax.vmap(one))(W, R0))
         return ref["R"]
 
-    for key, make, ctrl in [("dop853", lambda: lierk.DOP853(), control(T, rtol=1e-8)),
-                            ("rkmk_dop853", lambda: lierk.RKMK(lierk.tableaux.DOP853), control(T, dt=5e-3))]:
+    for key, make, ctrl in [
+        ("dop853", lambda: lierk.DOP853(), control(T, rtol=1e-8)),
+        ("rkmk_dop853", lambda: lierk.RKMK(lierk.tableaux.DOP853), control(T, dt=5e-3)),
+    ]:
+
         def measure(make=make, ctrl=ctrl):
             need(lierk, "solve", "RigidBodyWithEffects", "Gravity", "DOP853", "RKMK", "tableaux.DOP853")
             f = final_R(lambda w, R: heavy_top(lierk, w, R), make(), T, ctrl)
@@ -375,8 +397,10 @@ def jac_group(run: Run) -> None:
             ref["J"] = np.asarray(jax.jit(jax.vmap(jax.jacfwd(exact_R)))(W))
         return ref["J"]
 
-    for key, make, ctrl in [("rkmk_dop853", lambda: lierk.RKMK(lierk.tableaux.DOP853), control(T, dt=0.1)),
-                            ("dop853", lambda: lierk.DOP853(), control(T, rtol=1e-8))]:
+    for key, make, ctrl in [
+        ("rkmk_dop853", lambda: lierk.RKMK(lierk.tableaux.DOP853), control(T, dt=0.1)),
+        ("dop853", lambda: lierk.DOP853(), control(T, rtol=1e-8)),
+    ]:
         base = f"jac_{key}"
 
         def solver(make=make):
@@ -396,8 +420,9 @@ def jac_group(run: Run) -> None:
             s = solver()
 
             def one(w):
-                return lierk.sensitivity(body(w), s, T, method="variational", estimate_error=False, throw=False,
-                                         **ctrl).jacobian_R
+                return lierk.sensitivity(
+                    body(w), s, T, method="variational", estimate_error=False, throw=False, **ctrl
+                ).jacobian_R
 
             J, seconds = run.timed(jax.jit(jax.vmap(one)), W)
             return {"time": seconds, "error": relative_error(J, reference())}
@@ -480,8 +505,9 @@ def sweep_group(run: Run) -> None:
 
     def one(w):
         need(lierk, "solve", "FreeRigidBody", "RKMK4")
-        return final_R(lambda w, R0=None: lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), steps * dt,
-                       control(steps * dt, dt=dt))(w)
+        return final_R(
+            lambda w, R0=None: lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), steps * dt, control(steps * dt, dt=dt)
+        )(w)
 
     def held():
         sharding = NamedSharding(Mesh(np.array(jax.devices()), ("batch",)), PartitionSpec("batch"))
@@ -497,12 +523,19 @@ def sweep_group(run: Run) -> None:
     run.cell("sweep_lierk_sweep", sweep)
 
 
-GROUPS = {"first": None, "free": free_group, "top": top_group, "jac": jac_group, "jac_top": jac_top_group,
-          "sweep": sweep_group}
+GROUPS = {
+    "first": None,
+    "free": free_group,
+    "top": top_group,
+    "jac": jac_group,
+    "jac_top": jac_top_group,
+    "sweep": sweep_group,
+}
 
 
 def raising(error: Exception):
     """A cell function that raises ``error`` (its group's setup failed)."""
+
     def fn():
         raise error
 
@@ -518,7 +551,7 @@ def measure(quick: bool, want, xla_flags: str | None) -> dict:
         print(f"{group}:", flush=True)
         try:
             first_group(run, xla_flags) if fn is None else fn(run)
-        except Exception as e:  # noqa: BLE001: the group's setup failed; its cells say so
+        except Exception as e:  # the group's setup failed; its cells say so
             for name in run.want:
                 if CELLS[name][0] == group and name not in run.results:
                     run_cell(run.results, name, raising(e), run.want)
@@ -527,11 +560,16 @@ def measure(quick: bool, want, xla_flags: str | None) -> dict:
 
 def markdown(results: dict) -> list[str]:
     meta = results["_meta"]
-    lines = ["# Headline cells (`benchmarks/headline.py`)", "",
-             f"{meta['machine']['cpu_count']} cores ({meta['machine']['cpu']}), "
-             f"{common.backend_text(meta['machine'])}, jax {meta['machine']['jax']}; lierk from {meta['lierk_commit']}. "
-             "Median wall time after compilation and a warm-up call; the first_* cells are one fresh process each.", "",
-             "| cell | what | time | error | more |", "|---|---|---:|---:|---|"]
+    lines = [
+        "# Headline cells (`benchmarks/headline.py`)",
+        "",
+        f"{meta['machine']['cpu_count']} cores ({meta['machine']['cpu']}), "
+        f"{common.backend_text(meta['machine'])}, jax {meta['machine']['jax']}; lierk from {meta['lierk_commit']}. "
+        "Median wall time after compilation and a warm-up call; the first_* cells are one fresh process each.",
+        "",
+        "| cell | what | time | error | more |",
+        "|---|---|---:|---:|---|",
+    ]
     for name, rec in results.items():
         if name == "_meta":
             continue
@@ -545,11 +583,17 @@ def markdown(results: dict) -> list[str]:
 def main(argv=None) -> int:
     def extra(parser):
         parser.add_argument("--json", default=None, help="write the cells' JSON to this file (nothing else is written)")
-        parser.add_argument("--cells", nargs="*", default=None, metavar="NAME",
-                            help=f"cells or prefixes of cells (default: all): {', '.join(CELLS)}")
+        parser.add_argument(
+            "--cells",
+            nargs="*",
+            default=None,
+            metavar="NAME",
+            help=f"cells or prefixes of cells (default: all): {', '.join(CELLS)}",
+        )
 
-    quick, out, args = common.cli(__doc__, "tiny sizes (4 bodies, short times) to check the script works",
-                                  extra=extra, argv=argv)
+    quick, out, args = common.cli(
+        __doc__, "tiny sizes (4 bodies, short times) to check the script works", extra=extra, argv=argv
+    )
     want = select(args.cells)
     xla_flags = os.environ.get("XLA_FLAGS")
     import host_devices
@@ -562,9 +606,13 @@ def main(argv=None) -> int:
 
     print(f"lierk from {lierk.__file__}", flush=True)
     results = measure(quick, want, xla_flags)
-    results["_meta"] = {"machine": common.machine_info(), "lierk": str(Path(lierk.__file__).resolve().parent),
-                        "lierk_commit": common.git_commit(Path(lierk.__file__).resolve().parent.parent), "quick": quick,
-                        "cells": want}
+    results["_meta"] = {
+        "machine": common.machine_info(),
+        "lierk": str(Path(lierk.__file__).resolve().parent),
+        "lierk_commit": common.git_commit(Path(lierk.__file__).resolve().parent.parent),
+        "quick": quick,
+        "cells": want,
+    }
     if args.json:
         Path(args.json).write_text(json.dumps(results, indent=1, default=float) + "\n")
         print(f"wrote {args.json}")

@@ -12,5 +12,7 @@ def split(devices: int | None = None) -> int:
     ``XLA_FLAGS``; returns the count asked for."""
     n = devices or os.cpu_count() or 1
     if n > 1:
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={n}").strip()
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={n}"
+        ).strip()
     return n

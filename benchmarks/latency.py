@@ -67,8 +67,8 @@ def one(argv: list[str]) -> dict:
     from contextlib import redirect_stderr, redirect_stdout
 
     begin = time.perf_counter()
-    import lierk.app.cli
     import lierk  # noqa: F401  (the package: what a command imports before it runs)
+    import lierk.app.cli
 
     imported = time.perf_counter()
     import jax
@@ -76,15 +76,23 @@ def one(argv: list[str]) -> dict:
     from lierk.app.compilations import counting
 
     hits = []
-    jax.monitoring.register_event_listener(lambda event, **_: hits.append(event) if event.endswith("/cache_hits") else None)
+    jax.monitoring.register_event_listener(
+        lambda event, **_: hits.append(event) if event.endswith("/cache_hits") else None
+    )
     out, err = io.StringIO(), io.StringIO()
     with counting() as c, redirect_stdout(out), redirect_stderr(err):
         code = lierk.app.cli.main([*argv, "--quiet"])
     done = time.perf_counter()
     if code != 0:
         raise RuntimeError(f"lierk {' '.join(argv)} exited with {code}: {err.getvalue()[-2000:]}")
-    return dict(start=begin - _STARTED, import_=imported - begin, compile=c.seconds, run=done - imported - c.seconds,
-                programs=c.count, loaded=len(hits))
+    return dict(
+        start=begin - _STARTED,
+        import_=imported - begin,
+        compile=c.seconds,
+        run=done - imported - c.seconds,
+        programs=c.count,
+        loaded=len(hits),
+    )
 
 
 def _env(cache: Path | None) -> dict:
@@ -101,8 +109,12 @@ def run(argv: list[str], cache: Path | None, out: Path) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     extra = ["--no-cache"] if cache is None else []
     start = time.perf_counter()
-    p = subprocess.run([sys.executable, __file__, "--one", json.dumps([*argv, "--out", str(out), *extra])],
-                       env=_env(cache), capture_output=True, text=True)
+    p = subprocess.run(
+        [sys.executable, __file__, "--one", json.dumps([*argv, "--out", str(out), *extra])],
+        env=_env(cache),
+        capture_output=True,
+        text=True,
+    )
     wall = time.perf_counter() - start
     if p.returncode != 0:
         raise RuntimeError(f"{argv} failed: {p.stderr[-2000:]}")
@@ -121,8 +133,9 @@ def main(argv=None):
         parser.add_argument("--md", action="store_true", help="only rewrite latency.md from latency.json")
         parser.add_argument("--one", help=argparse.SUPPRESS)
 
-    quick, results, args = common.cli(__doc__, "one repeat of two short commands, into a temp dir", extra=extra,
-                                      argv=argv)
+    quick, results, args = common.cli(
+        __doc__, "one repeat of two short commands, into a temp dir", extra=extra, argv=argv
+    )
     if args.one:
         print(json.dumps(one(json.loads(args.one))))
         return
@@ -153,9 +166,17 @@ def main(argv=None):
 
     import lierk
 
-    meta = dict(machine=dict(cpu_count=os.cpu_count(), jax=jax.__version__, lierk=lierk.__version__,
-                             load_average_at_start=start_load, load_average_at_end=os.getloadavg()),
-                repeats=repeats, quick=quick)
+    meta = dict(
+        machine=dict(
+            cpu_count=os.cpu_count(),
+            jax=jax.__version__,
+            lierk=lierk.__version__,
+            load_average_at_start=start_load,
+            load_average_at_end=os.getloadavg(),
+        ),
+        repeats=repeats,
+        quick=quick,
+    )
     common.write_results(results, "latency", dict(meta=meta, rows=rows), markdown(meta, rows))
 
 

@@ -66,25 +66,37 @@ import jax.numpy as jnp  # noqa: E402
 import matplotlib  # noqa: E402
 
 matplotlib.use("Agg")
+import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-import common  # noqa: E402  (benchmarks/common.py: this folder is on sys.path)
 import lierk  # noqa: E402
 
 
 def _options(parser):
-    parser.add_argument("--part", choices=("free", "heavy_top", "brouwer", "brouwer-md", "all"), default="all",
-                        help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*); "
-                        "brouwer: the energy's rounding walk over draws (long_horizon_brouwer.*)")
-    parser.add_argument("--brouwer-T", type=float, default=None,
-                        help="horizon of the brouwer part (s; default 1000, --quick 10); dt is 1e-3")
-    parser.add_argument("--brouwer-bodies", default=None,
-                        help="comma-separated body keys to rerun in the brouwer part, keeping the other stored rows")
+    parser.add_argument(
+        "--part",
+        choices=("free", "heavy_top", "brouwer", "brouwer-md", "all"),
+        default="all",
+        help="free: the T-handle (long_horizon.*); heavy_top: the heavy tops (long_horizon_top.*); "
+        "brouwer: the energy's rounding walk over draws (long_horizon_brouwer.*)",
+    )
+    parser.add_argument(
+        "--brouwer-T",
+        type=float,
+        default=None,
+        help="horizon of the brouwer part (s; default 1000, --quick 10); dt is 1e-3",
+    )
+    parser.add_argument(
+        "--brouwer-bodies",
+        default=None,
+        help="comma-separated body keys to rerun in the brouwer part, keeping the other stored rows",
+    )
 
 
-QUICK, OUT, ARGS = common.cli(__doc__, "horizons of 20 s (heavy tops 40 s, brouwer 10 s), into a temp dir",
-                              __name__ == "__main__", extra=_options)
+QUICK, OUT, ARGS = common.cli(
+    __doc__, "horizons of 20 s (heavy tops 40 s, brouwer 10 s), into a temp dir", __name__ == "__main__", extra=_options
+)
 T = 20.0 if QUICK else 1000.0
 DT = 0.01
 SAVE_EVERY = 10
@@ -131,7 +143,9 @@ def run_free(out: Path):
         runs.append((name, sol, time.perf_counter() - start, int(sol.stats["num_steps"])))
     for name, solver, rtol in ADAPTIVE:
         start = time.perf_counter()
-        sol = lierk.solve(problem, solver, T, rtol=rtol, saveat=lierk.SaveAt(ts=TS_ADAPTIVE), max_steps=400_000, throw=False)
+        sol = lierk.solve(
+            problem, solver, T, rtol=rtol, saveat=lierk.SaveAt(ts=TS_ADAPTIVE), max_steps=400_000, throw=False
+        )
         sol.R.block_until_ready()
         runs.append((name, sol, time.perf_counter() - start, int(sol.stats["num_steps"])))
 
@@ -182,7 +196,9 @@ def run_free(out: Path):
     for pw, style in ((1, ":"), (2, "--")):
         axes[0].loglog(tt, 1e-10 * (tt / FIT_FROM) ** pw, "k" + style, lw=0.8, label=f"~ t^{pw}")
     axes[0].legend(fontsize=7)
-    fig.suptitle(f"T-handle, omega0 = {tuple(OMEGA0.tolist())} rad/s; fixed h = {DT} s; fit of error ~ t^p over t >= {FIT_FROM:g} s")
+    fig.suptitle(
+        f"T-handle, omega0 = {tuple(OMEGA0.tolist())} rad/s; fixed h = {DT} s; fit of error ~ t^p over t >= {FIT_FROM:g} s"
+    )
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
     fig.savefig(out / "long_horizon.png", dpi=110)
@@ -328,12 +344,21 @@ def rounding_walk(problem, scheme, R, m, dt, steps):
     RL, mL = np.asarray(R, LD), np.asarray(m, LD)
     k = []
     for a in scheme.a:
-        tau = sum(LD(float(e.mass)) * LD(float(e.g)) * np.cross(RL[:, 2, :], np.asarray(e.pivot_to_com, LD)) for e in problem.effects)
+        tau = sum(
+            LD(float(e.mass)) * LD(float(e.g)) * np.cross(RL[:, 2, :], np.asarray(e.pivot_to_com, LD))
+            for e in problem.effects
+        )
         exact_kick = mL + LD(a * dt) * tau
         k.append(np.asarray((T(kick(R, m, a * dt)) - T(exact_kick)) / E0, float))
     s_d, s_k = float(np.std(np.concatenate(d))), float(np.std(np.concatenate(k)))
     walk = float(np.sqrt(steps * (len(scheme.b) * s_d**2 + len(scheme.a) * s_k**2)))
-    return dict(per_drift_std=s_d, per_kick_std=s_k, drifts_per_step=len(scheme.b), kicks_per_step=len(scheme.a), predicted_walk=walk)
+    return dict(
+        per_drift_std=s_d,
+        per_kick_std=s_k,
+        drifts_per_step=len(scheme.b),
+        kicks_per_step=len(scheme.a),
+        predicted_walk=walk,
+    )
 
 
 def run_top_method(problem, label, solver, dt, rtol):
@@ -394,9 +419,15 @@ def run_heavy_top(out: Path):
             style = "--" if dt is None else ("-." if dt != TOP_DT else "-")
             axes[row, 0].semilogy(t, np.maximum(dE, 1e-17), style, lw=0.9, label=label)
             axes[row, 1].semilogy(
-                t, np.maximum(np.abs(inv["L_vertical"] - inv0["L_vertical"]) / inv0["|L|"], 1e-17), style, lw=0.9, label=label
+                t,
+                np.maximum(np.abs(inv["L_vertical"] - inv0["L_vertical"]) / inv0["|L|"], 1e-17),
+                style,
+                lw=0.9,
+                label=label,
             )
-        results[key] = dict(title=title, description=description, initial_invariants=inv0, conserved=list(conserved), rows=rows)
+        results[key] = dict(
+            title=title, description=description, initial_invariants=inv0, conserved=list(conserved), rows=rows
+        )
         axes[row, 0].set_title(f"{title}\n|E(t)/E(0) - 1|", fontsize=9)
         axes[row, 1].set_title(f"{title}\n|L_vertical(t) - L_vertical(0)| / |L(0)|", fontsize=9)
         for ax in axes[row]:
@@ -484,7 +515,9 @@ def top_markdown(meta, results) -> list[str]:
             res["description"] + ".  Conserved by the exact flow: " + ", ".join(res["conserved"]) + ".",
             "",
             "| method | steps | E err, first tenth | E err, last tenth | ratio | max E err | E exponent | meets | "
-            "L_vert err: first / last / max" + (" | m_chi err max" if has_mchi else "") + " | max orth. | rounding walk | run (compile) s | µs/step |",
+            "L_vert err: first / last / max"
+            + (" | m_chi err max" if has_mchi else "")
+            + " | max orth. | rounding walk | run (compile) s | µs/step |",
             "|---|---:|---:|---:|---:|---:|---:|:---:|---:|" + ("---:|" if has_mchi else "") + "---:|---:|---:|---:|",
         ]
         for r in res["rows"]:
@@ -522,13 +555,28 @@ def brouwer_bodies():
     tops = {key: (title, problem) for key, title, problem, _ in top_problems()}
     strang, bm4 = lierk.Strang(), lierk.BlanesMoan4()
     return [
-        ("free symmetric", "I = diag(1, 1, 1.8), omega0 = (1, 0.3, 0.1) rad/s (closed-form drift: two rotations)",
-         lierk.RigidBodyWithEffects(np.diag([1.0, 1.0, 1.8]), [1.0, 0.3, 0.1]), strang, BROUWER_DRAWS),
+        (
+            "free symmetric",
+            "I = diag(1, 1, 1.8), omega0 = (1, 0.3, 0.1) rad/s (closed-form drift: two rotations)",
+            lierk.RigidBodyWithEffects(np.diag([1.0, 1.0, 1.8]), [1.0, 0.3, 0.1]),
+            strang,
+            BROUWER_DRAWS,
+        ),
         ("symmetric heavy top", tops["symmetric"][0], tops["symmetric"][1], bm4, BROUWER_DRAWS),
-        ("free T-handle", "lierk.inertia.tee_handle(), omega0 = (1, 0.05, 0.3) rad/s (elliptic drift)",
-         lierk.RigidBodyWithEffects(np.asarray(lierk.inertia.tee_handle()), [1.0, 0.05, 0.3]), strang, BROUWER_DRAWS),
-        ("free near separatrix", "I = diag(1, 2, 3), omega0 = (0.3, 1, 0.2) rad/s, tumbling (elliptic drift)",
-         lierk.RigidBodyWithEffects(np.diag([1.0, 2.0, 3.0]), [0.3, 1.0, 0.2]), strang, BROUWER_DRAWS),
+        (
+            "free T-handle",
+            "lierk.inertia.tee_handle(), omega0 = (1, 0.05, 0.3) rad/s (elliptic drift)",
+            lierk.RigidBodyWithEffects(np.asarray(lierk.inertia.tee_handle()), [1.0, 0.05, 0.3]),
+            strang,
+            BROUWER_DRAWS,
+        ),
+        (
+            "free near separatrix",
+            "I = diag(1, 2, 3), omega0 = (0.3, 1, 0.2) rad/s, tumbling (elliptic drift)",
+            lierk.RigidBodyWithEffects(np.diag([1.0, 2.0, 3.0]), [0.3, 1.0, 0.2]),
+            strang,
+            BROUWER_DRAWS,
+        ),
         ("asymmetric heavy top", tops["asymmetric"][0], tops["asymmetric"][1], bm4, 4),
     ]
 
@@ -652,8 +700,10 @@ def _brouwer_figure(rows, T):
         top = rms[t >= 0.9 * T].max()
         ax.loglog(t, top * np.sqrt(t / T), "k:", lw=0.9, label="~ t^0.5 (random walk)")
         ax.loglog(t, top * t / T, "k--", lw=0.9, label="~ t (drift)")
-        ax.set_title(f"{row['body']}, {row['solver']}, {row['draws']} draws\nRMS last/first tenth {row['rms_ratio']:.2f}",
-                     fontsize=9)
+        ax.set_title(
+            f"{row['body']}, {row['solver']}, {row['draws']} draws\nRMS last/first tenth {row['rms_ratio']:.2f}",
+            fontsize=9,
+        )
         ax.set_xlabel("t (s)")
         ax.set_ylim(1e-17, None)
         ax.grid(True, which="both", alpha=0.3)
@@ -676,7 +726,9 @@ def _write_brouwer(out: Path, rows, machine, T):
     plt.close(fig)
     machine = dict(machine, load_average_at_end=os.getloadavg() if hasattr(os, "getloadavg") else None)
     meta = dict(
-        dt=BROUWER_DT, T=T, omega0_spread=BROUWER_SPREAD,
+        dt=BROUWER_DT,
+        T=T,
+        omega0_spread=BROUWER_SPREAD,
         ratio_limit=BROUWER_RATIO_LIMIT,
         criterion="median over draws of max|E/E0 - 1| over the last tenth / over the first tenth <= 3.5, and "
         "the RMS over draws grows like t^p with p <= 0.75 over [T/10, T]",
@@ -723,8 +775,11 @@ def main():
     if args.part in ("heavy_top", "all"):
         run_heavy_top(out)
     if args.part in ("brouwer", "all"):
-        run_brouwer(out, T=args.brouwer_T or BROUWER_T,
-                    only=tuple(args.brouwer_bodies.split(",")) if args.brouwer_bodies else None)
+        run_brouwer(
+            out,
+            T=args.brouwer_T or BROUWER_T,
+            only=tuple(args.brouwer_bodies.split(",")) if args.brouwer_bodies else None,
+        )
     if args.part == "brouwer-md":
         # Rewrite long_horizon_brouwer.md from its JSON (after a change of wording).
         data = json.loads((out / "long_horizon_brouwer.json").read_text())

@@ -72,9 +72,17 @@ def _helpers(F):
         e01, e10 = b01 - A * u2, b01 + A * u2
         e02, e20 = b02 + A * u1, b02 - A * u1
         e12, e21 = b12 - A * u0, b12 + A * u0
-        return (r00 * e00 + r01 * e10 + r02 * e20, r00 * e01 + r01 * e11 + r02 * e21, r00 * e02 + r01 * e12 + r02 * e22,
-                r10 * e00 + r11 * e10 + r12 * e20, r10 * e01 + r11 * e11 + r12 * e21, r10 * e02 + r11 * e12 + r12 * e22,
-                r20 * e00 + r21 * e10 + r22 * e20, r20 * e01 + r21 * e11 + r22 * e21, r20 * e02 + r21 * e12 + r22 * e22)
+        return (
+            r00 * e00 + r01 * e10 + r02 * e20,
+            r00 * e01 + r01 * e11 + r02 * e21,
+            r00 * e02 + r01 * e12 + r02 * e22,
+            r10 * e00 + r11 * e10 + r12 * e20,
+            r10 * e01 + r11 * e11 + r12 * e21,
+            r10 * e02 + r11 * e12 + r12 * e22,
+            r20 * e00 + r21 * e10 + r22 * e20,
+            r20 * e01 + r21 * e11 + r22 * e21,
+            r20 * e02 + r21 * e12 + r22 * e22,
+        )
 
     @numba.njit(inline="always")
     def newton_schulz(r00, r01, r02, r10, r11, r12, r20, r21, r22):
@@ -84,15 +92,17 @@ def _helpers(F):
         s01 = r00 * r01 + r10 * r11 + r20 * r21
         s02 = r00 * r02 + r10 * r12 + r20 * r22
         s12 = r01 * r02 + r11 * r12 + r21 * r22
-        return (onehalf * r00 - half * (r00 * s00 + r01 * s01 + r02 * s02),
-                onehalf * r01 - half * (r00 * s01 + r01 * s11 + r02 * s12),
-                onehalf * r02 - half * (r00 * s02 + r01 * s12 + r02 * s22),
-                onehalf * r10 - half * (r10 * s00 + r11 * s01 + r12 * s02),
-                onehalf * r11 - half * (r10 * s01 + r11 * s11 + r12 * s12),
-                onehalf * r12 - half * (r10 * s02 + r11 * s12 + r12 * s22),
-                onehalf * r20 - half * (r20 * s00 + r21 * s01 + r22 * s02),
-                onehalf * r21 - half * (r20 * s01 + r21 * s11 + r22 * s12),
-                onehalf * r22 - half * (r20 * s02 + r21 * s12 + r22 * s22))
+        return (
+            onehalf * r00 - half * (r00 * s00 + r01 * s01 + r02 * s02),
+            onehalf * r01 - half * (r00 * s01 + r01 * s11 + r02 * s12),
+            onehalf * r02 - half * (r00 * s02 + r01 * s12 + r02 * s22),
+            onehalf * r10 - half * (r10 * s00 + r11 * s01 + r12 * s02),
+            onehalf * r11 - half * (r10 * s01 + r11 * s11 + r12 * s12),
+            onehalf * r12 - half * (r10 * s02 + r11 * s12 + r12 * s22),
+            onehalf * r20 - half * (r20 * s00 + r21 * s01 + r22 * s02),
+            onehalf * r21 - half * (r20 * s01 + r21 * s11 + r22 * s12),
+            onehalf * r22 - half * (r20 * s02 + r21 * s12 + r22 * s22),
+        )
 
     return cross, slopes, times_exp, newton_schulz
 
@@ -154,10 +164,10 @@ def _make_kernel(F):
                     A = two * sn * cs / theta
                     B = two * sn * sn / x
                 r00, r01, r02, r10, r11, r12, r20, r21, r22 = times_exp(
-                    r00, r01, r02, r10, r11, r12, r20, r21, r22, u0, u1, u2, x, A, B)
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22, u0, u1, u2, x, A, B
+                )
                 if newton_schulz:  # as lierk.so3.right_exp does in float32
-                    r00, r01, r02, r10, r11, r12, r20, r21, r22 = ns_step(
-                        r00, r01, r02, r10, r11, r12, r20, r21, r22)
+                    r00, r01, r02, r10, r11, r12, r20, r21, r22 = ns_step(r00, r01, r02, r10, r11, r12, r20, r21, r22)
             R_out[b, 0, 0], R_out[b, 0, 1], R_out[b, 0, 2] = r00, r01, r02
             R_out[b, 1, 0], R_out[b, 1, 1], R_out[b, 1, 2] = r10, r11, r12
             R_out[b, 2, 0], R_out[b, 2, 1], R_out[b, 2, 2] = r20, r21, r22
@@ -239,11 +249,14 @@ def _make_soa_kernel(F):
                     d10, d11, d12 = cross(y0, y1, y2, w0, w1, w2)
                     k10, k11, k12 = w0, w1, w2
                     k20, k21, k22, d20, d21, d22 = stage(
-                        I0, I1, I2, y0 + hh * d10, y1 + hh * d11, y2 + hh * d12, hh * k10, hh * k11, hh * k12)
+                        I0, I1, I2, y0 + hh * d10, y1 + hh * d11, y2 + hh * d12, hh * k10, hh * k11, hh * k12
+                    )
                     k30, k31, k32, d30, d31, d32 = stage(
-                        I0, I1, I2, y0 + hh * d20, y1 + hh * d21, y2 + hh * d22, hh * k20, hh * k21, hh * k22)
+                        I0, I1, I2, y0 + hh * d20, y1 + hh * d21, y2 + hh * d22, hh * k20, hh * k21, hh * k22
+                    )
                     k40, k41, k42, d40, d41, d42 = stage(
-                        I0, I1, I2, y0 + h * d30, y1 + h * d31, y2 + h * d32, h * k30, h * k31, h * k32)
+                        I0, I1, I2, y0 + h * d30, y1 + h * d31, y2 + h * d32, h * k30, h * k31, h * k32
+                    )
                     U0 = h6 * (k10 + two * k20 + two * k30 + k40)
                     U1 = h6 * (k11 + two * k21 + two * k31 + k41)
                     U2 = h6 * (k12 + two * k22 + two * k32 + k42)
@@ -254,16 +267,38 @@ def _make_soa_kernel(F):
                     th = np.sqrt(x) + tiny
                     zz = half * th
                     z2 = zz * zz
-                    sn = zz * (one - z2 / s6 * (one - z2 / s20 * (one - z2 / s42 * (one - z2 / s72 * (one - z2 / s110 * (one - z2 / s156))))))
-                    cs = one - z2 / c2 * (one - z2 / c12 * (one - z2 / c30 * (one - z2 / c56 * (one - z2 / c90 * (one - z2 / c132)))))
+                    sn = zz * (
+                        one
+                        - z2
+                        / s6
+                        * (one - z2 / s20 * (one - z2 / s42 * (one - z2 / s72 * (one - z2 / s110 * (one - z2 / s156)))))
+                    )
+                    cs = one - z2 / c2 * (
+                        one - z2 / c12 * (one - z2 / c30 * (one - z2 / c56 * (one - z2 / c90 * (one - z2 / c132))))
+                    )
                     A = two * sn * cs / th
                     Bc = two * sn * sn / (th * th)
                     r00, r01, r02, r10, r11, r12, r20, r21, r22 = times_exp(
-                        r[0, b], r[1, b], r[2, b], r[3, b], r[4, b], r[5, b], r[6, b], r[7, b], r[8, b],
-                        U0, U1, U2, x, A, Bc)
+                        r[0, b],
+                        r[1, b],
+                        r[2, b],
+                        r[3, b],
+                        r[4, b],
+                        r[5, b],
+                        r[6, b],
+                        r[7, b],
+                        r[8, b],
+                        U0,
+                        U1,
+                        U2,
+                        x,
+                        A,
+                        Bc,
+                    )
                     if newton_schulz:  # as lierk.so3.right_exp does in float32
                         r00, r01, r02, r10, r11, r12, r20, r21, r22 = ns_step(
-                            r00, r01, r02, r10, r11, r12, r20, r21, r22)
+                            r00, r01, r02, r10, r11, r12, r20, r21, r22
+                        )
                     r[0, b], r[1, b], r[2, b] = r00, r01, r02
                     r[3, b], r[4, b], r[5, b] = r10, r11, r12
                     r[6, b], r[7, b], r[8, b] = r20, r21, r22
@@ -280,7 +315,9 @@ _SOA_KERNELS: dict = {}
 def _inverse_diagonal(inertia) -> np.ndarray:
     inertia = np.asarray(inertia, np.float64)
     if np.any(inertia != np.diag(np.diag(inertia))):
-        raise ValueError(f"the structure-of-arrays anchors take a diagonal inertia (principal axes), got {inertia.tolist()}")
+        raise ValueError(
+            f"the structure-of-arrays anchors take a diagonal inertia (principal axes), got {inertia.tolist()}"
+        )
     return 1.0 / np.diag(inertia)
 
 
@@ -310,8 +347,15 @@ def _c_soa() -> tuple:
         return None, None, f"{cc} failed: {run.stderr.strip()[:300]}"
     f = ctypes.CDLL(str(lib)).rkmk4_soa_run
     f.restype = None
-    f.argtypes = [ctypes.c_int, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_double, ctypes.c_int, ctypes.c_int,
-                  ctypes.c_void_p]
+    f.argtypes = [
+        ctypes.c_int,
+        ctypes.c_void_p,
+        ctypes.c_void_p,
+        ctypes.c_double,
+        ctypes.c_int,
+        ctypes.c_int,
+        ctypes.c_void_p,
+    ]
     return f, f"{os.path.basename(cc)} {' '.join(C_FLAGS)}", None
 
 

@@ -117,8 +117,19 @@ def free_body_state(inertia, omega0, R0=None):
 # --- diffrax ------------------------------------------------------------------
 
 
-def diffrax_solution(field: Callable, solver, t1: float, y0, *, dt=None, rtol=None, max_steps: int = 4096,
-                     forward_mode: bool = False, args=None, event=None):
+def diffrax_solution(
+    field: Callable,
+    solver,
+    t1: float,
+    y0,
+    *,
+    dt=None,
+    rtol=None,
+    max_steps: int = 4096,
+    forward_mode: bool = False,
+    args=None,
+    event=None,
+):
     """diffrax's ``diffeqsolve`` of ``field`` from 0 to ``t1`` (s), ``throw=False``,
     with ``solver`` (a diffrax solver, or its name: ``"Tsit5"``, ``"Dopri5"``,
     ``"Dopri8"``): at the constant step ``dt``, or adaptive with
@@ -237,8 +248,9 @@ def mujoco_quats(R) -> np.ndarray:
     return out
 
 
-def mujoco_rollout(model, init, nstep: int, threads: int, control=None, control_spec: int | None = None,
-                   chunk: int = 2000) -> Callable:
+def mujoco_rollout(
+    model, init, nstep: int, threads: int, control=None, control_spec: int | None = None, chunk: int = 2000
+) -> Callable:
     """A function that rolls the batch of full physics states ``init`` ``(n,
     nstate)`` out for ``nstep`` steps with `mujoco.rollout` (one MjData per
     thread, a persistent pool) and returns the final states ``(n, nstate)``.
@@ -253,8 +265,10 @@ def mujoco_rollout(model, init, nstep: int, threads: int, control=None, control_
     datas = [mujoco.MjData(model) for _ in range(threads)]
     kw = {}
     if control is not None:
-        kw = dict(control=np.ascontiguousarray(np.broadcast_to(control, (len(init), chunk, len(control)))),
-                  control_spec=control_spec)
+        kw = dict(
+            control=np.ascontiguousarray(np.broadcast_to(control, (len(init), chunk, len(control)))),
+            control_spec=control_spec,
+        )
     state = np.empty((len(init), chunk, init.shape[1]))
     calls = nstep // chunk
 

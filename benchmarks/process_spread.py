@@ -62,8 +62,9 @@ def one() -> dict:
 
         @jax.jit
         def run(ws, solver=solver):
-            return jax.vmap(lambda w: lierk.solve(lierk.FreeRigidBody(inertia, w), solver, DT * STEPS, dt=DT,
-                                                  max_steps=STEPS).R[-1])(ws)
+            return jax.vmap(
+                lambda w: lierk.solve(lierk.FreeRigidBody(inertia, w), solver, DT * STEPS, dt=DT, max_steps=STEPS).R[-1]
+            )(ws)
 
         _, out[name], _ = common.timed(run, omegas, repeats=30)
     return out
@@ -79,13 +80,26 @@ def main() -> None:
             p = subprocess.run([sys.executable, __file__, "--one", flags], capture_output=True, text=True, check=True)
             runs[label].append(json.loads(p.stdout.strip().splitlines()[-1]))
             print(label, i, {k: f"{v * 1e3:.2f} ms" for k, v in runs[label][-1].items()}, flush=True)
-    record = {"machine": common.machine_info(), "commit": common.git_commit(), "n": N, "dt": DT, "steps": STEPS,
-              "flags": SETTINGS, "processes": processes, "median_s": runs}
-    lines = ["# One program, several processes (`benchmarks/process_spread.py`)", "",
-             f"{os.cpu_count()} cores, {common.cpu_model()}, {common.backend_text(record['machine'])}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
-             f"{STEPS} fixed steps of {DT} s, jit(vmap) on one device, float64.  Each cell: the median of 30 calls "
-             f"in one fresh process (ms); {processes} processes per setting, taken in turn.", "",
-             "| setting | " + " | ".join(SOLVERS) + " |", "|---|" + "---|" * len(SOLVERS)]
+    record = {
+        "machine": common.machine_info(),
+        "commit": common.git_commit(),
+        "n": N,
+        "dt": DT,
+        "steps": STEPS,
+        "flags": SETTINGS,
+        "processes": processes,
+        "median_s": runs,
+    }
+    lines = [
+        "# One program, several processes (`benchmarks/process_spread.py`)",
+        "",
+        f"{os.cpu_count()} cores, {common.cpu_model()}, {common.backend_text(record['machine'])}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
+        f"{STEPS} fixed steps of {DT} s, jit(vmap) on one device, float64.  Each cell: the median of 30 calls "
+        f"in one fresh process (ms); {processes} processes per setting, taken in turn.",
+        "",
+        "| setting | " + " | ".join(SOLVERS) + " |",
+        "|---|" + "---|" * len(SOLVERS),
+    ]
     for label, rows in runs.items():
         cells = []
         for name in SOLVERS:

@@ -24,6 +24,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 
 import common  # noqa: E402
+
 import lierk  # noqa: E402
 from lierk import Damping, RigidBodyWithEffects  # noqa: E402
 from lierk.app import scene as scene_mod  # noqa: E402
@@ -76,7 +77,11 @@ def main():
         "scene_over_direct": ratio,
         "claim_holds": ratio <= 1.10,
         "relative_to_direct": {k: v / med["FreeRigidBody direct"] for k, v in med.items()},
-        "machine": {"python": platform.python_version(), "jax": jax.__version__, "cpu": platform.processor() or platform.machine()},
+        "machine": {
+            "python": platform.python_version(),
+            "jax": jax.__version__,
+            "cpu": platform.processor() or platform.machine(),
+        },
     }
     out = OUT / "scene_overhead.json"
     out.parent.mkdir(parents=True, exist_ok=True)

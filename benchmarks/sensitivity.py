@@ -48,7 +48,6 @@ import host_devices
 
 host_devices.split()  # one XLA host device per core
 
-import time  # noqa: E402
 
 import jax  # noqa: E402
 
@@ -57,11 +56,11 @@ jax.config.update("jax_enable_x64", True)
 import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+import peers  # noqa: E402
+from common import backend_text, cli, interp_time, machine_info, near_axis, timed, write_results  # noqa: E402
 from jax.sharding import Mesh, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
-import peers  # noqa: E402
-from common import backend_text, cli, interp_time, machine_info, near_axis, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (8 bodies, two settings each) to check the script works", __name__ == "__main__")
 
@@ -129,7 +128,9 @@ class Tee:
         return peers.free_body_state(self.inertia, w, R0)
 
     def reference(self, W, R0):
-        f = jax.jit(jax.vmap(lambda w, R: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(self.inertia, v, self.T, R)[0])(w)))
+        f = jax.jit(
+            jax.vmap(lambda w, R: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(self.inertia, v, self.T, R)[0])(w))
+        )
         return np.asarray(f(W, R0)), {"reference": "jax.jacfwd of lierk.exact.free_rigid_body"}
 
 
@@ -230,8 +231,9 @@ def lierk_forward(fam, solver, kw):
 def diffrax_run(fam, solver, tol, w, R0, forward_mode=False):
     """``(R(T), steps)`` of diffrax's adaptive solve of ``fam``'s peer ODE."""
     y0, args = fam.peer_state(w, R0)
-    return peers.diffrax_solve(fam.field, solver, fam.T, y0, rtol=tol, max_steps=MAX_STEPS, forward_mode=forward_mode,
-                               args=args)[:2]
+    return peers.diffrax_solve(
+        fam.field, solver, fam.T, y0, rtol=tol, max_steps=MAX_STEPS, forward_mode=forward_mode, args=args
+    )[:2]
 
 
 def diffrax_jacobian(fam, solver, tol, mode):
@@ -241,7 +243,9 @@ def diffrax_jacobian(fam, solver, tol, mode):
     jac = jax.jacfwd if forward else jax.jacrev
 
     def one(w, R0):
-        J, (_, steps) = jac(lambda v: (lambda out: (out[0], out))(diffrax_run(fam, solver, tol, v, R0, forward)), has_aux=True)(w)
+        J, (_, steps) = jac(
+            lambda v: (lambda out: (out[0], out))(diffrax_run(fam, solver, tol, v, R0, forward)), has_aux=True
+        )(w)
         return J, steps
 
     return on_devices(one)
@@ -277,65 +281,144 @@ def run_family(fam) -> dict:
         else:
             err = relative_error(J, J_ref)
         rec = dict(
-            method=method, mode=mode, setting=setting, error=err, time_s=t_jac,
-            forward_s=t_fwd, ratio_to_forward=t_jac / t_fwd, compile_s=first - t_jac, mean_steps=float(np.mean(steps)),
+            method=method,
+            mode=mode,
+            setting=setting,
+            error=err,
+            time_s=t_jac,
+            forward_s=t_fwd,
+            ratio_to_forward=t_jac / t_fwd,
+            compile_s=first - t_jac,
+            mean_steps=float(np.mean(steps)),
             devices=jac_fn.devices,
         )
         records.append(rec)
-        print(f"  {fam.name:4s} {method:22s} {mode:8s} {setting:>10s}: error {rec['error']:.2e}  Jacobian {t_jac:.4f} s"
-              f"  forward {t_fwd:.4f} s  ({rec['ratio_to_forward']:.1f}x, {rec['devices']} device(s))", flush=True)
+        print(
+            f"  {fam.name:4s} {method:22s} {mode:8s} {setting:>10s}: error {rec['error']:.2e}  Jacobian {t_jac:.4f} s"
+            f"  forward {t_fwd:.4f} s  ({rec['ratio_to_forward']:.1f}x, {rec['devices']} device(s))",
+            flush=True,
+        )
 
     dop = lierk.RKMK(lierk.tableaux.DOP853)
     for dt in fam.rk4_dts:
-        add("lierk RKMK4", "forward", f"dt={dt:g}", lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt)),
-            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+        add(
+            "lierk RKMK4",
+            "forward",
+            f"dt={dt:g}",
+            lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt)),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)),
+        )
     for dt in fam.dop_dts:
-        add("lierk RKMK(DOP853)", "forward", f"dt={dt:g}", lierk_jacobian(fam, dop, dict(dt=dt)), lierk_forward(fam, dop, dict(dt=dt)))
+        add(
+            "lierk RKMK(DOP853)",
+            "forward",
+            f"dt={dt:g}",
+            lierk_jacobian(fam, dop, dict(dt=dt)),
+            lierk_forward(fam, dop, dict(dt=dt)),
+        )
     for tol in fam.tols:
         kw = dict(rtol=tol, atol=tol)
-        add("lierk DOP853", "forward", f"tol={tol:g}", lierk_jacobian(fam, lierk.DOP853(), kw),
-            lierk_forward(fam, lierk.DOP853(), kw))
+        add(
+            "lierk DOP853",
+            "forward",
+            f"tol={tol:g}",
+            lierk_jacobian(fam, lierk.DOP853(), kw),
+            lierk_forward(fam, lierk.DOP853(), kw),
+        )
     # The variational equations integrated with the body (method="variational").
     for dt in fam.rk4_dts:
-        add("lierk RKMK4 (variational)", "forward", f"dt={dt:g}",
-            lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt), method="variational"), lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+        add(
+            "lierk RKMK4 (variational)",
+            "forward",
+            f"dt={dt:g}",
+            lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt), method="variational"),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)),
+        )
     for dt in fam.dop_dts:
-        add("lierk RKMK(DOP853) (variational)", "forward", f"dt={dt:g}",
-            lierk_jacobian(fam, dop, dict(dt=dt), method="variational"), lierk_forward(fam, dop, dict(dt=dt)))
+        add(
+            "lierk RKMK(DOP853) (variational)",
+            "forward",
+            f"dt={dt:g}",
+            lierk_jacobian(fam, dop, dict(dt=dt), method="variational"),
+            lierk_forward(fam, dop, dict(dt=dt)),
+        )
     for tol in fam.tols:
         kw = dict(rtol=tol, atol=tol)
-        add("lierk DOP853 (variational)", "forward", f"tol={tol:g}",
-            lierk_jacobian(fam, lierk.DOP853(), kw, method="variational"), lierk_forward(fam, lierk.DOP853(), kw))
+        add(
+            "lierk DOP853 (variational)",
+            "forward",
+            f"tol={tol:g}",
+            lierk_jacobian(fam, lierk.DOP853(), kw, method="variational"),
+            lierk_forward(fam, lierk.DOP853(), kw),
+        )
     # Reverse mode at two settings of each kind: its cost relative to the forward solve.
     for dt in fam.rk4_dts[1::2][:2]:
-        add("lierk RKMK4", "reverse", f"dt={dt:g}", lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt), "reverse"),
-            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+        add(
+            "lierk RKMK4",
+            "reverse",
+            f"dt={dt:g}",
+            lierk_jacobian(fam, lierk.RKMK4(), dict(dt=dt), "reverse"),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)),
+        )
     for tol in fam.tols[1::2][:2]:
         kw = dict(rtol=tol, atol=tol)
-        add("lierk DOP853", "reverse", f"tol={tol:g}", lierk_jacobian(fam, lierk.DOP853(), kw, "reverse"),
-            lierk_forward(fam, lierk.DOP853(), kw))
+        add(
+            "lierk DOP853",
+            "reverse",
+            f"tol={tol:g}",
+            lierk_jacobian(fam, lierk.DOP853(), kw, "reverse"),
+            lierk_forward(fam, lierk.DOP853(), kw),
+        )
     # The gradient of a scalar loss of R(T) (reverse mode): the default adjoint
     # (ForwardSensitivity) and, for fixed steps, reverse mode through the scan.
     for dt in fam.rk4_dts[1::2][:2]:
-        add("lierk RKMK4", "gradient", f"dt={dt:g}", lierk_gradient(fam, lierk.RKMK4(), dict(dt=dt)),
-            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
-        add("lierk RKMK4 (scan reverse)", "gradient", f"dt={dt:g}",
+        add(
+            "lierk RKMK4",
+            "gradient",
+            f"dt={dt:g}",
+            lierk_gradient(fam, lierk.RKMK4(), dict(dt=dt)),
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)),
+        )
+        add(
+            "lierk RKMK4 (scan reverse)",
+            "gradient",
+            f"dt={dt:g}",
             lierk_gradient(fam, lierk.RKMK4(), dict(dt=dt), lierk.RecursiveCheckpointAdjoint()),
-            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)))
+            lierk_forward(fam, lierk.RKMK4(), dict(dt=dt)),
+        )
     for dt in fam.dop_dts[1::2][:2]:
-        add("lierk RKMK(DOP853)", "gradient", f"dt={dt:g}", lierk_gradient(fam, dop, dict(dt=dt)),
-            lierk_forward(fam, dop, dict(dt=dt)))
+        add(
+            "lierk RKMK(DOP853)",
+            "gradient",
+            f"dt={dt:g}",
+            lierk_gradient(fam, dop, dict(dt=dt)),
+            lierk_forward(fam, dop, dict(dt=dt)),
+        )
     for tol in fam.tols[1::2][:2]:
         kw = dict(rtol=tol, atol=tol)
-        add("lierk DOP853", "gradient", f"tol={tol:g}", lierk_gradient(fam, lierk.DOP853(), kw),
-            lierk_forward(fam, lierk.DOP853(), kw))
-        add("lierk DOP853 (checkpointed)", "gradient", f"tol={tol:g}",
-            lierk_gradient(fam, lierk.DOP853(), kw, lierk.RecursiveCheckpointAdjoint()), lierk_forward(fam, lierk.DOP853(), kw))
+        add(
+            "lierk DOP853",
+            "gradient",
+            f"tol={tol:g}",
+            lierk_gradient(fam, lierk.DOP853(), kw),
+            lierk_forward(fam, lierk.DOP853(), kw),
+        )
+        add(
+            "lierk DOP853 (checkpointed)",
+            "gradient",
+            f"tol={tol:g}",
+            lierk_gradient(fam, lierk.DOP853(), kw, lierk.RecursiveCheckpointAdjoint()),
+            lierk_forward(fam, lierk.DOP853(), kw),
+        )
     for solver in (diffrax.Dopri8(), diffrax.Tsit5()):
         for mode in ("forward", "reverse", "gradient"):
             name = f"diffrax {type(solver).__name__}"
             for tol in fam.tols if mode == "forward" else fam.tols[1::2][:2]:
-                prog = diffrax_gradient(fam, solver, tol) if mode == "gradient" else diffrax_jacobian(fam, solver, tol, mode)
+                prog = (
+                    diffrax_gradient(fam, solver, tol)
+                    if mode == "gradient"
+                    else diffrax_jacobian(fam, solver, tol, mode)
+                )
                 add(name, mode, f"tol={tol:g}", prog, diffrax_forward(fam, solver, tol))
 
     levels = []
@@ -359,9 +442,17 @@ def run_family(fam) -> dict:
             if t is not None:
                 own[method] = t[0]
         ratio = lambda a: None if best[a] is None or best["diffrax"] is None else best[a] / best["diffrax"]  # noqa: E731
-        levels.append(dict(level=level, lierk_s=best["lierk"], diffrax_s=best["diffrax"], ratio=ratio("lierk"),
-                           lierk_derivative_s=best["lierk_derivative"], ratio_derivative=ratio("lierk_derivative"),
-                           lierk_cheapest=min(own, key=own.get) if own else None))
+        levels.append(
+            dict(
+                level=level,
+                lierk_s=best["lierk"],
+                diffrax_s=best["diffrax"],
+                ratio=ratio("lierk"),
+                lierk_derivative_s=best["lierk_derivative"],
+                ratio_derivative=ratio("lierk_derivative"),
+                lierk_cheapest=min(own, key=own.get) if own else None,
+            )
+        )
     return dict(title=fam.title, N=fam.N, T=fam.T, **ref_info, records=records, levels=levels)
 
 
@@ -371,8 +462,12 @@ def reverse_memory() -> list[dict]:
     through the scan (blocks of sqrt(n) steps recomputed)."""
     body = lierk.FreeRigidBody([1.0, 2.0, 3.0], [0.3, 1.0, 0.2])
     out = []
-    for n in ([10**3, 10**4] if QUICK else [10**4, 10**5, 10**6]):
-        for name, adjoint in (("ForwardSensitivity (default)", None), ("scan reverse", lierk.RecursiveCheckpointAdjoint())):
+    for n in [10**3, 10**4] if QUICK else [10**4, 10**5, 10**6]:
+        for name, adjoint in (
+            ("ForwardSensitivity (default)", None),
+            ("scan reverse", lierk.RecursiveCheckpointAdjoint()),
+        ):
+
             def loss(w, n=n, adjoint=adjoint):
                 return lierk.solve(body.with_omega0(w), lierk.RKMK4(), n * 1e-3, dt=1e-3, adjoint=adjoint).R[-1][0, 1]
 
@@ -382,9 +477,14 @@ def reverse_memory() -> list[dict]:
             _, t_grad, _ = timed(grad, w, repeats=REPEATS)
             _, t_fwd, _ = timed(fwd, w, repeats=REPEATS)
             mem = grad.memory_analysis()
-            out.append(dict(steps=n, adjoint=name, temp_bytes=int(mem.temp_size_in_bytes), gradient_s=t_grad, forward_s=t_fwd))
-            print(f"  reverse memory: {n:8d} steps, {name}: {mem.temp_size_in_bytes / 1e6:.3f} MB temporaries, "
-                  f"gradient {t_grad:.3f} s, forward {t_fwd:.3f} s", flush=True)
+            out.append(
+                dict(steps=n, adjoint=name, temp_bytes=int(mem.temp_size_in_bytes), gradient_s=t_grad, forward_s=t_fwd)
+            )
+            print(
+                f"  reverse memory: {n:8d} steps, {name}: {mem.temp_size_in_bytes / 1e6:.3f} MB temporaries, "
+                f"gradient {t_grad:.3f} s, forward {t_fwd:.3f} s",
+                flush=True,
+            )
     return out
 
 
@@ -396,7 +496,10 @@ def reversibility() -> list[dict]:
     inertia = np.asarray(lierk.inertia.tee_handle())
     out = []
     for solver in (lierk.Strang(), lierk.BlanesMoan4()):
-        for w0, label in (((1.0, 0.05, 0.3), "T-handle near the intermediate axis"), ((1.0, 1e-4, 1e-4), "near the separatrix")):
+        for w0, label in (
+            ((1.0, 0.05, 0.3), "T-handle near the intermediate axis"),
+            ((1.0, 1e-4, 1e-4), "near the separatrix"),
+        ):
             for T in (10.0, 100.0) if not QUICK else (1.0,):
                 n, body = round(T / 0.01), lierk.FreeRigidBody(inertia, jnp.asarray(w0))
 
@@ -414,13 +517,18 @@ def reversibility() -> list[dict]:
                     # Stepping back from the end, step k lands on forward state n - 1 - k.
                     Rf = jnp.concatenate([body.R0[None], Rs[:-1]])[::-1]
                     mf = jnp.concatenate([body.y0[None], ms[:-1]])[::-1]
-                    return (jnp.max(jnp.linalg.norm(Rb - Rf, axis=(1, 2))),
-                            jnp.max(jnp.linalg.norm(mb - mf, axis=1)) / jnp.linalg.norm(body.y0))
+                    return (
+                        jnp.max(jnp.linalg.norm(Rb - Rf, axis=(1, 2))),
+                        jnp.max(jnp.linalg.norm(mb - mf, axis=1)) / jnp.linalg.norm(body.y0),
+                    )
 
                 eR, em = (float(x) for x in rebuilt_error())
                 out.append(dict(solver=solver.name, body=label, omega0=list(w0), T=T, steps=n, R_error=eR, m_error=em))
-                print(f"  reversibility: {solver.name} {label}, T = {T:g}: rebuilt states off by {eR:.1e} (R), "
-                      f"{em:.1e} (m, relative)", flush=True)
+                print(
+                    f"  reversibility: {solver.name} {label}, T = {T:g}: rebuilt states off by {eR:.1e} (R), "
+                    f"{em:.1e} (m, relative)",
+                    flush=True,
+                )
     return out
 
 
@@ -438,33 +546,56 @@ def markdown(p) -> list[str]:
         lines += [f"## {fam['title']} ({fam['N']} bodies)", "", f"Reference: {fam['reference']}."]
         if "reference_vs_diffrax_Dopri8_1e-13" in fam:
             lines.append(f"Reference against diffrax Dopri8 at 1e-13: {fam['reference_vs_diffrax_Dopri8_1e-13']:.1e}.")
-        lines += ["", "| Jacobian error <= | lierk's cheapest (s) | which | diffrax's cheapest (s) | lierk / diffrax "
-                  "| derivative of the solve only (s) | its ratio |", "|---|---:|---|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "| Jacobian error <= | lierk's cheapest (s) | which | diffrax's cheapest (s) | lierk / diffrax "
+            "| derivative of the solve only (s) | its ratio |",
+            "|---|---:|---|---:|---:|---:|---:|",
+        ]
         for lv in fam["levels"]:
             cell = lambda x, f="{:.4f}": "-" if x is None else f.format(x)  # noqa: E731
-            lines.append(f"| {lv['level']:.0e} | {cell(lv['lierk_s'])} | {lv.get('lierk_cheapest') or '-'} | "
-                         f"{cell(lv['diffrax_s'])} | {cell(lv['ratio'], '{:.2f}')} | {cell(lv.get('lierk_derivative_s'))} | "
-                         f"{cell(lv.get('ratio_derivative'), '{:.2f}')} |")
-        lines += ["", "| method | mode | setting | error | Jacobian (s) | forward solve (s) | Jacobian / forward | mean steps | devices |",
-                  "|---|---|---|---:|---:|---:|---:|---:|---:|"]
+            lines.append(
+                f"| {lv['level']:.0e} | {cell(lv['lierk_s'])} | {lv.get('lierk_cheapest') or '-'} | "
+                f"{cell(lv['diffrax_s'])} | {cell(lv['ratio'], '{:.2f}')} | {cell(lv.get('lierk_derivative_s'))} | "
+                f"{cell(lv.get('ratio_derivative'), '{:.2f}')} |"
+            )
+        lines += [
+            "",
+            "| method | mode | setting | error | Jacobian (s) | forward solve (s) | Jacobian / forward | mean steps | devices |",
+            "|---|---|---|---:|---:|---:|---:|---:|---:|",
+        ]
         for r in fam["records"]:
-            lines.append(f"| {r['method']} | {r['mode']} | {r['setting']} | {r['error']:.1e} | {r['time_s']:.4f} | "
-                         f"{r['forward_s']:.4f} | {r['ratio_to_forward']:.1f} | {r['mean_steps']:.0f} | {r['devices']} |")
+            lines.append(
+                f"| {r['method']} | {r['mode']} | {r['setting']} | {r['error']:.1e} | {r['time_s']:.4f} | "
+                f"{r['forward_s']:.4f} | {r['ratio_to_forward']:.1f} | {r['mean_steps']:.0f} | {r['devices']} |"
+            )
         lines.append("")
-    lines += ["## Reverse-mode memory (RKMK4, one body, dt = 1e-3)", "",
-              "| steps | adjoint | compiled temporaries (MB) | gradient (s) | forward (s) | gradient / forward |",
-              "|---:|---|---:|---:|---:|---:|"]
+    lines += [
+        "## Reverse-mode memory (RKMK4, one body, dt = 1e-3)",
+        "",
+        "| steps | adjoint | compiled temporaries (MB) | gradient (s) | forward (s) | gradient / forward |",
+        "|---:|---|---:|---:|---:|---:|",
+    ]
     for r in p["reverse_memory"]:
-        lines.append(f"| {r['steps']} | {r['adjoint']} | {r['temp_bytes'] / 1e6:.3f} | {r['gradient_s']:.3f} | "
-                     f"{r['forward_s']:.3f} | {r['gradient_s'] / r['forward_s']:.1f} |")
+        lines.append(
+            f"| {r['steps']} | {r['adjoint']} | {r['temp_bytes'] / 1e6:.3f} | {r['gradient_s']:.3f} | "
+            f"{r['forward_s']:.3f} | {r['gradient_s'] / r['forward_s']:.1f} |"
+        )
     if p.get("reversibility"):
-        lines += ["", "## Would a reversible adjoint be right? (splittings, dt = 0.01 s, accuracy only)", "",
-                  "States rebuilt by stepping back from t1 with -dt against the states of the forward pass: "
-                  "the largest difference over the run.", "",
-                  "| solver | body | T (s) | steps | R rebuilt, max error | m rebuilt, max relative error |",
-                  "|---|---|---:|---:|---:|---:|"]
+        lines += [
+            "",
+            "## Would a reversible adjoint be right? (splittings, dt = 0.01 s, accuracy only)",
+            "",
+            "States rebuilt by stepping back from t1 with -dt against the states of the forward pass: "
+            "the largest difference over the run.",
+            "",
+            "| solver | body | T (s) | steps | R rebuilt, max error | m rebuilt, max relative error |",
+            "|---|---|---:|---:|---:|---:|",
+        ]
         for r in p["reversibility"]:
-            lines.append(f"| {r['solver']} | {r['body']} | {r['T']:g} | {r['steps']} | {r['R_error']:.1e} | {r['m_error']:.1e} |")
+            lines.append(
+                f"| {r['solver']} | {r['body']} | {r['T']:g} | {r['steps']} | {r['R_error']:.1e} | {r['m_error']:.1e} |"
+            )
     return lines
 
 
@@ -480,9 +611,15 @@ def plot(p):
         methods = dict.fromkeys((r["method"], r["mode"]) for r in fam["records"])
         for method, mode in methods:
             rs = [r for r in fam["records"] if r["method"] == method and r["mode"] == mode]
-            ax.loglog([r["error"] for r in rs], [r["time_s"] for r in rs], ("o-" if method.startswith("lierk") else "s--"),
-                      label=f"{method} ({mode})", ms=4, lw=1.2 if mode == "forward" else 0.8,
-                      alpha=1.0 if mode == "forward" else 0.6)
+            ax.loglog(
+                [r["error"] for r in rs],
+                [r["time_s"] for r in rs],
+                ("o-" if method.startswith("lierk") else "s--"),
+                label=f"{method} ({mode})",
+                ms=4,
+                lw=1.2 if mode == "forward" else 0.8,
+                alpha=1.0 if mode == "forward" else 0.6,
+            )
         ax.set_xlabel("Jacobian error, max relative Frobenius")
         ax.set_ylabel(f"wall time for {fam['N']} Jacobians (s)")
         ax.set_title(fam["title"], fontsize=10)
@@ -490,8 +627,10 @@ def plot(p):
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     m = p["machine"]
-    fig.suptitle(f"Sensitivity dR(T)/d$\\omega_0$: work against precision ({m['cpu_count']} cores, "
-                 f"{backend_text(m)}, float64)", fontsize=9)
+    fig.suptitle(
+        f"Sensitivity dR(T)/d$\\omega_0$: work against precision ({m['cpu_count']} cores, {backend_text(m)}, float64)",
+        fontsize=9,
+    )
     fig.tight_layout()
     fig.savefig(OUT / "sensitivity.png", dpi=110)
 

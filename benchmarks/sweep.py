@@ -49,13 +49,13 @@ import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 
+import common  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
+import native  # noqa: E402
 import numpy as np  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
-import common  # noqa: E402
 import lierk  # noqa: E402
-import native  # noqa: E402
 
 QUICK, OUT = common.cli(__doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__")
 DT = 0.01
@@ -229,8 +229,10 @@ def solvers(batch: int, n_steps: int, repeats: int) -> dict:
     for call in calls.values():
         jax.block_until_ready(call())
     times = interleaved(calls, repeats)
-    rows = {name: {**summary(ts), "body_steps_per_s": batch * n_steps / min(ts), "dt": cases[name][1]}
-            for name, ts in times.items()}
+    rows = {
+        name: {**summary(ts), "body_steps_per_s": batch * n_steps / min(ts), "dt": cases[name][1]}
+        for name, ts in times.items()
+    }
     return {"batch": batch, "steps": n_steps, "dtype": "float64", "calls": rows}
 
 
@@ -339,8 +341,11 @@ def main():
         reference = t.pop("R_T")
         res["throughput"].append(t)
         for name, r in t["calls"].items():
-            print(f"{t['dtype']:8s} {name:42s} {r['body_steps_per_s']:.3e} body-steps/s  {r['ratio_to_anchor']:.2f}x "
-                  f"{t['anchor']}", flush=True)
+            print(
+                f"{t['dtype']:8s} {name:42s} {r['body_steps_per_s']:.3e} body-steps/s  {r['ratio_to_anchor']:.2f}x "
+                f"{t['anchor']}",
+                flush=True,
+            )
         print(f"{t['dtype']:8s} max |R_lierk - R_native| = {t['max_diff_lierk_vs_native']}", flush=True)
     res["solvers"] = solvers(batch2, steps2 // 5, repeats)
     for name, r in res["solvers"]["calls"].items():

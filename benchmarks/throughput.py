@@ -28,12 +28,15 @@ import common
 
 
 def _options(parser):
-    parser.add_argument("--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)")
+    parser.add_argument(
+        "--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)"
+    )
     parser.add_argument("--repeats", type=int, default=5, help="timed runs at least (default 5)")
 
 
-QUICK, OUT, ARGS = common.cli(__doc__, "tiny run: batches 1 and 1000, few steps, two solvers", __name__ == "__main__",
-                              extra=_options)
+QUICK, OUT, ARGS = common.cli(
+    __doc__, "tiny run: batches 1 and 1000, few steps, two solvers", __name__ == "__main__", extra=_options
+)
 
 import host_devices  # noqa: E402
 
@@ -143,8 +146,9 @@ def main():
     info["total_s"] = time.perf_counter() - t_start
     info["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
 
-    common.write_results(OUT, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows},
-                         markdown(rows, info, batches))
+    common.write_results(
+        OUT, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows}, markdown(rows, info, batches)
+    )
     print(f"({info['total_s']:.0f} s)")
 
 

@@ -38,7 +38,6 @@ file (for a change to ``target_error`` alone).
 
 from __future__ import annotations
 
-
 import json
 
 import jax
@@ -47,14 +46,15 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
+from common import cli, machine_info, near_axis, write_results  # noqa: E402
 
 import lierk  # noqa: E402
-from common import cli, machine_info, near_axis, write_results  # noqa: E402
 
 
 def _options(parser):
-    parser.add_argument("--targets-only", action="store_true",
-                        help="measure the target_error rows again, keeping the rtol rows on file")
+    parser.add_argument(
+        "--targets-only", action="store_true", help="measure the target_error rows again, keeping the rtol rows on file"
+    )
 
 
 QUICK, OUT, ARGS = cli(__doc__, "two bodies per family, one tolerance", __name__ == "__main__", extra=_options)
@@ -80,8 +80,9 @@ def families():
         dirs = [*_directions(rng, 1 if QUICK else 4), near[0] / np.linalg.norm(near[0])]
         fast += [mag * d for d in dirs]
     fast_long = [mag * d for mag in (30.0, 60.0) for d in _directions(rng, 1 if QUICK else 2)]
-    long = [np.array([0.3, 1.0, 0.2])] + [m * d for m, d in zip(rng.uniform(0.5, 2.0, 1 if QUICK else 7),
-                                                                 _directions(rng, 1 if QUICK else 7))]
+    long = [np.array([0.3, 1.0, 0.2])] + [
+        m * d for m, d in zip(rng.uniform(0.5, 2.0, 1 if QUICK else 7), _directions(rng, 1 if QUICK else 7))
+    ]
     tee_dirs, _ = near_axis(np.diag(tee), 2, seed=3)
     tee_fast = [mag * d / np.linalg.norm(d) for mag, d in zip((30.0, 60.0), tee_dirs)]
     tee_fast += [mag * d for mag, d in zip((30.0, 60.0), _directions(rng, 2))]
@@ -90,8 +91,11 @@ def families():
         "fast": ([lierk.FreeRigidBody(box, v) for v in fast], 20.0),
         "fast_long": ([lierk.FreeRigidBody(box, v) for v in fast_long], 100.0),
         "long": ([lierk.FreeRigidBody(box, v) for v in long], 100.0 if QUICK else 1000.0),
-        "tee_fast": ([lierk.FreeRigidBody(tee, v) for v in tee_fast[:2] if QUICK] or
-                     [lierk.FreeRigidBody(tee, v) for v in tee_fast], 20.0),
+        "tee_fast": (
+            [lierk.FreeRigidBody(tee, v) for v in tee_fast[:2] if QUICK]
+            or [lierk.FreeRigidBody(tee, v) for v in tee_fast],
+            20.0,
+        ),
     }
     rng = np.random.default_rng(0)
     tops = []
@@ -99,7 +103,9 @@ def families():
         phi = rng.uniform(0, 2 * np.pi)
         R0 = lierk.so3.exp(jnp.asarray(0.3 * np.array([np.cos(phi), np.sin(phi), 0.0])))
         w0 = [rng.uniform(-2, 2), rng.uniform(-2, 2), rng.uniform(30, 120)]
-        tops.append(lierk.RigidBodyWithEffects([0.6, 0.8, 0.3], w0, R0, effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),)))
+        tops.append(
+            lierk.RigidBodyWithEffects([0.6, 0.8, 0.3], w0, R0, effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),))
+        )
     out["top"] = (tops, 2.0)
     return out
 
@@ -126,22 +132,40 @@ def main():
                 errs, ests = [], []
                 codes = []
                 for p, ref in zip(problems, refs):
-                    sol = lierk.solve(p, solver, T, rtol=tol, atol=tol, estimate_error=True, max_steps=1_000_000, throw=False)
+                    sol = lierk.solve(
+                        p, solver, T, rtol=tol, atol=tol, estimate_error=True, max_steps=1_000_000, throw=False
+                    )
                     errs.append(np.linalg.norm(np.asarray(sol.R[-1]) - ref))
                     ests.append(float(sol.error_estimate[-1]))
                     codes.append(int(sol.result))
                 i = int(np.argmax(errs))
                 ratios = np.asarray(errs) / tol
-                rows.append(dict(family=name, solver=solver.name, mode="rtol", setting=tol, error=errs[i],
-                                 ratio=errs[i] / tol, median_ratio=float(np.median(ratios)), members=len(problems),
-                                 turn=turn, worst_omega0=omegas[i].tolist(),
-                                 estimate_over_error=ests[i] / errs[i],
-                                 estimate_over_error_range=[float(min(np.asarray(ests) / errs)),
-                                                            float(max(np.asarray(ests) / errs))],
-                                 results=sorted(set(codes))))
-                print(f"{name:9s} {solver.name:7s} rtol {tol:.0e}: error {errs[i]:.2e} ({errs[i] / tol:8.1f} x rtol, "
-                      f"median {np.median(ratios):.1f}), estimate / error {ests[i] / errs[i]:.2f}, "
-                      f"worst omega0 {np.round(omegas[i], 2).tolist()}", flush=True)
+                rows.append(
+                    dict(
+                        family=name,
+                        solver=solver.name,
+                        mode="rtol",
+                        setting=tol,
+                        error=errs[i],
+                        ratio=errs[i] / tol,
+                        median_ratio=float(np.median(ratios)),
+                        members=len(problems),
+                        turn=turn,
+                        worst_omega0=omegas[i].tolist(),
+                        estimate_over_error=ests[i] / errs[i],
+                        estimate_over_error_range=[
+                            float(min(np.asarray(ests) / errs)),
+                            float(max(np.asarray(ests) / errs)),
+                        ],
+                        results=sorted(set(codes)),
+                    )
+                )
+                print(
+                    f"{name:9s} {solver.name:7s} rtol {tol:.0e}: error {errs[i]:.2e} ({errs[i] / tol:8.1f} x rtol, "
+                    f"median {np.median(ratios):.1f}), estimate / error {ests[i] / errs[i]:.2f}, "
+                    f"worst omega0 {np.round(omegas[i], 2).tolist()}",
+                    flush=True,
+                )
             for target in TARGETS:
                 errs, codes = [], []
                 for p, ref in zip(problems, refs):
@@ -152,12 +176,27 @@ def main():
                 # the claim is about the ones that report success.
                 met = [e for e, c in zip(errs, codes) if c == 0]
                 worst = max(met) if met else float("nan")
-                rows.append(dict(family=name, solver=solver.name, mode="target_error", setting=target, error=worst,
-                                 ratio=worst / target, members=len(problems), turn=turn, results=sorted(set(codes)),
-                                 codes=codes, errors=[float(e) for e in errs]))
-                print(f"{name:9s} {solver.name:7s} target {target:.0e}: error {worst:.2e} "
-                      f"({worst / target:.2f} x target) over the {len(met)} that report success, result codes {codes}, "
-                      f"errors of the others {[f'{e:.2e}' for e, c in zip(errs, codes) if c != 0]}", flush=True)
+                rows.append(
+                    dict(
+                        family=name,
+                        solver=solver.name,
+                        mode="target_error",
+                        setting=target,
+                        error=worst,
+                        ratio=worst / target,
+                        members=len(problems),
+                        turn=turn,
+                        results=sorted(set(codes)),
+                        codes=codes,
+                        errors=[float(e) for e in errs],
+                    )
+                )
+                print(
+                    f"{name:9s} {solver.name:7s} target {target:.0e}: error {worst:.2e} "
+                    f"({worst / target:.2f} x target) over the {len(met)} that report success, result codes {codes}, "
+                    f"errors of the others {[f'{e:.2e}' for e, c in zip(errs, codes) if c != 0]}",
+                    flush=True,
+                )
     lines = [
         "# Error / tolerance by body family (float64)",
         "",
@@ -188,9 +227,12 @@ def main():
         missed = sum(c != 0 for r in fam if r["mode"] == "target_error" for c in r["codes"])
         solves = sum(len(r["codes"]) for r in fam if r["mode"] == "target_error")
         est_span, tgt_span = span(est, lambda x: f"{x:.2f}"), span(tgt, lambda x: f"{x:.1f}")
-        lines.append(f"| {name} | {fam[0]['members']} | {fam[0]['turn']:,.0f} | {span(by['DP54'], ratio)} | "
-                     f"{span(by['DOP853'], ratio)} | {est_span} | {tgt_span}"
-                     + (f" ({missed} of {solves} report not reached)" if missed else "") + " |")
+        lines.append(
+            f"| {name} | {fam[0]['members']} | {fam[0]['turn']:,.0f} | {span(by['DP54'], ratio)} | "
+            f"{span(by['DOP853'], ratio)} | {est_span} | {tgt_span}"
+            + (f" ({missed} of {solves} report not reached)" if missed else "")
+            + " |"
+        )
     lines += [
         "",
         "## Every row",
@@ -207,8 +249,10 @@ def main():
             worst = str([round(x, 2) for x in r["worst_omega0"]])
         else:
             extra, median, worst = str(r["codes"]), "", ""
-        lines.append(f"| {r['family']} | {r['solver']} | {r['mode']} {r['setting']:.0e} | {r['error']:.2e} | "
-                     f"{r['ratio']:.1f} | {median} | {extra} | {worst} |")
+        lines.append(
+            f"| {r['family']} | {r['solver']} | {r['mode']} {r['setting']:.0e} | {r['error']:.2e} | "
+            f"{r['ratio']:.1f} | {median} | {extra} | {worst} |"
+        )
     write_results(OUT, "tolerance_scope", dict(machine=machine_info(), rows=rows), lines)
 
 

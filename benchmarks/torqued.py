@@ -84,14 +84,16 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+import peers  # noqa: E402
 import scipy  # noqa: E402
+from common import cli, interp_time, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
-import peers  # noqa: E402
-from common import cli, interp_time, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 
-QUICK, OUT = cli(__doc__, "tiny run (8 bodies, few settings, no repeats) to check the script works", __name__ == "__main__")
+QUICK, OUT = cli(
+    __doc__, "tiny run (8 bodies, few settings, no repeats) to check the script works", __name__ == "__main__"
+)
 
 N = 8 if QUICK else 256
 SEED = 0
@@ -179,7 +181,9 @@ class Family:
         if any(self.rotor):
             out.append(lierk.Rotor(np.asarray(self.rotor)))
         if self.bdot:
-            out.append(lierk.MagneticTorque(lierk.dipole_field(self.orbit_n, tilt=self.field_tilt), bdot_gain=self.bdot))
+            out.append(
+                lierk.MagneticTorque(lierk.dipole_field(self.orbit_n, tilt=self.field_tilt), bdot_gain=self.bdot)
+            )
         return tuple(out)
 
     @property
@@ -250,32 +254,63 @@ class Family:
 LAGRANGE = dict(inertia=(5.0, 5.0, 1.0), mass=1.0, g=10.0, chi=(0.0, 0.0, 2.0), tilt=(0.2, 0.6))
 FAMILIES = [
     Family(
-        "lagrange_fast", "Lagrange top, fast (spin 45-55 rad/s)", 2.0,
-        omega=((-0.5, 0.5), (-0.5, 0.5), (45.0, 55.0)), **LAGRANGE,
-        dts4=(8e-3, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4), dts8=(4e-2, 2e-2, 1e-2, 5e-3, 2.5e-3),
+        "lagrange_fast",
+        "Lagrange top, fast (spin 45-55 rad/s)",
+        2.0,
+        omega=((-0.5, 0.5), (-0.5, 0.5), (45.0, 55.0)),
+        **LAGRANGE,
+        dts4=(8e-3, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4),
+        dts8=(4e-2, 2e-2, 1e-2, 5e-3, 2.5e-3),
     ),
     Family(
-        "lagrange_slow", "Lagrange top, slow (spin 2-5 rad/s)", 5.0,
-        omega=((-0.5, 0.5), (-0.5, 0.5), (2.0, 5.0)), **LAGRANGE,
-        dts4=(5e-2, 2.5e-2, 1.25e-2, 6.25e-3, 3.125e-3, 1.5625e-3), dts8=(0.5, 0.25, 0.125, 6.25e-2, 3.125e-2, 1.5625e-2),
+        "lagrange_slow",
+        "Lagrange top, slow (spin 2-5 rad/s)",
+        5.0,
+        omega=((-0.5, 0.5), (-0.5, 0.5), (2.0, 5.0)),
+        **LAGRANGE,
+        dts4=(5e-2, 2.5e-2, 1.25e-2, 6.25e-3, 3.125e-3, 1.5625e-3),
+        dts8=(0.5, 0.25, 0.125, 6.25e-2, 3.125e-2, 1.5625e-2),
     ),
     Family(
-        "asymmetric", "asymmetric heavy top (spin 30-120 rad/s)", 2.0,
-        inertia=(0.6, 0.8, 0.3), mass=1.0, g=9.81, chi=(0.02, 0.01, 0.5), tilt=(0.3, 0.3),
+        "asymmetric",
+        "asymmetric heavy top (spin 30-120 rad/s)",
+        2.0,
+        inertia=(0.6, 0.8, 0.3),
+        mass=1.0,
+        g=9.81,
+        chi=(0.02, 0.01, 0.5),
+        tilt=(0.3, 0.3),
         omega=((-2.0, 2.0), (-2.0, 2.0), (30.0, 120.0)),
-        dts4=(8e-3, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4), dts8=(2e-2, 1e-2, 5e-3, 2.5e-3, 1.25e-3),
+        dts4=(8e-3, 4e-3, 2e-3, 1e-3, 5e-4, 2.5e-4),
+        dts8=(2e-2, 1e-2, 5e-3, 2.5e-3, 1.25e-3),
     ),
     Family(
-        "satellite", "damped satellite, body and space torques", 60.0,
-        inertia=(310.0, 420.0, 560.0), omega=None, speed=(0.1, 1.0), tilt=None,
-        c=6.0, tau_b=(1.5, -1.0, 2.0), tau_s=(-1.0, 2.0, 1.0),
-        dts4=(0.8, 0.4, 0.2, 0.1, 0.05, 0.025), dts8=(2.0, 1.0, 0.5, 0.25, 0.125),
+        "satellite",
+        "damped satellite, body and space torques",
+        60.0,
+        inertia=(310.0, 420.0, 560.0),
+        omega=None,
+        speed=(0.1, 1.0),
+        tilt=None,
+        c=6.0,
+        tau_b=(1.5, -1.0, 2.0),
+        tau_s=(-1.0, 2.0, 1.0),
+        dts4=(0.8, 0.4, 0.2, 0.1, 0.05, 0.025),
+        dts8=(2.0, 1.0, 0.5, 0.25, 0.125),
     ),
     Family(
-        "spacecraft", "satellite in orbit: gravity gradient, pitch rotor, B-dot", 320.0,
-        inertia=(10.0, 14.0, 6.0), omega=None, speed=(0.02, 0.1), tilt=None,
-        orbit_n=0.0011, rotor=(0.0, 0.3, 0.0), bdot=1e7,
-        dts4=(8.0, 4.0, 2.0, 1.0, 0.5, 0.25), dts8=(32.0, 16.0, 8.0, 4.0, 2.0),
+        "spacecraft",
+        "satellite in orbit: gravity gradient, pitch rotor, B-dot",
+        320.0,
+        inertia=(10.0, 14.0, 6.0),
+        omega=None,
+        speed=(0.02, 0.1),
+        tilt=None,
+        orbit_n=0.0011,
+        rotor=(0.0, 0.3, 0.0),
+        bdot=1e7,
+        dts4=(8.0, 4.0, 2.0, 1.0, 0.5, 0.25),
+        dts8=(32.0, 16.0, 8.0, 4.0, 2.0),
     ),
 ]
 # Tolerances (rtol = atol): every decade for the eighth-order pairs, the contenders;
@@ -297,8 +332,13 @@ def on_devices(one):
     of the whole batch: vmapped, and each device runs its own rows."""
     spec = PartitionSpec("batch")
     return jax.jit(
-        jax.shard_map(jax.vmap(one, in_axes=(0, 0, None)), mesh=MESH, in_specs=(spec, spec, PartitionSpec()), out_specs=spec,
-                      check_vma=False)
+        jax.shard_map(
+            jax.vmap(one, in_axes=(0, 0, None)),
+            mesh=MESH,
+            in_specs=(spec, spec, PartitionSpec()),
+            out_specs=spec,
+            check_vma=False,
+        )
     )
 
 
@@ -348,8 +388,19 @@ def scipy_one(fam: Family, w, R0, tol):
 # frame).  Both are constant controls passed to rollout (control_spec
 # CTRL | XFRC_APPLIED).  Everything MuJoCo would do besides is switched off.
 
-MJ_FLAGS = ("constraint", "equality", "frictionloss", "limit", "contact", "spring", "warmstart",
-            "filterparent", "sensor", "midphase", "clampctrl")
+MJ_FLAGS = (
+    "constraint",
+    "equality",
+    "frictionloss",
+    "limit",
+    "contact",
+    "spring",
+    "warmstart",
+    "filterparent",
+    "sensor",
+    "midphase",
+    "clampctrl",
+)
 
 
 def mujoco_xml(fam: Family, dt: float) -> str:
@@ -364,9 +415,14 @@ def mujoco_xml(fam: Family, dt: float) -> str:
     flags = " ".join(f'{f}="disable"' for f in MJ_FLAGS)
     motors = ""
     if any(fam.tau_b):
-        motors = "<actuator>" + "".join(
-            f'<motor joint="pivot" gear="{" ".join("1" if j == k else "0" for j in range(3))} 0 0 0"/>' for k in range(3)
-        ) + "</actuator>"
+        motors = (
+            "<actuator>"
+            + "".join(
+                f'<motor joint="pivot" gear="{" ".join("1" if j == k else "0" for j in range(3))} 0 0 0"/>'
+                for k in range(3)
+            )
+            + "</actuator>"
+        )
     return f"""<mujoco model="{fam.name}">
   <option gravity="0 0 {-fam.g:.17g}" integrator="RK4" timestep="{dt:.17g}">
     <flag {flags}/>
@@ -423,7 +479,9 @@ def mujoco_check(fam: Family, omega, R0) -> dict:
         "qvel_minus_body_omega": float(np.linalg.norm(w_mj[0] - w_ref)),
     }
     if any(fam.tau_b):
-        swapped = [e for e in fam.effects() if not isinstance(e, lierk.BodyTorque)] + [lierk.SpaceTorque(jnp.asarray(fam.tau_b))]
+        swapped = [e for e in fam.effects() if not isinstance(e, lierk.BodyTorque)] + [
+            lierk.SpaceTorque(jnp.asarray(fam.tau_b))
+        ]
         out["R_error_if_motor_torque_were_space_frame"] = float(np.linalg.norm(R_mj[0] - lierk_ref(tuple(swapped))[0]))
     return out
 
@@ -441,8 +499,14 @@ def run_family(fam: Family) -> dict:
     def add(method, program, kind, param, R, seconds, first, steps=None, results=None, R_ref=None, note=""):
         ok = results is None or not np.any(np.isin(np.asarray(results), [1, 2, 3]))
         rec = {
-            "method": method, "program": program, "kind": kind, "param": param, "time_s": seconds,
-            "first_call_s": first, "error": max_err(R, R_ref) if ok else float("nan"), "note": note,
+            "method": method,
+            "program": program,
+            "kind": kind,
+            "param": param,
+            "time_s": seconds,
+            "first_call_s": first,
+            "error": max_err(R, R_ref) if ok else float("nan"),
+            "note": note,
         }
         if steps is not None:
             rec["max_steps"] = int(np.max(steps))
@@ -455,8 +519,11 @@ def run_family(fam: Family) -> dict:
             rec["results"] = np.bincount(np.asarray(results).ravel(), minlength=1).tolist()
         records.append(rec)
         steps_s = f"  steps {rec['max_steps']:6d}, {rec['us_per_body_step']:5.2f} us/step" if steps is not None else ""
-        print(f"  {method:26s} {param:9.2e}  err {rec['error']:.2e}  time {seconds:8.4f} s  "
-              f"(first {first:6.2f} s){steps_s}{'' if ok else '  FAILED ' + str(rec['results'])}", flush=True)
+        print(
+            f"  {method:26s} {param:9.2e}  err {rec['error']:.2e}  time {seconds:8.4f} s  "
+            f"(first {first:6.2f} s){steps_s}{'' if ok else '  FAILED ' + str(rec['results'])}",
+            flush=True,
+        )
 
     # Reference: lierk DOP853 at 1e-13, against diffrax Dopri8 (whole batch) and SciPy DOP853 (two members).
     dop853 = lierk_fn(fam, lierk.DOP853())
@@ -469,13 +536,17 @@ def run_family(fam: Family) -> dict:
     R_dx, _, res_dx = jax.block_until_ready(dopri8(omegas, R0s, REF_TOL))
     assert not np.any(np.asarray(res_dx)), "diffrax Dopri8 cross-check failed"
     check_diffrax = max_err(R_dx, R_ref)
-    check_scipy = [float(np.linalg.norm(scipy_one(fam, omegas_np[i], R0_np[i], SCIPY_CHECK_TOL)[0] - np.asarray(R_ref[i])))
-                   for i in CHECK_IDS]
+    check_scipy = [
+        float(np.linalg.norm(scipy_one(fam, omegas_np[i], R0_np[i], SCIPY_CHECK_TOL)[0] - np.asarray(R_ref[i])))
+        for i in CHECK_IDS
+    ]
     agreement = max(check_diffrax, *check_scipy)
-    print(f"  reference lierk DOP853({REF_TOL:.0e}) {ref_s:.1f} s; |ref - diffrax Dopri8({REF_TOL:.0e})| = "
-          f"{check_diffrax:.1e} (batch max), |ref - SciPy DOP853({SCIPY_CHECK_TOL:.1e})| = "
-          f"{', '.join(f'{c:.1e}' for c in check_scipy)}",
-          flush=True)
+    print(
+        f"  reference lierk DOP853({REF_TOL:.0e}) {ref_s:.1f} s; |ref - diffrax Dopri8({REF_TOL:.0e})| = "
+        f"{check_diffrax:.1e} (batch max), |ref - SciPy DOP853({SCIPY_CHECK_TOL:.1e})| = "
+        f"{', '.join(f'{c:.1e}' for c in check_scipy)}",
+        flush=True,
+    )
 
     def adaptive(method, program, fn, tols):
         for tol in tols:
@@ -538,7 +609,9 @@ def run_family(fam: Family) -> dict:
         t = time.perf_counter()
         R, nfev = scipy_one(fam, omegas_np[0], R0_np[0], tol)
         s = (time.perf_counter() - t) * N
-        add(f"SciPy DOP853 (x{N})", "scipy", "tol", tol, R[None], s, 0.0, R_ref=R_ref[:1], note=f"member 0, nfev {nfev}")
+        add(
+            f"SciPy DOP853 (x{N})", "scipy", "tol", tol, R[None], s, 0.0, R_ref=R_ref[:1], note=f"member 0, nfev {nfev}"
+        )
 
     table = level_table(records, agreement)
     for row in table:
@@ -563,7 +636,12 @@ def run_family(fam: Family) -> dict:
     }
 
 
-PROGRAMS = [("lierk", "lierk best"), ("diffrax", "diffrax best"), ("mujoco", "MuJoCo RK4"), ("scipy", "SciPy DOP853 (x N)")]
+PROGRAMS = [
+    ("lierk", "lierk best"),
+    ("diffrax", "diffrax best"),
+    ("mujoco", "MuJoCo RK4"),
+    ("scipy", "SciPy DOP853 (x N)"),
+]
 PEERS = ("diffrax", "mujoco", "scipy")
 
 
@@ -583,7 +661,9 @@ def level_table(records, agreement: float) -> list[dict]:
             row[program] = best if row["claimed"] else None
         peers = [row[p] | {"program": p} for p in PEERS if row[p]]
         row["best_peer"] = min(peers, key=lambda x: x["time_s"]) if peers else None
-        row["ratio"] = row["lierk"]["time_s"] / row["best_peer"]["time_s"] if row["lierk"] and row["best_peer"] else None
+        row["ratio"] = (
+            row["lierk"]["time_s"] / row["best_peer"]["time_s"] if row["lierk"] and row["best_peer"] else None
+        )
         rows.append(row)
     return rows
 
@@ -610,8 +690,10 @@ def ratio_table(families: dict) -> list[str]:
                 cells.append("-" if row["lierk"] is None else "no peer reaches it")
             else:
                 mark = "" if row["ratio"] <= 0.3 else " (missed)"
-                cells.append(f"{row['ratio']:.2f}{mark}: {row['lierk']['method'].removeprefix('lierk ')} vs "
-                             f"{row['best_peer']['method']}")
+                cells.append(
+                    f"{row['ratio']:.2f}{mark}: {row['lierk']['method'].removeprefix('lierk ')} vs "
+                    f"{row['best_peer']['method']}"
+                )
         lines.append(f"| {level:.0e} | " + " | ".join(cells) + " |")
     return lines
 
@@ -649,12 +731,20 @@ def markdown(p) -> list[str]:
             f"= {f['reference_vs_diffrax_dopri8']:.1e} (batch max), |ref - SciPy DOP853 at {SCIPY_CHECK_TOL:.1e}| = "
             + ", ".join(f"{v:.1e}" for v in f["reference_vs_scipy_dop853"].values())
             + f" (members {', '.join(f['reference_vs_scipy_dop853'])}). "
-            + (f"MuJoCo: {c}." if isinstance(c, str) else (
-                f"MuJoCo against lierk at dt 1e-4 over "
-                f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, |qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
-                + (f"; with the motors' torque read as a space-frame torque instead: {c['R_error_if_motor_torque_were_space_frame']:.1e}"
-                   if "R_error_if_motor_torque_were_space_frame" in c else "")
-                + "."))
+            + (
+                f"MuJoCo: {c}."
+                if isinstance(c, str)
+                else (
+                    f"MuJoCo against lierk at dt 1e-4 over "
+                    f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, |qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
+                    + (
+                        f"; with the motors' torque read as a space-frame torque instead: {c['R_error_if_motor_torque_were_space_frame']:.1e}"
+                        if "R_error_if_motor_torque_were_space_frame" in c
+                        else ""
+                    )
+                    + "."
+                )
+            )
             + (f" Splitting solvers not run: {f['splitting_skipped']}." if f["splitting_skipped"] else ""),
             "",
             "| error <= | " + " | ".join(h for _, h in PROGRAMS) + " | lierk / best peer |",
@@ -663,8 +753,16 @@ def markdown(p) -> list[str]:
         for row in f["table"]:
             ratio = "-" if row["ratio"] is None else f"{row['ratio']:.2f}"
             lines.append(f"| {row['level']:.0e} | " + " | ".join(_cell(row[k]) for k, _ in PROGRAMS) + f" | {ratio} |")
-        lines += ["", "Max error (median time, s) at each tolerance:", "", *series_table(f["records"], "tol", "tol", "{:.0e}"),
-                  "", "... and at each step size:", "", *series_table(f["records"], "dt", "dt (s)", "{:.4g}")]
+        lines += [
+            "",
+            "Max error (median time, s) at each tolerance:",
+            "",
+            *series_table(f["records"], "tol", "tol", "{:.0e}"),
+            "",
+            "... and at each step size:",
+            "",
+            *series_table(f["records"], "dt", "dt (s)", "{:.4g}"),
+        ]
     return lines
 
 
@@ -681,11 +779,20 @@ def plot(families: dict):
     fig, axes = plt.subplots(2, 2, figsize=(13, 10))
     for ax, (name, f) in zip(axes.ravel(), families.items()):
         for k, method in enumerate(methods):
-            rs = sorted((r for r in f["records"] if r["method"] == method and np.isfinite(r["error"])),
-                        key=lambda r: r["time_s"])
+            rs = sorted(
+                (r for r in f["records"] if r["method"] == method and np.isfinite(r["error"])),
+                key=lambda r: r["time_s"],
+            )
             if rs:
-                ax.loglog([r["time_s"] for r in rs], [max(r["error"], 1e-16) for r in rs], style[rs[0]["program"]],
-                          marker=markers[k % len(markers)], ms=4, color=colours[k % len(colours)], label=method)
+                ax.loglog(
+                    [r["time_s"] for r in rs],
+                    [max(r["error"], 1e-16) for r in rs],
+                    style[rs[0]["program"]],
+                    marker=markers[k % len(markers)],
+                    ms=4,
+                    color=colours[k % len(colours)],
+                    label=method,
+                )
         ax.axhline(f["reference_agreement"], color="grey", lw=0.8, ls=":")
         ax.set_title(f"{name}: T = {f['definition']['T_s']:g} s, N = {f['batch']}")
         ax.set_xlabel("wall time for the batch (s)")
@@ -700,8 +807,11 @@ def plot(families: dict):
 def main():
     OUT.mkdir(parents=True, exist_ok=True)
     machine = machine_info(diffrax=diffrax.__version__, mujoco=mujoco.__version__, scipy=scipy.__version__)
-    print(f"{machine['cpu_count']} cores, {machine['cpu']}, devices {machine['devices']}, "
-          f"load {machine['load_average_at_start']}", flush=True)
+    print(
+        f"{machine['cpu_count']} cores, {machine['cpu']}, devices {machine['devices']}, "
+        f"load {machine['load_average_at_start']}",
+        flush=True,
+    )
     t_start = time.perf_counter()
     families = {fam.name: run_family(fam) for fam in FAMILIES}
     machine["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None

@@ -40,7 +40,6 @@ from __future__ import annotations
 
 import os
 import time
-from pathlib import Path
 
 import jax
 
@@ -50,12 +49,12 @@ import diffrax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import mujoco  # noqa: E402
 import numpy as np  # noqa: E402
+import peers  # noqa: E402
 import scipy  # noqa: E402
+from common import cli, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 
 import lierk  # noqa: E402
 import lierk.exact  # noqa: E402
-import peers  # noqa: E402
-from common import cli, machine_info, max_err, series_table, timed, write_results  # noqa: E402
 
 QUICK, OUT = cli(__doc__, "tiny run (20 bodies, T = 2 s) to check the script works", __name__ == "__main__")
 
@@ -114,7 +113,9 @@ def diffrax_fn(solver):
 
 def scipy_one(w, tol):
     """SciPy's DOP853 on the 9-component ODE: ``(R(T), nfev)``."""
-    return peers.scipy_solve(peers.free_body_field(INERTIA, L=np.asarray(INERTIA) @ w, xp=np), T, np.eye(3).ravel(), tol)
+    return peers.scipy_solve(
+        peers.free_body_field(INERTIA, L=np.asarray(INERTIA) @ w, xp=np), T, np.eye(3).ravel(), tol
+    )
 
 
 def report_rk4_one(w, h):
@@ -166,6 +167,7 @@ def report_rk4_one(w, h):
 # The model keeps MuJoCo's default pipeline; disabling the unused stages
 # (<flag constraint="disable" contact="disable" .../>) gave bit-identical states
 # about 20% faster in a small test.
+
 
 def mujoco_xml(dt: float) -> str:
     I = np.asarray(INERTIA)
@@ -310,7 +312,12 @@ def main():
         )
 
     add(
-        "lierk.exact (closed form)", "exact", None, R_ref, exact_s, first=exact_compile_s,
+        "lierk.exact (closed form)",
+        "exact",
+        None,
+        R_ref,
+        exact_s,
+        first=exact_compile_s,
         error=max(check),
         note=f"error: max |exact - SciPy DOP853(rtol=atol={CHECK_TOL:.0e})| over members {CHECK_IDS}; "
         f"compile {exact_compile_s:.1f} s",
@@ -320,8 +327,17 @@ def main():
         run = lierk_adaptive_fn(solver)
         for tol in LIERK_TOLS:
             (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
-            add(f"lierk {solver.name}", "lierk", tol, R, s, steps, kind="tol", first=first,
-                note=f"results {np.bincount(np.asarray(res)).tolist()}")
+            add(
+                f"lierk {solver.name}",
+                "lierk",
+                tol,
+                R,
+                s,
+                steps,
+                kind="tol",
+                first=first,
+                note=f"results {np.bincount(np.asarray(res)).tolist()}",
+            )
     # The loop kind of the adjoint, measured without differentiating.
     for solver in (lierk.DOP853(),):
         run = lierk_adaptive_fn(solver, lierk.ForwardMode())
@@ -339,18 +355,31 @@ def main():
     # uniform steps spend the work where the global error is made.
     for tableau, dts in ((lierk.tableaux.DOPRI54, HIGH_DTS[:4]), (lierk.tableaux.DOP853, HIGH_DTS)):
         for dt in dts:
-            (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas, repeats=REPEATS, min_time=MIN_TIME)
+            (R, steps), s, first = timed(
+                lierk_fixed_fn(lierk.RKMK(tableau), dt), omegas, repeats=REPEATS, min_time=MIN_TIME
+            )
             add(f"lierk RKMK({tableau.name}) fixed", "lierk", dt, R, s, steps, kind="dt", first=first)
 
     # The report's formulation (spatial L fixed, m = R^T L), same solvers.
     for dt in SPATIAL_DTS:
-        (R, steps), s, first = timed(lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas, repeats=REPEATS, min_time=MIN_TIME)
+        (R, steps), s, first = timed(
+            lierk_fixed_fn(lierk.RKMK4(), dt, lierk.SpatialFreeRigidBody), omegas, repeats=REPEATS, min_time=MIN_TIME
+        )
         add("lierk RKMK4 fixed (Spatial)", "lierk-spatial", dt, R, s, steps, kind="dt", first=first)
     run = lierk_adaptive_fn(lierk.DOP853(), problem=lierk.SpatialFreeRigidBody)
     for tol in SPATIAL_TOLS:
         (R, steps, res), s, first = timed(run, omegas, tol, repeats=REPEATS, min_time=MIN_TIME)
-        add("lierk DOP853 (Spatial)", "lierk-spatial", tol, R, s, steps, kind="tol", first=first,
-            note=f"results {np.bincount(np.asarray(res)).tolist()}")
+        add(
+            "lierk DOP853 (Spatial)",
+            "lierk-spatial",
+            tol,
+            R,
+            s,
+            steps,
+            kind="tol",
+            first=first,
+            note=f"results {np.bincount(np.asarray(res)).tolist()}",
+        )
 
     for solver in (diffrax.Tsit5(), diffrax.Dopri5(), diffrax.Dopri8()):
         run = diffrax_fn(solver)
@@ -362,16 +391,33 @@ def main():
     print(f"MuJoCo ball-joint qvel frame check: {frame_check}")
     for dt in MUJOCO_DTS:
         R, _, t_end, s, first = mujoco_batch(omegas_np, dt)
-        add("MuJoCo RK4 (ball joint)", "mujoco", dt, R, s, np.full(N, lierk.num_steps(0.0, T, dt)), kind="dt", first=first,
-            note=f"rollout, {MUJOCO_THREADS} threads, |t_end - T| <= {np.max(np.abs(t_end - T)):.0e}")
+        add(
+            "MuJoCo RK4 (ball joint)",
+            "mujoco",
+            dt,
+            R,
+            s,
+            np.full(N, lierk.num_steps(0.0, T, dt)),
+            kind="dt",
+            first=first,
+            note=f"rollout, {MUJOCO_THREADS} threads, |t_end - T| <= {np.max(np.abs(t_end - T)):.0e}",
+        )
 
     one_ref = R_ref[0]
     for tol in TOLS:
         t = time.perf_counter()
         R, nfev = scipy_one(omegas_np[0], tol)
         s = (time.perf_counter() - t) * N
-        add(f"scipy DOP853 (x{N})", "scipy", tol, R, s, err_R_ref=one_ref, kind="tol",
-            note=f"one trajectory, nfev {nfev}")
+        add(
+            f"scipy DOP853 (x{N})",
+            "scipy",
+            tol,
+            R,
+            s,
+            err_R_ref=one_ref,
+            kind="tol",
+            note=f"one trajectory, nfev {nfev}",
+        )
     for h in (0.01, 0.001):
         t = time.perf_counter()
         R = report_rk4_one(omegas_np[0], h)
@@ -383,7 +429,9 @@ def main():
         row = {"level": level}
         for family, _ in PROGRAMS:
             rec = best_time(records, level, family)
-            row[family] = None if rec is None else {"method": rec["method"], "param": rec["param"], "time_s": rec["time_s"]}
+            row[family] = (
+                None if rec is None else {"method": rec["method"], "param": rec["param"], "time_s": rec["time_s"]}
+            )
         for peer in ("diffrax", "mujoco"):
             a, b = row["lierk"], row[peer]
             row[f"ratio_lierk_over_{peer}"] = a["time_s"] / b["time_s"] if a and b else None

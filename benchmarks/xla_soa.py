@@ -42,14 +42,14 @@ import re
 # is imported, and holds the RKMK4 program and batch this script compares.
 import sweep  # isort: skip
 
+import common
 import jax
 import jax.numpy as jnp
+import native
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-import common
 import lierk
-import native
 
 QUICK, OUT = common.cli(__doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__")
 DT = sweep.DT
@@ -76,21 +76,26 @@ def _step(inv, m, r, h, boundary):
     k2, d2 = boundary(_stage(inv, tuple(m[i] + 0.5 * h * d1[i] for i in range(3)), tuple(0.5 * h * k for k in k1)))
     k3, d3 = boundary(_stage(inv, tuple(m[i] + 0.5 * h * d2[i] for i in range(3)), tuple(0.5 * h * k for k in k2)))
     k4, d4 = _stage(inv, tuple(m[i] + h * d3[i] for i in range(3)), tuple(h * k for k in k3))
-    u, m = boundary((
-        tuple(h / 6 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i]) for i in range(3)),
-        tuple(m[i] + h / 6 * (d1[i] + 2 * d2[i] + 2 * d3[i] + d4[i]) for i in range(3)),
-    ))
+    u, m = boundary(
+        (
+            tuple(h / 6 * (k1[i] + 2 * k2[i] + 2 * k3[i] + k4[i]) for i in range(3)),
+            tuple(m[i] + h / 6 * (d1[i] + 2 * d2[i] + 2 * d3[i] + d4[i]) for i in range(3)),
+        )
+    )
     x = u[0] * u[0] + u[1] * u[1] + u[2] * u[2]
     A, B, _ = boundary(lierk.so3.exp_coefficients(x))
     c = 1.0 - B * x
-    e = ((c + B * u[0] * u[0], B * u[0] * u[1] - A * u[2], B * u[0] * u[2] + A * u[1]),
-         (B * u[0] * u[1] + A * u[2], c + B * u[1] * u[1], B * u[1] * u[2] - A * u[0]),
-         (B * u[0] * u[2] - A * u[1], B * u[1] * u[2] + A * u[0], c + B * u[2] * u[2]))
+    e = (
+        (c + B * u[0] * u[0], B * u[0] * u[1] - A * u[2], B * u[0] * u[2] + A * u[1]),
+        (B * u[0] * u[1] + A * u[2], c + B * u[1] * u[1], B * u[1] * u[2] - A * u[0]),
+        (B * u[0] * u[2] - A * u[1], B * u[1] * u[2] + A * u[0], c + B * u[2] * u[2]),
+    )
     r = tuple(tuple(r[i][0] * e[0][j] + r[i][1] * e[1][j] + r[i][2] * e[2][j] for j in range(3)) for i in range(3))
     if jnp.finfo(m[0].dtype).bits < 64:  # lierk.so3.reorthonormalize: R (3 I - R^T R) / 2
         s = [[sum(r[k][i] * r[k][j] for k in range(3)) for j in range(3)] for i in range(3)]
-        r = tuple(tuple(1.5 * r[i][j] - 0.5 * sum(r[i][k] * s[k][j] for k in range(3)) for j in range(3))
-                  for i in range(3))
+        r = tuple(
+            tuple(1.5 * r[i][j] - 0.5 * sum(r[i][k] * s[k][j] for k in range(3)) for j in range(3)) for i in range(3)
+        )
     return m, r
 
 
@@ -108,8 +113,10 @@ def final_R_components(omega0, n_steps: int, barriers: bool):
             def boundary(values):
                 return jax.lax.cond(pred, lambda v: v, lambda v: jax.tree.map(jnp.negative, v), values)
         else:
+
             def boundary(values):
                 return values
+
         return _step(inv, *carry, jnp.asarray(DT, dtype), boundary)
 
     m = tuple(omega0[:, i] * inertia[i] for i in range(3))
@@ -143,9 +150,11 @@ def run(batch: int, n_steps: int, repeats: int, dtype) -> dict:
     calls = {name: functools.partial(f, w_dev) for name, f in programs.items()}
     if dtype == np.float64 and native.build_c_soa() is None:
         calls[f"C structure of arrays, {threads} threads"] = functools.partial(
-            native.c_soa_final_R, INERTIA, w, DT, n_steps, threads)
+            native.c_soa_final_R, INERTIA, w, DT, n_steps, threads
+        )
     calls[f"numba structure of arrays, {threads} threads"] = functools.partial(
-        native.rkmk4_soa_final_R, INERTIA, w, DT, n_steps, threads)
+        native.rkmk4_soa_final_R, INERTIA, w, DT, n_steps, threads
+    )
     outs = {name: np.asarray(jax.block_until_ready(call())) for name, call in calls.items()}
     times = sweep.interleaved(calls, repeats)
     ref = outs["lierk.sweep (jit(vmap(solve)))"]
@@ -154,7 +163,9 @@ def run(batch: int, n_steps: int, repeats: int, dtype) -> dict:
     for name, ts in times.items():
         rate = batch * n_steps / min(ts)
         rows[name] = {
-            "min_s": min(ts), "median_s": float(np.median(ts)), "body_steps_per_s": rate,
+            "min_s": min(ts),
+            "median_s": float(np.median(ts)),
+            "body_steps_per_s": rate,
             "ratio_to_anchor": rate * min(times[anchor]) / (batch * n_steps),
             "loop_body_fusions": fusions.get(name),
             "max_diff_to_lierk": float(np.max(np.abs(outs[name] - ref))),
@@ -180,22 +191,32 @@ def markdown(res: dict) -> str:
         ]
         for name, r in t["rows"].items():
             k = "" if r["loop_body_fusions"] is None else str(r["loop_body_fusions"])
-            lines.append(f"| {name} | {k} | {r['body_steps_per_s']:.2e} | {r['ratio_to_anchor']:.2f} | "
-                         f"{r['max_diff_to_lierk']:.1e} |")
+            lines.append(
+                f"| {name} | {k} | {r['body_steps_per_s']:.2e} | {r['ratio_to_anchor']:.2f} | "
+                f"{r['max_diff_to_lierk']:.1e} |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def main():
     batch, steps, repeats = (1000, 100, 3) if QUICK else (10000, 1000, 5)
-    machine = {"cpu_count": os.cpu_count(), "cpu_model": common.cpu_model(), "devices": jax.device_count(),
-               "jax": jax.__version__, "load_start": os.getloadavg()}
+    machine = {
+        "cpu_count": os.cpu_count(),
+        "cpu_model": common.cpu_model(),
+        "devices": jax.device_count(),
+        "jax": jax.__version__,
+        "load_start": os.getloadavg(),
+    }
     runs = []
     for dtype in (np.float64, np.float32):
         runs.append(run(batch, steps, repeats, dtype))
         for name, r in runs[-1]["rows"].items():
-            print(f"{runs[-1]['dtype']:8s} {name:40s} {r['body_steps_per_s']:.3e} body-steps/s  "
-                  f"{r['ratio_to_anchor']:.2f}x anchor  kernels {r['loop_body_fusions']}  "
-                  f"diff {r['max_diff_to_lierk']:.1e}", flush=True)
+            print(
+                f"{runs[-1]['dtype']:8s} {name:40s} {r['body_steps_per_s']:.3e} body-steps/s  "
+                f"{r['ratio_to_anchor']:.2f}x anchor  kernels {r['loop_body_fusions']}  "
+                f"diff {r['max_diff_to_lierk']:.1e}",
+                flush=True,
+            )
     machine["load_end"] = os.getloadavg()
     res = {"machine": machine, "quick": QUICK, "repeats": repeats, "runs": runs}
     common.write_results(OUT, "xla_soa", res, markdown(res))

@@ -46,79 +46,119 @@ SCHEMA_MARKER = "<!-- scene-schema -->"
 # What each result file measures, in the order the page shows them.  A file
 # not listed here still appears (after these), with a generic sentence.
 DESCRIPTIONS: dict[str, tuple[str, str]] = {
-    "convergence": ("Convergence order",
-                    "The fitted order of every fixed-step solver on the T-handle, against the exact solution."),
-    "work_precision": ("Work against precision, free body",
-                       "Time for 1000 near-axis T-handles to reach each error, lierk beside diffrax, MuJoCo, "
-                       "SciPy and the report's NumPy loop."),
-    "torqued": ("Work against precision, torqued bodies",
-                "The same for five families under torques (Lagrange tops, an asymmetric heavy top, a damped "
-                "satellite, a spacecraft in orbit), lierk's best over the best peer."),
-    "formulation": ("Torque-free formulations",
-                    "FreeRigidBody (body momentum as state) against SpatialFreeRigidBody (the report's form): "
-                    "error and speed at equal settings."),
-    "tolerance_scope": ("What rtol means, by body family",
-                        "Global error over rtol, estimate over error and target_error's outcome on families "
-                        "beyond the calibration set."),
-    "error_estimate": ("Global error estimate and accuracy on request",
-                       "How close estimate_error=True is to the true error, and what target_error costs."),
-    "events": ("Event times against cost",
-               "How accurately and how cheaply lierk and diffrax find an event time on fast Lagrange tops."),
-    "sensitivity": ("Jacobians against cost",
-                    "dR(T)/d omega0 for lierk's two methods and diffrax's adjoints, error against time."),
-    "throughput": ("Throughput",
-                   "Body-steps per second of every fixed-step solver under jit(vmap), batch 1 to 10000."),
-    "sweep": ("Sweeps at scale",
-              "lierk.sweep against a held jit and native structure-of-arrays kernels in C and numba."),
-    "xla_soa": ("The XLA ceiling",
-                "RKMK4 written per component inside XLA: how fast code that XLA generates can be."),
-    "long_horizon": ("Long horizon, free T-handle",
-                     "Error and invariant drift of every solver over 1000 s."),
-    "long_horizon_top": ("Long horizon, heavy tops",
-                         "Energy and Casimirs over 10^6 steps: the splittings' bounded energy against the "
-                         "Runge-Kutta methods' drift."),
-    "long_horizon_brouwer": ("Long horizon, rounding",
-                             "Whether the energy error over 10^6 steps is a random walk (Brouwer's law) or a drift."),
-    "first_result": ("Time to first result",
-                     "A fresh process's first solve and first Jacobian (trace, compile, run), lierk beside diffrax."),
-    "first_result-jacfwd-eager": ("Time to first Jacobian, jitted and eager",
-                                  "A later run of the first Jacobians alone: jax.jit(jax.jacfwd(f)) and an eager "
-                                  "jax.jacfwd(f), as most code calls it, lierk beside diffrax."),
-    "first_result-solve-jacfwd": ("Time to first solve and first Jacobian, a later run",
-                                  "The first solves and first jax.jit(jax.jacfwd(f)) alone, after one body's "
-                                  "adaptive step was written in fewer XLA kernels, lierk beside diffrax."),
-    "first_result-call-jacfwd-eager-sensitivity": ("Time to first result from Python",
-                                                   "lierk.solve and lierk.sensitivity called from Python (lierk's own "
-                                                   "programs, compiled with lierk.one_body_compiler_options), an eager "
-                                                   "jax.jacfwd and jax.jit(jax.jacfwd(f)), lierk beside diffrax."),
-    "first_result-solve": ("Time to first solve inside jax.jit, and its run",
-                           "jax.jit of one body's solve, lierk (the stage loop of the long tableaux) and with "
-                           "compact=False (the stages unrolled) beside diffrax: the first call in a fresh process "
-                           "and the compiled program's later runs."),
-    "first_result-call": ("Time to first solve from Python, and later calls",
-                          "lierk.solve called from Python (one body's program, compiled for the CPU with "
-                          "lierk.one_body_compiler_options and the long tableaux' stage loop) beside diffrax's "
-                          "diffeqsolve: the first call in a fresh process and 20 later calls."),
-    "compiler_options": ("A first call inside your own jax.jit, with lierk's compile options",
-                         "jax.jit(f) against jax.jit(f, compiler_options=lierk.one_body_compiler_options()) for "
-                         "one body's adaptive solve and its Jacobian, diffrax's jax.jit(f) beside them: the first "
-                         "call in a fresh process and the compiled program's later runs."),
-    "compile_time": ("Compilation time",
-                     "What one program costs to trace and compile, lierk beside diffrax."),
-    "latency": ("The command line, cold and warm",
-                "What each lierk command costs from the shell, with and without the compilation cache."),
-    "process_spread": ("One program, several processes",
-                       "The same compiled program timed in several fresh processes: the two speeds."),
-    "design": ("Gradients of design costs",
-               "One jax.grad of the design examples' costs (a fleet's mean over jax.vmap, a slew's held commands) "
-               "through lierk.solve_sampled, against one evaluation, with jax.jacfwd beside it."),
-    "scene_overhead": ("Scenes cost nothing extra",
-                       "A scene without effects against FreeRigidBody solved directly."),
+    "convergence": (
+        "Convergence order",
+        "The fitted order of every fixed-step solver on the T-handle, against the exact solution.",
+    ),
+    "work_precision": (
+        "Work against precision, free body",
+        "Time for 1000 near-axis T-handles to reach each error, lierk beside diffrax, MuJoCo, "
+        "SciPy and the report's NumPy loop.",
+    ),
+    "torqued": (
+        "Work against precision, torqued bodies",
+        "The same for five families under torques (Lagrange tops, an asymmetric heavy top, a damped "
+        "satellite, a spacecraft in orbit), lierk's best over the best peer.",
+    ),
+    "formulation": (
+        "Torque-free formulations",
+        "FreeRigidBody (body momentum as state) against SpatialFreeRigidBody (the report's form): "
+        "error and speed at equal settings.",
+    ),
+    "tolerance_scope": (
+        "What rtol means, by body family",
+        "Global error over rtol, estimate over error and target_error's outcome on families "
+        "beyond the calibration set.",
+    ),
+    "error_estimate": (
+        "Global error estimate and accuracy on request",
+        "How close estimate_error=True is to the true error, and what target_error costs.",
+    ),
+    "events": (
+        "Event times against cost",
+        "How accurately and how cheaply lierk and diffrax find an event time on fast Lagrange tops.",
+    ),
+    "sensitivity": (
+        "Jacobians against cost",
+        "dR(T)/d omega0 for lierk's two methods and diffrax's adjoints, error against time.",
+    ),
+    "throughput": ("Throughput", "Body-steps per second of every fixed-step solver under jit(vmap), batch 1 to 10000."),
+    "sweep": (
+        "Sweeps at scale",
+        "lierk.sweep against a held jit and native structure-of-arrays kernels in C and numba.",
+    ),
+    "xla_soa": ("The XLA ceiling", "RKMK4 written per component inside XLA: how fast code that XLA generates can be."),
+    "long_horizon": ("Long horizon, free T-handle", "Error and invariant drift of every solver over 1000 s."),
+    "long_horizon_top": (
+        "Long horizon, heavy tops",
+        "Energy and Casimirs over 10^6 steps: the splittings' bounded energy against the Runge-Kutta methods' drift.",
+    ),
+    "long_horizon_brouwer": (
+        "Long horizon, rounding",
+        "Whether the energy error over 10^6 steps is a random walk (Brouwer's law) or a drift.",
+    ),
+    "first_result": (
+        "Time to first result",
+        "A fresh process's first solve and first Jacobian (trace, compile, run), lierk beside diffrax.",
+    ),
+    "first_result-jacfwd-eager": (
+        "Time to first Jacobian, jitted and eager",
+        "A later run of the first Jacobians alone: jax.jit(jax.jacfwd(f)) and an eager "
+        "jax.jacfwd(f), as most code calls it, lierk beside diffrax.",
+    ),
+    "first_result-solve-jacfwd": (
+        "Time to first solve and first Jacobian, a later run",
+        "The first solves and first jax.jit(jax.jacfwd(f)) alone, after one body's "
+        "adaptive step was written in fewer XLA kernels, lierk beside diffrax.",
+    ),
+    "first_result-call-jacfwd-eager-sensitivity": (
+        "Time to first result from Python",
+        "lierk.solve and lierk.sensitivity called from Python (lierk's own "
+        "programs, compiled with lierk.one_body_compiler_options), an eager "
+        "jax.jacfwd and jax.jit(jax.jacfwd(f)), lierk beside diffrax.",
+    ),
+    "first_result-solve": (
+        "Time to first solve inside jax.jit, and its run",
+        "jax.jit of one body's solve, lierk (the stage loop of the long tableaux) and with "
+        "compact=False (the stages unrolled) beside diffrax: the first call in a fresh process "
+        "and the compiled program's later runs.",
+    ),
+    "first_result-call": (
+        "Time to first solve from Python, and later calls",
+        "lierk.solve called from Python (one body's program, compiled for the CPU with "
+        "lierk.one_body_compiler_options and the long tableaux' stage loop) beside diffrax's "
+        "diffeqsolve: the first call in a fresh process and 20 later calls.",
+    ),
+    "compiler_options": (
+        "A first call inside your own jax.jit, with lierk's compile options",
+        "jax.jit(f) against jax.jit(f, compiler_options=lierk.one_body_compiler_options()) for "
+        "one body's adaptive solve and its Jacobian, diffrax's jax.jit(f) beside them: the first "
+        "call in a fresh process and the compiled program's later runs.",
+    ),
+    "compile_time": ("Compilation time", "What one program costs to trace and compile, lierk beside diffrax."),
+    "latency": (
+        "The command line, cold and warm",
+        "What each lierk command costs from the shell, with and without the compilation cache.",
+    ),
+    "process_spread": (
+        "One program, several processes",
+        "The same compiled program timed in several fresh processes: the two speeds.",
+    ),
+    "design": (
+        "Gradients of design costs",
+        "One jax.grad of the design examples' costs (a fleet's mean over jax.vmap, a slew's held commands) "
+        "through lierk.solve_sampled, against one evaluation, with jax.jacfwd beside it.",
+    ),
+    "scene_overhead": ("Scenes cost nothing extra", "A scene without effects against FreeRigidBody solved directly."),
 }
-SUBFOLDERS = {"h100": ("On an H100 GPU",
-                        "Benchmarks run on one NVIDIA H100 (JAX's default backend there, jax 0.11.2; "
-                        "the native anchors of the sweep on the machine's 16 Intel Xeon cores): each file names "
-                        "its commit and device.")}
+SUBFOLDERS = {
+    "h100": (
+        "On an H100 GPU",
+        "Benchmarks run on one NVIDIA H100 (JAX's default backend there, jax 0.11.2; "
+        "the native anchors of the sweep on the machine's 16 Intel Xeon cores): each file names "
+        "its commit and device.",
+    )
+}
 
 
 def _slug(name: str) -> str:
@@ -155,6 +195,7 @@ def _script_sentence(name: str) -> str:
 def result_files() -> list[Path]:
     """Every result to show: the markdown tables, and the JSON files that have
     none, in `DESCRIPTIONS` order, then the others, then each subfolder's."""
+
     def ordered(folder: Path) -> list[Path]:
         md = {p.stem: p for p in folder.glob("*.md")}
         js = {p.stem: p for p in folder.glob("*.json") if p.stem not in md}
@@ -181,15 +222,19 @@ def render_results(page_dir: str = "guides") -> str:
             current_sub = sub
             title, sentence = SUBFOLDERS.get(sub, (f"`{sub}/`", "Results from another machine."))
             parts.append(f"## {title} (`{sub}/`) {{#{sub}}}\n\n{sentence}\n")
-        title, sentence = DESCRIPTIONS.get(path.stem) or (path.stem.replace("_", " ").capitalize(),
-                                                        _script_sentence(path.stem))
+        title, sentence = DESCRIPTIONS.get(path.stem) or (
+            path.stem.replace("_", " ").capitalize(),
+            _script_sentence(path.stem),
+        )
         anchor = _slug(f"{sub}-{path.stem}" if sub else path.stem)
         level = "###" if sub else "##"
         script = f"benchmarks/{path.stem.split('-')[0]}.py"  # first_result-jacfwd-eager: first_result.py --works
         source = f"`benchmarks/results/{rel.as_posix()}`"
         if (ROOT / script).exists():
             source += f", written by `{script}`"
-        parts.append(f"{level} {title}{' (' + sub + ')' if sub else ''} {{#{anchor}}}\n\n{sentence} Source: {source}.\n")
+        parts.append(
+            f"{level} {title}{' (' + sub + ')' if sub else ''} {{#{anchor}}}\n\n{sentence} Source: {source}.\n"
+        )
         if path.suffix == ".md":
             parts.append(_demote(path.read_text(encoding="utf-8"), 2 if sub else 1))
         else:
@@ -208,8 +253,9 @@ def render_cli_help() -> str:
     from lierk.app.cli_arguments import build_parser
 
     parser = build_parser()
-    commands = [name for action in parser._actions if isinstance(action, argparse._SubParsersAction)
-                for name in action.choices]
+    commands = [
+        name for action in parser._actions if isinstance(action, argparse._SubParsersAction) for name in action.choices
+    ]
     old = os.environ.get("COLUMNS")
     os.environ["COLUMNS"] = "100"
     try:
@@ -229,9 +275,16 @@ def render_cli_help() -> str:
 
 
 # Where each table of the schema sits in a scene file, by the class name's ending.
-_SCHEMA_PLACES = (("SceneFile", "the file"), ("Initial", "[initial]"), ("Run", "[run]"),
-                  ("EventKeys", "[[events]], every kind"), ("Body", "[body]"), ("Part", "[[body.parts]]"),
-                  ("Effect", "[[effects]]"), ("Event", "[[events]]"))
+_SCHEMA_PLACES = (
+    ("SceneFile", "the file"),
+    ("Initial", "[initial]"),
+    ("Run", "[run]"),
+    ("EventKeys", "[[events]], every kind"),
+    ("Body", "[body]"),
+    ("Part", "[[body.parts]]"),
+    ("Effect", "[[effects]]"),
+    ("Event", "[[events]]"),
+)
 
 
 def _attributes(doc: str) -> dict[str, str]:
@@ -267,9 +320,14 @@ def _value_types(module) -> dict[str, str]:
     tree = ast.parse(Path(module.__file__).read_text())
     out = {}
     for node, after in zip(tree.body, tree.body[1:]):
-        if (isinstance(node, ast.Assign) and len(node.targets) == 1 and isinstance(node.targets[0], ast.Name)
-                and isinstance(after, ast.Expr) and isinstance(after.value, ast.Constant)
-                and isinstance(after.value.value, str)):
+        if (
+            isinstance(node, ast.Assign)
+            and len(node.targets) == 1
+            and isinstance(node.targets[0], ast.Name)
+            and isinstance(after, ast.Expr)
+            and isinstance(after.value, ast.Constant)
+            and isinstance(after.value.value, str)
+        ):
             out[node.targets[0].id] = " ".join(after.value.value.split())
     return out
 
@@ -319,10 +377,12 @@ def render_scene_schema() -> str:
                 default = f"`{field.default!r}`"
             else:
                 default = f"`{field.default_factory()!r}`"
-            rows.append(f"| `{field.name}` | `{_cell(kind_of)}` | {_cell(default)} | "
-                        f"{_cell(meanings.get(field.name, ''))} |")
-        parts.append(f"### `{place}`{kind} {{#schema-{_slug(cls.__name__.lower())}}}\n\n{summary}\n\n"
-                     + "\n".join(rows) + "\n")
+            rows.append(
+                f"| `{field.name}` | `{_cell(kind_of)}` | {_cell(default)} | {_cell(meanings.get(field.name, ''))} |"
+            )
+        parts.append(
+            f"### `{place}`{kind} {{#schema-{_slug(cls.__name__.lower())}}}\n\n{summary}\n\n" + "\n".join(rows) + "\n"
+        )
     if aliases:
         rows = ["| name | what it is |", "|---|---|"] + [f"| `{n}` | {_cell(t)} |" for n, t in aliases]
         parts.append("### Types and limits {#schema-value-types}\n\n" + "\n".join(rows) + "\n")
@@ -357,12 +417,14 @@ def fill(markdown: str, marker: str, text: str) -> str:
 def region(markdown: str, marker: str) -> str:
     """What ``markdown`` holds between ``marker`` and its `end_marker`."""
     start = markdown.index(marker) + len(marker)
-    return markdown[start:markdown.index(end_marker(marker), start)].strip()
+    return markdown[start : markdown.index(end_marker(marker), start)].strip()
 
 
 # The committed regions: (page, marker, renderer).
-COMMITTED = (("guides/scenes-and-cli.md", SCHEMA_MARKER, "render_scene_schema"),
-             ("guides/scenes-and-cli.md", CLI_MARKER, "render_cli_help"))
+COMMITTED = (
+    ("guides/scenes-and-cli.md", SCHEMA_MARKER, "render_scene_schema"),
+    ("guides/scenes-and-cli.md", CLI_MARKER, "render_cli_help"),
+)
 
 
 def write_committed() -> list[Path]:

@@ -66,6 +66,7 @@ from ._problems.spacecraft import Rotor as Rotor
 from ._problems.spacecraft import dipole_field as dipole_field
 from ._programs import one_body_compiler_options as one_body_compiler_options
 from ._progress import Progress as Progress
+from ._sampled import solve_sampled as solve_sampled
 from ._sensitivity import Sensitivity as Sensitivity
 from ._sensitivity import sensitivity as sensitivity
 from ._sensitivity import sensitivity_method as sensitivity_method
@@ -74,7 +75,6 @@ from ._solution import SaveAt as SaveAt
 from ._solution import Solution as Solution
 from ._solve import num_steps as num_steps
 from ._solve import solve as solve
-from ._sampled import solve_sampled as solve_sampled
 from ._solvers import CF4 as CF4
 from ._solvers import DOP853 as DOP853
 from ._solvers import DP54 as DP54

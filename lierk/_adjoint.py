@@ -153,7 +153,9 @@ class ForwardSensitivity(AbstractAdjoint):
 
     def __check_init__(self):
         if self.max_inputs is not None and not (isinstance(self.max_inputs, int) and self.max_inputs >= 1):
-            raise ValueError(f"ForwardSensitivity(max_inputs=...) must be a positive int or None, got {self.max_inputs!r}")
+            raise ValueError(
+                f"ForwardSensitivity(max_inputs=...) must be a positive int or None, got {self.max_inputs!r}"
+            )
         if not isinstance(self.resolve_modes, bool):
             raise ValueError(f"ForwardSensitivity(resolve_modes=...) must be True or False, got {self.resolve_modes!r}")
         if isinstance(self.fallback, (ForwardSensitivity, RecursiveCheckpointAdjoint)):
@@ -208,8 +210,21 @@ def _may_capture_tracer(tree) -> bool:
     return False
 
 
-_PLAIN = (type(None), bool, int, float, complex, str, bytes, np.generic, jtu.PyTreeDef, types.GetSetDescriptorType,
-          types.MemberDescriptorType, types.WrapperDescriptorType, types.MethodDescriptorType)
+_PLAIN = (
+    type(None),
+    bool,
+    int,
+    float,
+    complex,
+    str,
+    bytes,
+    np.generic,
+    jtu.PyTreeDef,
+    types.GetSetDescriptorType,
+    types.MemberDescriptorType,
+    types.WrapperDescriptorType,
+    types.MethodDescriptorType,
+)
 # Top-level functions, classes and modules of these packages (and of the
 # standard library) hold no traced values; closures made by them, such as
 # `lierk.dipole_field`'s field, are still looked into.
@@ -298,7 +313,9 @@ def _inside(x) -> list | None:
     if hasattr(x, "__wrapped__"):  # functools.wraps
         inside.append(x.__wrapped__)
     attributes = getattr(x, "__dict__", None)
-    slots = [n for c in type(x).__mro__ for n in _names(getattr(c, "__slots__", ())) if n not in ("__dict__", "__weakref__")]
+    slots = [
+        n for c in type(x).__mro__ for n in _names(getattr(c, "__slots__", ())) if n not in ("__dict__", "__weakref__")
+    ]
     if attributes is None and not slots and len(inside) == 1:
         return None
     inside += list((attributes or {}).values()) + [getattr(x, n) for n in slots if hasattr(x, n)]

@@ -28,7 +28,6 @@ import numpy as np
 from jax.experimental import multihost_utils
 from jax.sharding import Mesh, NamedSharding, PartitionSpec, SingleDeviceSharding
 
-
 __all__ = ["sweep", "sweep_chunks"]
 
 _STRUCTURAL_CACHE_SIZE = 64
@@ -120,9 +119,7 @@ def _compiled(fn: Callable) -> tuple[Callable, list]:
 
                 def rebuild(dyn):
                     it = iter(dyn)
-                    return jax.tree_util.tree_unflatten(
-                        treedef, [next(it) if s is None else s[1] for s in static]
-                    )
+                    return jax.tree_util.tree_unflatten(treedef, [next(it) if s is None else s[1] for s in static])
 
                 jitted = _BY_STRUCTURE[key] = _jit_vmap(rebuild)
                 if len(_BY_STRUCTURE) > _STRUCTURAL_CACHE_SIZE:

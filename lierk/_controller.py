@@ -37,7 +37,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import so3, tableaux, _validation as validation
+from . import _validation as validation
+from . import so3, tableaux
 from ._solvers.base import field_at
 
 __all__ = ["AbstractStepController", "Controller", "ConstantStep", "Decision"]
@@ -92,7 +93,9 @@ class AbstractStepController(eqx.Module):
         `adapt` needs besides ``self``."""
         raise NotImplementedError
 
-    def adapt(self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last) -> Decision:
+    def adapt(
+        self, state, problem, solver, st, *, t, t_new, h, h_proposed, clipped, t1, R, y, f, rejected_last
+    ) -> Decision:
         """Judge step ``st`` from ``(t, R, y)`` to ``t_new = t + h`` (``f`` the
         field at ``t``); ``h_proposed`` was the attempt's step before it was
         clipped to a save time or t1 (``clipped``)."""
@@ -223,10 +226,12 @@ class Controller(AbstractStepController):
         # Traced, both are checked in one program (a sweep over tolerances);
         # keep every checked value: a traced check whose result is dropped
         # is dead code to XLA.
-        rtol, atol = validation.check_together([
-            (rtol, lambda v: (v >= 0) & (v < inf), "rtol must be >= 0 and finite, got {value}"),
-            (atol, lambda v: (v >= 0) & (v < inf), "atol must be >= 0 and finite, got {value}"),
-        ])
+        rtol, atol = validation.check_together(
+            [
+                (rtol, lambda v: (v >= 0) & (v < inf), "rtol must be >= 0 and finite, got {value}"),
+                (atol, lambda v: (v >= 0) & (v < inf), "atol must be >= 0 and finite, got {value}"),
+            ]
+        )
         rtol, atol = validation.check(
             (rtol, atol), lambda ra: ra[0] + ra[1] > 0, "rtol + atol must be > 0, got rtol = 0 and atol = 0"
         )

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import functools
 import types
-
 from typing import Any, Callable, NamedTuple
 
 import equinox as eqx
@@ -117,7 +116,9 @@ class Event(eqx.Module):
         if where is not None and not callable(where):
             raise ValueError(f"Event(where=...) must be a function where(t, R, y) -> bool or None, got {where!r}")
         if not (isinstance(terminate, bool) or (_is_int(terminate) and terminate >= 1)):
-            raise ValueError(f"Event(terminate=...) must be True, False or a positive int (stop at the n-th crossing), got {terminate!r}")
+            raise ValueError(
+                f"Event(terminate=...) must be True, False or a positive int (stop at the n-th crossing), got {terminate!r}"
+            )
         if direction not in (-1, 0, 1) or isinstance(direction, bool):
             raise ValueError(f"Event(direction=...) must be 0 (both), 1 (rising) or -1 (falling), got {direction!r}")
         if max_count is None:
@@ -125,7 +126,9 @@ class Event(eqx.Module):
         if not (_is_int(max_count) and max_count >= 1):
             raise ValueError(f"Event(max_count=...) must be a positive int, got {max_count!r}")
         if _is_int(terminate) and not isinstance(terminate, bool) and max_count < terminate:
-            raise ValueError(f"Event(max_count={max_count}) must be at least terminate={terminate}, to hold the crossing that ends the solve")
+            raise ValueError(
+                f"Event(max_count={max_count}) must be at least terminate={terminate}, to hold the crossing that ends the solve"
+            )
         if not (_is_int(samples) and samples >= 1):
             raise ValueError(f"Event(samples=...) must be a positive int, got {samples!r}")
         self.cond = cond
@@ -178,8 +181,10 @@ def with_closures_converted(events: tuple[Event, ...], t0, R0, y0) -> tuple[Even
             return eqx.filter_closure_convert(f, t0, R0, y0)
         return f
 
-    return tuple(eqx.tree_at(lambda e: (e.cond, e.where), e, (convert(e.cond), convert(e.where)), is_leaf=lambda x: x is None)
-                 for e in events)
+    return tuple(
+        eqx.tree_at(lambda e: (e.cond, e.where), e, (convert(e.cond), convert(e.where)), is_leaf=lambda x: x is None)
+        for e in events
+    )
 
 
 def events_tuple(event) -> tuple[Event, ...]:
@@ -242,7 +247,9 @@ def init(events: tuple[Event, ...], t0: Array, R0: Array, y0: Any) -> State:
         counts=jnp.zeros((n,), jnp.int32),
         ts=tuple(jnp.full((ev.max_count,), jnp.inf, dtype) for ev in events),
         R=tuple(jnp.full((ev.max_count, 3, 3), jnp.nan, dtype) for ev in events),
-        y=tuple(jax.tree_util.tree_map(lambda x: jnp.full((ev.max_count,) + x.shape, jnp.nan, x.dtype), y0) for ev in events),
+        y=tuple(
+            jax.tree_util.tree_map(lambda x: jnp.full((ev.max_count,) + x.shape, jnp.nan, x.dtype), y0) for ev in events
+        ),
         stopped=jnp.zeros((n,), bool),
         nan=jnp.any(jnp.isnan(jnp.stack(gs))),
     )
@@ -404,8 +411,15 @@ def _illinois(cond, step, bracket):
         at_b2 = jax.tree_util.tree_map(
             lambda new, old: jnp.where(moved_b.reshape((-1,) + (1,) * (new.ndim - 1)), new, old), at_c, at_b
         )
-        return (pick(a2, a), pick(b2, b), pick(ga2, ga), pick(gb2, gb), pick(side2, side), it + run.astype(it.dtype),
-                at_b2)
+        return (
+            pick(a2, a),
+            pick(b2, b),
+            pick(ga2, ga),
+            pick(gb2, gb),
+            pick(side2, side),
+            it + run.astype(it.dtype),
+            at_b2,
+        )
 
     init = (lo, hi, glo, ghi, jnp.zeros(lo.shape, jnp.int32), jnp.zeros(lo.shape, jnp.int32), ends)
     _, b, _, _, _, _, (Rb, yb) = jax.lax.while_loop(lambda c: jnp.any(running(c)), body, init)

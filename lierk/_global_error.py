@@ -26,7 +26,18 @@ from ._loops import _batched_together, frozen, solve_adaptive, solve_fixed, solv
 from ._solution import RESULTS, SaveAt, Solution
 from ._solvers.base import field_at
 
-__all__ = ["TOLERANCE_RATIO", "DEFAULT_ADAPTIVE_MAX_STEPS", "DEFAULT_TARGET_MAX_STEPS", "finer", "finer_options", "fixed_refinement", "richardson", "estimate_fixed", "estimate_adaptive", "solve_to_target"]
+__all__ = [
+    "TOLERANCE_RATIO",
+    "DEFAULT_ADAPTIVE_MAX_STEPS",
+    "DEFAULT_TARGET_MAX_STEPS",
+    "finer",
+    "finer_options",
+    "fixed_refinement",
+    "richardson",
+    "estimate_fixed",
+    "estimate_adaptive",
+    "solve_to_target",
+]
 
 # The finer solve of an adaptive error estimate divides both tolerances by
 # this; the calibrated pairs' global error is proportional to the tolerance
@@ -40,7 +51,7 @@ _TARGET_SOLVES = 8
 # A `target_error` confirming solve takes about this many times the steps of
 # the solve it confirms: its tolerance is 100x tighter for DOP853, 18x for
 # DP54 and RKF45 (see `solve_to_target`).
-_CONFIRM_STEPS = 100 ** 0.125
+_CONFIRM_STEPS = 100**0.125
 # The first adaptive tolerance is the target over this (see `solve_to_target`).
 _FIRST_TOLERANCE = 20.0
 # Rounding that every solve of a problem shares, in eps per radian turned
@@ -62,8 +73,11 @@ def finer(controller: Controller, order: int) -> Controller:
     return eqx.tree_at(
         lambda c: (c.rtol, c.atol, c.max_angle),
         controller,
-        (_scaled(controller.rtol, 1 / TOLERANCE_RATIO), _scaled(controller.atol, 1 / TOLERANCE_RATIO),
-         _scaled(controller.max_angle, scale)),
+        (
+            _scaled(controller.rtol, 1 / TOLERANCE_RATIO),
+            _scaled(controller.atol, 1 / TOLERANCE_RATIO),
+            _scaled(controller.max_angle, scale),
+        ),
     )
 
 
@@ -139,17 +153,23 @@ def finer_options(solver, **options) -> tuple[dict, float]:
         if options.get("max_steps") is not None:
             fine["max_steps"] = -(-num * int(options["max_steps"]) // den)
         if every is not None:
-            fine["saveat"] = SaveAt(t0=saveat.t0, t1=saveat.t1, steps=every * num // den, ts=saveat.ts, dense=saveat.dense)
+            fine["saveat"] = SaveAt(
+                t0=saveat.t0, t1=saveat.t1, steps=every * num // den, ts=saveat.ts, dense=saveat.dense
+            )
         return fine, (num / den) ** solver.order
     controller = options.get("controller")
     if controller is None:
         if options.get("rtol") is None:
-            raise ValueError(f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones")
+            raise ValueError(
+                f"{solver.name}: pass dt= for fixed steps, or rtol=/atol= or controller= for adaptive ones"
+            )
         controller = Controller.from_tolerances(options["rtol"], options.get("atol"))
         del fine["rtol"]
         fine.pop("atol", None)
     if not isinstance(controller, Controller):
-        raise ValueError(f"finer_options tightens a lierk.Controller's tolerances; {type(controller).__name__} has none")
+        raise ValueError(
+            f"finer_options tightens a lierk.Controller's tolerances; {type(controller).__name__} has none"
+        )
     fine["controller"] = finer(_diagnostic(controller), solver.order)
     fine["max_steps"] = 2 * (options.get("max_steps") or DEFAULT_ADAPTIVE_MAX_STEPS)
     # The finer solve chooses its own first step, as estimate_error's does.
@@ -189,16 +209,34 @@ def estimate_fixed(sol: Solution, problem, solver, t0, t1, dt, saveat: SaveAt, n
     else:
         # The estimate reads the saved states only: no dense output.
         steps = options["saveat"].steps
-        fine = solve_fixed(frozen(problem), solver, t0, t1, options["dt"], SaveAt(t0=saveat.t0, t1=saveat.t1, steps=steps),
-                           options["max_steps"])
+        fine = solve_fixed(
+            frozen(problem),
+            solver,
+            t0,
+            t1,
+            options["dt"],
+            SaveAt(t0=saveat.t0, t1=saveat.t1, steps=steps),
+            options["max_steps"],
+        )
     return _with_estimate(sol, fine, ratio)
 
 
-def estimate_adaptive(sol: Solution, problem, solver, t0, t1, saveat: SaveAt, max_steps: int, controller, adjoint) -> Solution:
+def estimate_adaptive(
+    sol: Solution, problem, solver, t0, t1, saveat: SaveAt, max_steps: int, controller, adjoint
+) -> Solution:
     """``sol`` (an adaptive solve) with its estimate from a solve at tolerances
     divided by `TOLERANCE_RATIO`."""
     fine = solve_adaptive(
-        frozen(problem), solver, t0, t1, None, saveat, 2 * max_steps, finer(controller, solver.order), adjoint, DIAGNOSTIC_FLOOR_EPS
+        frozen(problem),
+        solver,
+        t0,
+        t1,
+        None,
+        saveat,
+        2 * max_steps,
+        finer(controller, solver.order),
+        adjoint,
+        DIAGNOSTIC_FLOOR_EPS,
     )
     return _with_estimate(sol, fine, TOLERANCE_RATIO)
 
@@ -408,9 +446,18 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
         lambda x: jnp.zeros(x.shape, x.dtype), eqx.filter_eval_shape(solve, s0, jnp.asarray(True))
     )
     init = dict(
-        k=jnp.asarray(0), gap_prev=jnp.zeros(blank.ts.shape, dtype), has_gap=jnp.asarray(False),
-        s=s0, go=jnp.asarray(True), prev=blank, s_prev=s0, has_prev=jnp.asarray(False),
-        steps=blank.stats["num_steps"], out=blank, out_est=jnp.full(blank.ts.shape, jnp.inf, dtype), out_s=s0,
+        k=jnp.asarray(0),
+        gap_prev=jnp.zeros(blank.ts.shape, dtype),
+        has_gap=jnp.asarray(False),
+        s=s0,
+        go=jnp.asarray(True),
+        prev=blank,
+        s_prev=s0,
+        has_prev=jnp.asarray(False),
+        steps=blank.stats["num_steps"],
+        out=blank,
+        out_est=jnp.full(blank.ts.shape, jnp.inf, dtype),
+        out_s=s0,
         code=jnp.asarray(RESULTS.target_error_not_reached, jnp.int32),
     )
     c = jax.lax.while_loop(cond, body, _batched_together(init, (problem, t0, t1, eps)))
@@ -419,5 +466,8 @@ def solve_to_target(problem, solver, t0, t1, saveat, eps, max_steps: int, adjoin
     stats["num_solves"] = c["k"]
     stats["rtol" if adaptive else "dt"] = c["out_s"]
     return eqx.tree_at(
-        lambda x: (x.result, x.stats, x.error_estimate), sol, (c["code"], stats, c["out_est"]), is_leaf=lambda x: x is None
+        lambda x: (x.result, x.stats, x.error_estimate),
+        sol,
+        (c["code"], stats, c["out_est"]),
+        is_leaf=lambda x: x is None,
     )

@@ -64,7 +64,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from . import so3, _validation as validation
+from . import _validation as validation
+from . import so3
 
 __all__ = ["DenseInterpolation", "PartialStep", "nested", "node", "hermite", "evaluate_step", "interpolate"]
 
@@ -138,7 +139,13 @@ def hermite(h: Array, R0: Array, y0: Any, node0: tuple, R1: Array, y1: Any, node
     _, dv1 = jax.jvp(lambda u, w: so3.dexpinv(-u, w), (U, w1), (v1, dw1))
     Fu = _quintic(U, h * w0, h * h * dw0, h * v1, h * h * dv1)
     Fy = jax.tree_util.tree_map(
-        lambda a, b, da, db, dda, ddb: _quintic(b - a, h * da, h * h * dda, h * db, h * h * ddb), y0, y1, g0, g1, dg0, dg1
+        lambda a, b, da, db, dda, ddb: _quintic(b - a, h * da, h * h * dda, h * db, h * h * ddb),
+        y0,
+        y1,
+        g0,
+        g1,
+        dg0,
+        dg1,
     )
     return Fu, Fy
 

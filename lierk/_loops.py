@@ -33,8 +33,8 @@ from jax import Array
 from . import _event as event_lib
 from . import _validation as validation
 from ._adjoint import ForwardMode
-from ._interpolation import DenseInterpolation
 from ._controller import AbstractStepController, frozen
+from ._interpolation import DenseInterpolation
 from ._solution import RESULTS, SaveAt, Solution
 
 __all__ = ["solve_fixed", "solve_fixed_at", "solve_adaptive", "num_steps", "step_count", "frozen"]
@@ -74,7 +74,9 @@ def step_count(t0, t1, dt, xp):
     """
     x = (t1 - t0) / dt
     eps = float(np.finfo(dt.dtype).eps)
-    tol = xp.minimum(xp.maximum(1e-9 * xp.minimum(1.0, x), 16 * eps * (x + xp.maximum(xp.abs(t0), xp.abs(t1)) / dt)), 0.5)
+    tol = xp.minimum(
+        xp.maximum(1e-9 * xp.minimum(1.0, x), 16 * eps * (x + xp.maximum(xp.abs(t0), xp.abs(t1)) / dt)), 0.5
+    )
     r = xp.round(x)
     n = xp.where(xp.abs(x - r) <= tol, r, xp.ceil(x))
     # A step longer than the interval is one step, shortened to end at t1.
@@ -406,7 +408,9 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
             reached = reached.at[-1].set(True)
             times = times.at[-1].set(t_end)
             saved = jax.tree_util.tree_map(lambda x, v: x.at[-1].set(v), saved, state)
-        saved = jax.tree_util.tree_map(lambda x: jnp.where(reached.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan), saved)
+        saved = jax.tree_util.tree_map(
+            lambda x: jnp.where(reached.reshape((-1,) + (1,) * (x.ndim - 1)), x, jnp.nan), saved
+        )
         middle, unreached = (times, saved), jnp.sum(~reached)
     end = (t_end, state) if saveat.t1 and not fills else None
     ts, R, y, n_saved = _assemble(saveat, t0, (R0, y0), middle, end)
@@ -419,7 +423,14 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         result = jnp.where(ev.nan, RESULTS.event_condition_nan, result)
         records_out = event_lib.records(events, ev)
     return Solution(
-        ts, R, y, n_saved, _fixed_stats(taken, solver, tracked=True), result, interpolation=interpolation, events=records_out
+        ts,
+        R,
+        y,
+        n_saved,
+        _fixed_stats(taken, solver, tracked=True),
+        result,
+        interpolation=interpolation,
+        events=records_out,
     )
 
 
@@ -493,8 +504,17 @@ class _Carry(NamedTuple):
 
 @eqx.filter_jit
 def solve_adaptive(
-    problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: AbstractStepController, adjoint,
-    floor_eps: float = 50.0, events: tuple = (),
+    problem,
+    solver,
+    t0,
+    t1,
+    dt0,
+    saveat: SaveAt,
+    max_steps: int,
+    controller: AbstractStepController,
+    adjoint,
+    floor_eps: float = 50.0,
+    events: tuple = (),
 ) -> Solution:
     """Steps chosen by ``controller`` from ``t0`` to ``t1``, at most
     ``max_steps`` attempts (accepted plus rejected); ``dt0`` is the first step
@@ -509,8 +529,18 @@ def solve_adaptive(
         # decisions first (one more forward solve), and the differentiated
         # loop only replays them: every pass of it takes the same steps.
         _, replay = _adaptive_loop(
-            frozen(problem), solver, frozen(t0), frozen(t1), frozen(dt0), saveat, max_steps, frozen(controller),
-            ForwardMode(), floor_eps, record=True, events=events,
+            frozen(problem),
+            solver,
+            frozen(t0),
+            frozen(t1),
+            frozen(dt0),
+            saveat,
+            max_steps,
+            frozen(controller),
+            ForwardMode(),
+            floor_eps,
+            record=True,
+            events=events,
         )
     return _adaptive_loop(
         problem, solver, t0, t1, dt0, saveat, max_steps, controller, adjoint, floor_eps, replay=replay, events=events
@@ -518,8 +548,19 @@ def solve_adaptive(
 
 
 def _adaptive_loop(
-    problem, solver, t0, t1, dt0, saveat: SaveAt, max_steps: int, controller: AbstractStepController, adjoint,
-    floor_eps: float, record: bool = False, replay: Array | None = None, events: tuple = (),
+    problem,
+    solver,
+    t0,
+    t1,
+    dt0,
+    saveat: SaveAt,
+    max_steps: int,
+    controller: AbstractStepController,
+    adjoint,
+    floor_eps: float,
+    record: bool = False,
+    replay: Array | None = None,
+    events: tuple = (),
 ) -> tuple[Solution, Array | None]:
     """The while loop: ``(Solution, decisions)``.  ``decisions``
     ``(max_steps,)`` holds each attempt's next step, negative if the attempt
@@ -574,7 +615,9 @@ def _adaptive_loop(
         # to a save time, up to the rounding of the times, would otherwise
         # leave a step of a few ulps.
         eps = jnp.finfo(remaining.dtype).eps
-        snap = jnp.minimum(jnp.maximum(1e-9 * h_proposed, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(stop))), 0.5 * h_proposed)
+        snap = jnp.minimum(
+            jnp.maximum(1e-9 * h_proposed, 16 * eps * jnp.maximum(jnp.abs(c.t), jnp.abs(stop))), 0.5 * h_proposed
+        )
         clipped = h_proposed + snap >= remaining
         last = clipped & (stop >= t1)
         t_new = jnp.where(clipped, stop, c.t + jax.lax.stop_gradient(h_proposed))
@@ -589,8 +632,20 @@ def _adaptive_loop(
         else:
             st = solver.step(problem, c.t, h, c.R, c.y, c.f)
         d = controller.adapt(
-            ctrl_state, problem, solver, st, t=c.t, t_new=t_new, h=h, h_proposed=h_proposed, clipped=clipped, t1=t1, R=c.R, y=c.y,
-            f=c.f, rejected_last=c.rejected_last,
+            ctrl_state,
+            problem,
+            solver,
+            st,
+            t=c.t,
+            t_new=t_new,
+            h=h,
+            h_proposed=h_proposed,
+            clipped=clipped,
+            t1=t1,
+            R=c.R,
+            y=c.y,
+            f=c.f,
+            rejected_last=c.rejected_last,
         )
         accept, h_out, decisions = _decide(c, d, h, record, replay)
 
@@ -647,17 +702,23 @@ def _adaptive_loop(
         checkpoints=adjoint.checkpoints,
         buffers=(lambda c: c.decisions) if record and adjoint.kind == "checkpointed" else None,
     )
-    return _adaptive_solution(final, solver, saveat, t0, (R0, y0), ts_req, max_steps, events, f0, dt0, tracked), final.decisions
+    return _adaptive_solution(
+        final, solver, saveat, t0, (R0, y0), ts_req, max_steps, events, f0, dt0, tracked
+    ), final.decisions
 
 
-def _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat: SaveAt, max_steps: int, decisions, events, tracked) -> _Carry:
+def _adaptive_init(
+    problem, solver, t0, t1, dt0, h0, f0, saveat: SaveAt, max_steps: int, decisions, events, tracked
+) -> _Carry:
     """The adaptive loop's first carry: at ``t0``, the first step ``h0`` and
     field ``f0`` (the controller's), empty buffers."""
     R0, y0 = problem.R0, problem.y0
     izero = jnp.asarray(0, dtype=jnp.int32)
     ev0 = event_lib.init(events, t0, R0, y0) if events else None
     node0 = solver.dense_node(problem, t0, R0, y0) if tracked else None
-    dense0 = _dense_init(problem, solver, t0, dt0 if dt0 is not None else h0, node0, max_steps) if saveat.dense else None
+    dense0 = (
+        _dense_init(problem, solver, t0, dt0 if dt0 is not None else h0, node0, max_steps) if saveat.dense else None
+    )
     R, y = _moved_together((R0, y0))
     return _Carry(
         t=t0,
@@ -689,8 +750,11 @@ def _batched_together(carry, inputs):
     which a carry entry turns batched (the step count after the state, the
     result code after the step count); a carry batched from the start saves
     those rounds of tracing."""
-    probes = [jnp.isnan(jnp.ravel(x)[0]) for x in jax.tree_util.tree_leaves(inputs)
-              if eqx.is_array(x) and x.size and jnp.issubdtype(x.dtype, jnp.inexact)]
+    probes = [
+        jnp.isnan(jnp.ravel(x)[0])
+        for x in jax.tree_util.tree_leaves(inputs)
+        if eqx.is_array(x) and x.size and jnp.issubdtype(x.dtype, jnp.inexact)
+    ]
     if not probes:
         return carry
     p = functools.reduce(jnp.logical_or, probes)
@@ -758,8 +822,9 @@ def _events_in_step(events, c: _Carry, slopes, st, t_new, accept):
     return ev, stopped, ev.nan, end
 
 
-def _adaptive_solution(final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req, max_steps: int, events, f0, dt0,
-                       tracked: bool) -> Solution:
+def _adaptive_solution(
+    final: _Carry, solver, saveat: SaveAt, t0, state0, ts_req, max_steps: int, events, f0, dt0, tracked: bool
+) -> Solution:
     """The `Solution` from the adaptive loop's final carry; ``tracked``: its
     steps built their interpolants (dense output, events)."""
     finite = validation.all_finite((final.R, final.y))

@@ -54,7 +54,9 @@ def from_arrays(vertices, faces, scale: float = 1.0) -> TriangleMesh:
     if v.ndim != 2 or v.shape[1] != 3 or len(v) < 4:
         raise ValueError(f"mesh vertices must be an array of shape (V, 3) with V >= 4, got shape {v.shape}")
     if not np.isfinite(v).all():
-        raise ValueError(f"mesh vertices must be finite; vertex {int(np.argwhere(~np.isfinite(v))[0, 0])} is {v[np.argwhere(~np.isfinite(v))[0, 0]]}")
+        raise ValueError(
+            f"mesh vertices must be finite; vertex {int(np.argwhere(~np.isfinite(v))[0, 0])} is {v[np.argwhere(~np.isfinite(v))[0, 0]]}"
+        )
     if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
         raise ValueError(f"mesh faces must be an array of shape (F, 3) with F >= 4 triangles, got shape {f.shape}")
     if not np.issubdtype(f.dtype, np.integer):
@@ -122,7 +124,9 @@ def load(path: str | os.PathLike, scale: float = 1.0) -> TriangleMesh:
         try:
             import trimesh
         except ImportError:
-            raise ValueError(f"{path}: lierk reads .stl and .obj meshes; for {suffix or 'this'} files install trimesh") from None
+            raise ValueError(
+                f"{path}: lierk reads .stl and .obj meshes; for {suffix or 'this'} files install trimesh"
+            ) from None
         try:
             m = trimesh.load_mesh(path)
         except Exception as e:  # trimesh raises many types for unreadable files
@@ -208,14 +212,20 @@ def mass_properties(mesh: TriangleMesh, density: float) -> MassProperties:
     x, y, z = T[..., 0], T[..., 1], T[..., 2]
     d = np.cross(T[:, 1] - T[:, 0], T[:, 2] - T[:, 0])
     fx, fy, fz = (_subexpressions(w[:, 0], w[:, 1], w[:, 2]) for w in (x, y, z))
-    ints = np.array([
-        np.sum(d[:, 0] * fx[0]) / 6,
-        np.sum(d[:, 0] * fx[1]) / 24, np.sum(d[:, 1] * fy[1]) / 24, np.sum(d[:, 2] * fz[1]) / 24,
-        np.sum(d[:, 0] * fx[2]) / 60, np.sum(d[:, 1] * fy[2]) / 60, np.sum(d[:, 2] * fz[2]) / 60,
-        np.sum(d[:, 0] * (y[:, 0] * fx[3] + y[:, 1] * fx[4] + y[:, 2] * fx[5])) / 120,
-        np.sum(d[:, 1] * (z[:, 0] * fy[3] + z[:, 1] * fy[4] + z[:, 2] * fy[5])) / 120,
-        np.sum(d[:, 2] * (x[:, 0] * fz[3] + x[:, 1] * fz[4] + x[:, 2] * fz[5])) / 120,
-    ])
+    ints = np.array(
+        [
+            np.sum(d[:, 0] * fx[0]) / 6,
+            np.sum(d[:, 0] * fx[1]) / 24,
+            np.sum(d[:, 1] * fy[1]) / 24,
+            np.sum(d[:, 2] * fz[1]) / 24,
+            np.sum(d[:, 0] * fx[2]) / 60,
+            np.sum(d[:, 1] * fy[2]) / 60,
+            np.sum(d[:, 2] * fz[2]) / 60,
+            np.sum(d[:, 0] * (y[:, 0] * fx[3] + y[:, 1] * fx[4] + y[:, 2] * fx[5])) / 120,
+            np.sum(d[:, 1] * (z[:, 0] * fy[3] + z[:, 1] * fy[4] + z[:, 2] * fy[5])) / 120,
+            np.sum(d[:, 2] * (x[:, 0] * fz[3] + x[:, 1] * fz[4] + x[:, 2] * fz[5])) / 120,
+        ]
+    )
     volume = ints[0]
     scale = np.ptp(mesh.vertices, axis=0).max() ** 3
     if not abs(volume) > 1e-12 * scale:

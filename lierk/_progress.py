@@ -10,12 +10,13 @@ import contextlib
 import sys
 import time
 
-
 __all__ = ["Progress"]
 
 # Elapsed and left on one clock (m:ss, h:mm:ss past an hour), the rate with
 # an SI prefix and a space before its unit: "12.3k members/s", "83.1 s/s".
-_METER = "{desc}: {percentage:3.0f}%{bar} {n_fmt}/{total_fmt}{unit} [{elapsed} elapsed, {remaining} left, {rate_noinv_fmt}]"
+_METER = (
+    "{desc}: {percentage:3.0f}%{bar} {n_fmt}/{total_fmt}{unit} [{elapsed} elapsed, {remaining} left, {rate_noinv_fmt}]"
+)
 
 
 class Progress:
@@ -48,8 +49,16 @@ class Progress:
             fake one.
     """
 
-    def __init__(self, label: str, total: float, unit: str = "", quiet: bool = False, stream=None,
-                 lines: int = 10, clock=time.perf_counter):
+    def __init__(
+        self,
+        label: str,
+        total: float,
+        unit: str = "",
+        quiet: bool = False,
+        stream=None,
+        lines: int = 10,
+        clock=time.perf_counter,
+    ):
         self.label, self.total, self.unit, self.quiet = label, float(total), unit.strip(), quiet
         self.stream = sys.stderr if stream is None else stream
         self.tty = hasattr(self.stream, "isatty") and self.stream.isatty()
@@ -61,8 +70,16 @@ class Progress:
         if not quiet and self.tty:
             from tqdm import tqdm  # (here: `import lierk` loads no tqdm)
 
-            self.bar = tqdm(total=self.total, desc=label, unit=self._unit, unit_scale=True, file=self.stream,
-                            mininterval=0.2, bar_format=_METER.replace("{bar}", "|{bar}|"), dynamic_ncols=True)
+            self.bar = tqdm(
+                total=self.total,
+                desc=label,
+                unit=self._unit,
+                unit_scale=True,
+                file=self.stream,
+                mininterval=0.2,
+                bar_format=_METER.replace("{bar}", "|{bar}|"),
+                dynamic_ncols=True,
+            )
 
     @contextlib.contextmanager
     def compiling(self):
@@ -104,9 +121,17 @@ class Progress:
             self.next_line += 1
         from tqdm import tqdm
 
-        self._write(tqdm.format_meter(min(self.done, self.total), self.total, self.clock() - self.start,
-                                      prefix=self.label, unit=self._unit, unit_scale=True,
-                                      bar_format=_METER.replace("{bar}", "")))
+        self._write(
+            tqdm.format_meter(
+                min(self.done, self.total),
+                self.total,
+                self.clock() - self.start,
+                prefix=self.label,
+                unit=self._unit,
+                unit_scale=True,
+                bar_format=_METER.replace("{bar}", ""),
+            )
+        )
 
     def _write(self, text: str) -> None:
         self.stream.write(text + "\n")

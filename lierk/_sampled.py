@@ -150,8 +150,9 @@ def solve_sampled(
             "control selects None: build the problem with the command's leaf in place (a ReactionWheels with "
             "torque=jnp.zeros(k), a BodyTorque(jnp.zeros(3))), so that each command replaces it"
         )
-    shape = jax.eval_shape(law, jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), dtype), problem.R0,
-                           problem.y0)
+    shape = jax.eval_shape(
+        law, jax.ShapeDtypeStruct((), jnp.int32), jax.ShapeDtypeStruct((), dtype), problem.R0, problem.y0
+    )
     want = jax.tree_util.tree_map(lambda x: jax.ShapeDtypeStruct(jnp.shape(x), jnp.result_type(x)), slots)
     if jax.tree_util.tree_structure(shape) != jax.tree_util.tree_structure(want) or any(
         a.shape != b.shape for a, b in zip(jax.tree_util.tree_leaves(shape), jax.tree_util.tree_leaves(want))

@@ -42,12 +42,13 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import so3, _validation as validation
+from . import _validation as validation
+from . import so3
 from ._controller import Controller
-from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
-from ._solution import RESULTS, SaveAt, raise_if_failed
 from ._global_error import finer_options, richardson
+from ._problems import AbstractProblem, AbstractRigidBody, RigidBodyWithEffects, Variational
 from ._programs import Program
+from ._solution import RESULTS, SaveAt, raise_if_failed
 from ._solve import num_steps, solve
 from ._solvers import AbstractSplitting
 from ._solvers.base import AbstractSolver
@@ -133,7 +134,8 @@ class Sensitivity(eqx.Module):
         warnings.warn(
             "Sensitivity.error_estimate is deprecated: it is the error of jacobian_R, now named "
             "jacobian_R_error; the error of jacobian (the algebra form) is jacobian_error",
-            DeprecationWarning, stacklevel=2,
+            DeprecationWarning,
+            stacklevel=2,
         )
         return self.jacobian_R_error
 
@@ -147,7 +149,8 @@ class Sensitivity(eqx.Module):
         warnings.warn(
             "Sensitivity.lyapunov_exponent is deprecated: it is log(sigma_max(jacobian) / T) / T, not a "
             "Lyapunov exponent of the body's state; the finite-time Lyapunov exponent is Sensitivity.ftle",
-            DeprecationWarning, stacklevel=2,
+            DeprecationWarning,
+            stacklevel=2,
         )
         J = self.jacobian
         if not (isinstance(J, jax.Array | np.ndarray) and J.ndim == self.R.ndim and J.shape[-2:] == (3, 3)):
@@ -182,7 +185,9 @@ def _check_input(problem: AbstractProblem, wrt) -> None:
     elif wrt not in _INPUTS:
         raise ValueError(f"wrt must be one of {_INPUTS} or a function selecting fields of the problem, got {wrt!r}")
     elif not isinstance(problem, AbstractRigidBody):
-        raise ValueError(f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}")
+        raise ValueError(
+            f"wrt={wrt!r} needs a rigid-body problem with omega0 (FreeRigidBody, ...), got {type(problem).__name__}"
+        )
 
 
 def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], AbstractProblem]]:
@@ -197,8 +202,11 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
             raise ValueError(
                 f"wrt= must select floating-point arrays of the problem (e.g. lambda p: p.effects[0].mass), got {p0!r}"
             )
-        held = [n for n in ("inertia", "inertia_inv") if isinstance(problem, AbstractRigidBody)
-                and any(x is getattr(problem, n) for x in leaves)]
+        held = [
+            n
+            for n in ("inertia", "inertia_inv")
+            if isinstance(problem, AbstractRigidBody) and any(x is getattr(problem, n) for x in leaves)
+        ]
         if held:
             # The constructor derives the inverse, the initial momentum and
             # the diagonal path from the inertia: replaced alone it gave a
@@ -240,7 +248,9 @@ def _input(problem: AbstractProblem, wrt) -> tuple[Any, Callable[[Any], Abstract
             return type(problem)(inertia, omega0, problem.R0)
         if isinstance(problem, RigidBodyWithEffects):
             return RigidBodyWithEffects(inertia, omega0, problem.R0, problem.effects)
-        raise ValueError(f"wrt='inertia' is not defined for {type(problem).__name__}: select the field with wrt=lambda p: ...")
+        raise ValueError(
+            f"wrt='inertia' is not defined for {type(problem).__name__}: select the field with wrt=lambda p: ..."
+        )
 
     return problem.inertia, weighed
 
@@ -535,8 +545,12 @@ def _stacked(coarse: dict, fine: dict) -> tuple[dict, dict] | None:
         x is y or (type(x) is type(y) and isinstance(x, (int, float, str, bool)) and x == y)
         for x, y in zip(jax.tree_util.tree_leaves(rest_a), jax.tree_util.tree_leaves(rest_b))
     )
-    if tree_a != tree_b or not same_rest or any(
-        jnp.shape(x) != jnp.shape(y) or jnp.result_type(x) != jnp.result_type(y) for x, y in zip(leaves_a, leaves_b)
+    if (
+        tree_a != tree_b
+        or not same_rest
+        or any(
+            jnp.shape(x) != jnp.shape(y) or jnp.result_type(x) != jnp.result_type(y) for x, y in zip(leaves_a, leaves_b)
+        )
     ):
         return None
     return jax.tree_util.tree_unflatten(tree_a, [jnp.stack([x, y]) for x, y in zip(leaves_a, leaves_b)]), rest_a

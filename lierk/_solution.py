@@ -32,8 +32,10 @@ class RESULTS:
     invalid_target = 12
     invalid_problem = 13
 
-    _traced = ("is NaN, or is traced (inside jax.jit or jax.vmap) and failed the check that raises at once, with "
-               "the value, for a known value: ")
+    _traced = (
+        "is NaN, or is traced (inside jax.jit or jax.vmap) and failed the check that raises at once, with "
+        "the value, for a known value: "
+    )
     messages = {
         0: "successful",
         1: "max_steps was reached before t1; raise max_steps or loosen the tolerances",
@@ -251,7 +253,9 @@ class Solution(eqx.Module):
             >>> R, m = sol.evaluate(jnp.linspace(0.0, 10.0, 1000))   # (1000, 3, 3), (1000, 3)
         """
         if self.interpolation is None:
-            raise ValueError("Solution.evaluate needs the dense output: solve with saveat=lierk.SaveAt(dense=True, ...)")
+            raise ValueError(
+                "Solution.evaluate needs the dense output: solve with saveat=lierk.SaveAt(dense=True, ...)"
+            )
         return self.interpolation.evaluate(t)
 
     def invariants(self, problem) -> dict[str, Array]:
@@ -334,8 +338,11 @@ def raise_if_failed(sol: Solution, throw: bool) -> Solution:
     run-time check (`eqx.branched_error_if`) when it is traced."""
     if not throw:
         return sol
-    failures = [(code, RESULTS.message(code, sol.R.dtype)) for code in RESULTS.messages
-                if code not in RESULTS.finished and not (code == RESULTS.event_condition_nan and sol.events is None)]
+    failures = [
+        (code, RESULTS.message(code, sol.R.dtype))
+        for code in RESULTS.messages
+        if code not in RESULTS.finished and not (code == RESULTS.event_condition_nan and sol.events is None)
+    ]
     if not isinstance(sol.result, jax.core.Tracer):
         result = np.asarray(sol.result)
         for code, message in failures:

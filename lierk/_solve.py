@@ -13,19 +13,18 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from . import _validation as validation
 from . import _global_error as global_error
-from ._programs import Program, in_form
+from . import _validation as validation
 from ._adjoint import AbstractAdjoint, ForwardSensitivity, _may_capture_tracer
 from ._controller import AbstractStepController, ConstantStep, Controller, frozen
 from ._event import Event, events_tuple, with_closures_converted
-from ._problems import AbstractProblem
 from ._loops import _batched_together, num_steps, solve_adaptive, solve_fixed, solve_fixed_at
+from ._problems import AbstractProblem
+from ._programs import Program, in_form
 from ._solution import RESULTS, SaveAt, Solution, raise_if_failed
 from ._solvers.base import AbstractSolver
 
 __all__ = ["solve", "num_steps"]
-
 
 
 def solve(
@@ -179,17 +178,27 @@ def solve(
     saveat = _check_save_times(saveat, t0, t1, dtype)
     eps = n = None
     if target_error is not None:
-        given = [n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None]
+        given = [
+            n for n, v in (("dt", dt), ("rtol", rtol), ("atol", atol), ("controller", controller)) if v is not None
+        ]
         if given:
-            raise ValueError(f"target_error= chooses the step or the tolerances itself, so {', '.join(given)} cannot be given too")
+            raise ValueError(
+                f"target_error= chooses the step or the tolerances itself, so {', '.join(given)} cannot be given too"
+            )
         if saveat.steps is not False:
-            raise ValueError("target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used")
+            raise ValueError(
+                "target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used"
+            )
         eps = validation.check(
-            validation.check_scalar(target_error, "target_error", dtype), lambda x: x > 0, "target_error must be > 0, got {value}"
+            validation.check_scalar(target_error, "target_error", dtype),
+            lambda x: x > 0,
+            "target_error must be > 0, got {value}",
         )
         n = max_steps or global_error.DEFAULT_TARGET_MAX_STEPS
     elif dt is not None:
-        given = [n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None]
+        given = [
+            n for n, v in (("rtol", rtol), ("atol", atol), ("dt0", dt0), ("controller", controller)) if v is not None
+        ]
         if given:
             raise ValueError(f"dt= asks for fixed steps, so {', '.join(given)} would be ignored; pass one or the other")
         dt, n = _check_fixed(dt, t0, t1, saveat, max_steps, dtype)
@@ -197,7 +206,9 @@ def solve(
             raise ValueError("event= with fixed steps saves by SaveAt(steps=...) or t0/t1, not SaveAt(ts=...) (yet)")
         adjoint = _check_adjoint(adjoint)
     else:
-        controller, adjoint, dt0 = _check_adaptive(solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype)
+        controller, adjoint, dt0 = _check_adaptive(
+            solver, saveat, rtol, atol, dt0, controller, adjoint, estimate_error, dtype
+        )
         n = max_steps or global_error.DEFAULT_ADAPTIVE_MAX_STEPS
     args = (problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, estimate_error, eps, events)
     try:
@@ -295,7 +306,9 @@ def _X64_HINT(dtype) -> str:
     """The way to float64, for a float32 refusal: float32 is JAX's default."""
     if np.dtype(dtype) != np.float32:
         return ""
-    return ' (float32 is JAX\'s default: jax.config.update("jax_enable_x64", True) before making any array gives float64)'
+    return (
+        ' (float32 is JAX\'s default: jax.config.update("jax_enable_x64", True) before making any array gives float64)'
+    )
 
 
 def _check_events(event, saveat: SaveAt, estimate_error: bool, target_error) -> tuple[Event, ...]:
@@ -350,7 +363,10 @@ def _check_times(t0, t1, dtype) -> tuple[Array, Array]:
             "the resolution of the time axis; shift t0 towards 0 or use float64" + _X64_HINT(dtype)
         )
     t1 = validation.check(
-        t1, lambda x: x >= t0, f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}", reads=t0
+        t1,
+        lambda x: x >= t0,
+        f"t1 must be >= t0 = {t0 if not validation.is_traced(t0) else 't0'}, got t1 = {{value}}",
+        reads=t0,
     )
     return t0, t1
 
@@ -376,9 +392,13 @@ def _check_fixed(dt, t0, t1, saveat: SaveAt, max_steps, dtype) -> tuple[Array, i
     (None with ``SaveAt(ts=...)``, whose counts are traced)."""
     if saveat.ts is not None:
         if saveat.steps:
-            raise ValueError(f"SaveAt(ts=...) and SaveAt(steps={saveat.steps}) cannot be combined: pass one or the other")
+            raise ValueError(
+                f"SaveAt(ts=...) and SaveAt(steps={saveat.steps}) cannot be combined: pass one or the other"
+            )
         if saveat.dense:
-            raise ValueError("SaveAt(ts=...) with fixed steps cannot keep dense output (yet): use SaveAt(dense=True) alone")
+            raise ValueError(
+                "SaveAt(ts=...) with fixed steps cannot keep dense output (yet): use SaveAt(dense=True) alone"
+            )
     dt = validation.check_scalar(dt, "dt", dtype)
     dt = validation.check(dt, lambda x: x > 0, "dt must be > 0, got {value}")
     if not validation.is_traced(t0, t1, dt) and dt <= np.finfo(dt.dtype).eps * max(abs(t0), abs(t1)):
@@ -405,7 +425,9 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     """``(controller, adjoint, dt0)`` of a solve whose steps a controller
     chooses (any `AbstractStepController`; `Controller` from ``rtol``)."""
     if controller is not None and not isinstance(controller, AbstractStepController):
-        raise ValueError(f"controller must be a lierk.AbstractStepController such as lierk.Controller(...), got {controller!r}")
+        raise ValueError(
+            f"controller must be a lierk.AbstractStepController such as lierk.Controller(...), got {controller!r}"
+        )
     if not solver.adaptive and (controller is None or controller.decides):
         raise ValueError(
             f"{solver.name} has no error estimate, so it needs a fixed step: pass dt=, or target_error="
@@ -444,14 +466,18 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     tolerances = (rtol, rtol if atol is None else atol) if rtol is not None else None
     if isinstance(controller, Controller) and (tolerances is None or validation.is_traced(tolerances)):
         tolerances = (controller.rtol, controller.atol)
-    reason = None if tolerances is None or validation.is_traced(tolerances) else (
-        validation.tolerances_below_rounding(*tolerances, dtype)
+    reason = (
+        None
+        if tolerances is None or validation.is_traced(tolerances)
+        else (validation.tolerances_below_rounding(*tolerances, dtype))
     )
     if reason is not None:
         raise ValueError(reason + _X64_HINT(dtype))
     adjoint = _check_adjoint(adjoint)
     if dt0 is not None:
-        dt0 = validation.check(validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}")
+        dt0 = validation.check(
+            validation.check_scalar(dt0, "dt0", dtype), lambda x: x > 0, "dt0 must be > 0, got {value}"
+        )
     return controller, adjoint, dt0
 
 
@@ -492,8 +518,12 @@ def _marked_invalid(sol: Solution, code) -> Solution:
     bad = code != 0
     nan = lambda x: jnp.where(bad, jnp.nan, x) if eqx.is_inexact_array(x) else x  # noqa: E731
     result = jnp.where(bad, code.astype(sol.result.dtype), sol.result)
-    return eqx.tree_at(lambda s: (s.R, s.y, s.result), sol, (nan(sol.R), jax.tree_util.tree_map(nan, sol.y), result),
-                       is_leaf=lambda x: x is None)
+    return eqx.tree_at(
+        lambda s: (s.R, s.y, s.result),
+        sol,
+        (nan(sol.R), jax.tree_util.tree_map(nan, sol.y), result),
+        is_leaf=lambda x: x is None,
+    )
 
 
 # A conserved quantity that moves by more than this (relative to its scale)

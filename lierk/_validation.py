@@ -47,7 +47,9 @@ def asarray(x, dtype=None, name: str = "value"):
         except (TypeError, ValueError) as e:
             raise ValueError(f"{name} must be real numbers, got {x!r} ({e})") from None
     if x.dtype.kind not in "iuf":
-        raise ValueError(f"{name} must be real numbers, got {show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}")
+        raise ValueError(
+            f"{name} must be real numbers, got {show(x) if not is_traced(x) else 'a traced value'} of dtype {x.dtype}"
+        )
     if dtype is None and (x.dtype.kind != "f" or x.dtype.itemsize < 4):
         dtype = jnp.result_type(float) if x.dtype.kind != "f" else np.float32
     if is_traced(x):
@@ -315,6 +317,7 @@ class _Shown:
 def describe_tree(tree) -> str:
     """A pytree as an outline of its arrays' dtypes and shapes, for messages:
     ``(m, speeds)`` of a body with three wheels is ``"(float64[3], float64[3])"``."""
+
     def leaf(x):
         if hasattr(x, "dtype") and hasattr(x, "shape"):
             return _Shown(f"{np.dtype(x.dtype).name}{list(np.shape(x))}")
@@ -356,14 +359,17 @@ def check_like(x, reference, name: str):
         dtype = np.dtype(ref.dtype)
         if hasattr(part, "dtype") and hasattr(part, "shape"):
             if np.dtype(part.dtype).kind == "f" and np.dtype(part.dtype) != dtype:
-                raise ValueError(f"{where} is {np.dtype(part.dtype).name}, and the problem's state {due} is "
-                                 f"{dtype.name}: convert it (.astype({dtype.name}))")
+                raise ValueError(
+                    f"{where} is {np.dtype(part.dtype).name}, and the problem's state {due} is "
+                    f"{dtype.name}: convert it (.astype({dtype.name}))"
+                )
         part = asarray(part, dtype, where)
         if np.shape(part) != np.shape(ref):
             trajectory = np.ndim(part) == np.ndim(ref) + 1 and np.shape(part)[1:] == np.shape(ref)
-            raise ValueError(f"{where} has shape {np.shape(part)}, where the problem's state {due} has "
-                             f"{np.shape(ref)}" + (": a saved trajectory? pass one state (its last row, [-1])"
-                                                   if trajectory else ""))
+            raise ValueError(
+                f"{where} has shape {np.shape(part)}, where the problem's state {due} has "
+                f"{np.shape(ref)}" + (": a saved trajectory? pass one state (its last row, [-1])" if trajectory else "")
+            )
         out.append(as_jax(part))
     return jax.tree_util.tree_unflatten(structure, out)
 
@@ -376,8 +382,10 @@ def tolerances_below_rounding(rtol: float, atol: float, dtype) -> str | None:
     eps = float(np.finfo(dtype).eps)
     total = float(np.asarray(rtol)) + float(np.asarray(atol))
     if total < eps:
-        return (f"rtol + atol = {total:g} is below the rounding of {np.dtype(dtype).name} (eps = {eps:.2g}): "
-                f"no solve can meet it; ask for at least {eps:.2g}")
+        return (
+            f"rtol + atol = {total:g} is below the rounding of {np.dtype(dtype).name} (eps = {eps:.2g}): "
+            f"no solve can meet it; ask for at least {eps:.2g}"
+        )
     return None
 
 
@@ -420,8 +428,10 @@ def rigid_body_inputs(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | Non
     else:
         reason = state_range_error(inertia, omega0, dtype)
         if reason is not None:
-            raise ValueError(f"inertia {show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
-                             f"with omega0 {show(omega0)} rad/s: {reason}")
+            raise ValueError(
+                f"inertia {show(np.diagonal(inertia) if _diagonal(inertia) else inertia)} kg m^2 "
+                f"with omega0 {show(omega0)} rad/s: {reason}"
+            )
     return inertia, omega0, check_attitude(R0, dtype)
 
 
@@ -482,16 +492,25 @@ def _principal_invariants(J):
     no eigendecomposition."""
     tr = J[0, 0] + J[1, 1] + J[2, 2]
     minors = _principal_minors([[J[i, j] for j in range(3)] for i in range(3)])
-    det = (J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1]) - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
-           + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0]))
+    det = (
+        J[0, 0] * (J[1, 1] * J[2, 2] - J[1, 2] * J[2, 1])
+        - J[0, 1] * (J[1, 0] * J[2, 2] - J[1, 2] * J[2, 0])
+        + J[0, 2] * (J[1, 0] * J[2, 1] - J[1, 1] * J[2, 0])
+    )
     return tr, minors, det
 
 
 def _principal_minors(J):
     """The sum of the principal 2x2 minors of ``J``, given as rows of
     entries (``J[i][j]``, scalars or arrays of one shape)."""
-    return (J[0][0] * J[1][1] - J[0][1] * J[1][0] + J[0][0] * J[2][2] - J[0][2] * J[2][0]
-            + J[1][1] * J[2][2] - J[1][2] * J[2][1])
+    return (
+        J[0][0] * J[1][1]
+        - J[0][1] * J[1][0]
+        + J[0][0] * J[2][2]
+        - J[0][2] * J[2][0]
+        + J[1][1] * J[2][2]
+        - J[1][2] * J[2][1]
+    )
 
 
 def _state_logs(inertia, omega0, xp):
@@ -548,9 +567,11 @@ def state_range_error(inertia: ArrayLike, omega0: ArrayLike, dtype=None) -> str 
     for name, x, low in bounds:
         if not low <= x <= hi:
             info = np.finfo(dtype)
-            return (f"{name} = {_power_of_ten(x)} {'overflows' if x > hi else 'underflows'} {np.dtype(dtype).name}, "
-                    f"whose normal numbers lie between {float(info.tiny):.2g} and {float(info.max):.2g} "
-                    "(lierk forms |L|^2, 2T, 2T I_k and det(I) from the body); give it in other units")
+            return (
+                f"{name} = {_power_of_ten(x)} {'overflows' if x > hi else 'underflows'} {np.dtype(dtype).name}, "
+                f"whose normal numbers lie between {float(info.tiny):.2g} and {float(info.max):.2g} "
+                "(lierk forms |L|^2, 2T, 2T I_k and det(I) from the body); give it in other units"
+            )
     return None
 
 
@@ -699,8 +720,10 @@ def impossible_inertia(inertia: ArrayLike, name: str = "inertia") -> str | None:
     if moments.max() > 0.5 * moments.sum() * (1 + 1e-9):
         # Canonical test problems (Hairer, Lubich and Wanner's I = (2, 1, 2/3))
         # break it too, so this warns rather than refuses.
-        return (f"{name} {show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
-                "no rigid body has these principal moments; the equations are solved as given")
+        return (
+            f"{name} {show(moments)} breaks the triangle inequality I_max <= I_a + I_b: "
+            "no rigid body has these principal moments; the equations are solved as given"
+        )
     return None
 
 
@@ -711,9 +734,11 @@ def nearly_singular_inertia(inertia: ArrayLike, dtype, name: str = "inertia") ->
     moments = np.linalg.eigvalsh(np.asarray(inertia, np.float64))
     limit = 1e-10 if dtype == jnp.float64 else 1e-5
     if moments.min() < limit * moments.max():
-        return (f"{name} is nearly singular (I_min/I_max = {moments.min() / moments.max():.1e}): omega = I^-1 m "
-                "turns tiny momentum errors into huge spins, so expect a stiff, inaccurate run; "
-                "check the units, or drop the rotation about that axis")
+        return (
+            f"{name} is nearly singular (I_min/I_max = {moments.min() / moments.max():.1e}): omega = I^-1 m "
+            "turns tiny momentum errors into huge spins, so expect a stiff, inaccurate run; "
+            "check the units, or drop the rotation about that axis"
+        )
     return None
 
 

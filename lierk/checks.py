@@ -32,5 +32,13 @@ from ._validation import show as show
 from ._validation import state_range_error as state_range_error
 from ._validation import tolerances_below_rounding as tolerances_below_rounding
 
-__all__ = ["check_attitude", "impossible_inertia", "nearly_singular_inertia", "state_range_error", "inertia_warned", "show",
-           "checking_on_host", "tolerances_below_rounding"]
+__all__ = [
+    "check_attitude",
+    "impossible_inertia",
+    "nearly_singular_inertia",
+    "state_range_error",
+    "inertia_warned",
+    "show",
+    "checking_on_host",
+    "tolerances_below_rounding",
+]

@@ -41,14 +41,20 @@ __all__ = ["flip", "tilt", "pointing", "tilt_extremum", "energy_drift", "momentu
 def _unit(v: ArrayLike, name: str, dtype) -> Array:
     v = validation.asarray(v, dtype, name)
     validation.check_shape(v, (3,), name)
-    v = validation.check(v, lambda x: ((x * x).sum() > 0) & (abs(x) < float("inf")).all(), f"{name} must be a finite non-zero vector, got {{value}}")
+    v = validation.check(
+        v,
+        lambda x: ((x * x).sum() > 0) & (abs(x) < float("inf")).all(),
+        f"{name} must be a finite non-zero vector, got {{value}}",
+    )
     xp = np if isinstance(v, np.ndarray) else jnp
     return jnp.asarray(v / xp.sqrt((v * v).sum()))
 
 
 def _rigid_body(problem, what: str) -> AbstractRigidBody:
     if not isinstance(problem, AbstractRigidBody):
-        raise ValueError(f"{what} needs a rigid body (lierk.FreeRigidBody, RigidBodyWithEffects, ...), got {type(problem).__name__}")
+        raise ValueError(
+            f"{what} needs a rigid body (lierk.FreeRigidBody, RigidBodyWithEffects, ...), got {type(problem).__name__}"
+        )
     return problem
 
 
@@ -137,8 +143,15 @@ class AxisAngle(eqx.Module):
         return self.cos_angle.astype(R.dtype) - (R @ self.axis.astype(R.dtype)) @ self.direction.astype(R.dtype)
 
 
-def pointing(body_axis: ArrayLike, space_direction: ArrayLike, angle: ArrayLike, *, terminate: bool | int = False,
-             direction: int = 0, max_count: int | None = None) -> Event:
+def pointing(
+    body_axis: ArrayLike,
+    space_direction: ArrayLike,
+    angle: ArrayLike,
+    *,
+    terminate: bool | int = False,
+    direction: int = 0,
+    max_count: int | None = None,
+) -> Event:
     """The angle between a body axis and a space direction crossing ``angle``
     (pointing a satellite: the event where an instrument's boresight comes
     within ``angle`` of a target).
@@ -156,12 +169,22 @@ def pointing(body_axis: ArrayLike, space_direction: ArrayLike, angle: ArrayLike,
     angle = validation.check_scalar(angle, "angle", dtype)
     angle = validation.check(angle, lambda a: (a >= 0) & (a <= math.pi), "angle must be in [0, pi] rad, got {value}")
     xp = np if isinstance(angle, np.ndarray) else jnp
-    cond = AxisAngle(_unit(body_axis, "body_axis", dtype), _unit(space_direction, "space_direction", dtype), jnp.asarray(xp.cos(angle)))
+    cond = AxisAngle(
+        _unit(body_axis, "body_axis", dtype),
+        _unit(space_direction, "space_direction", dtype),
+        jnp.asarray(xp.cos(angle)),
+    )
     return Event(cond, terminate=terminate, direction=direction, max_count=max_count)
 
 
-def tilt(angle: ArrayLike, axis: ArrayLike = (0.0, 0.0, 1.0), *, terminate: bool | int = False, direction: int = 0,
-         max_count: int | None = None) -> Event:
+def tilt(
+    angle: ArrayLike,
+    axis: ArrayLike = (0.0, 0.0, 1.0),
+    *,
+    terminate: bool | int = False,
+    direction: int = 0,
+    max_count: int | None = None,
+) -> Event:
     """The tilt of a body axis from the vertical (space z) crossing ``angle``
     (rad): a top's symmetry axis (``axis``, body frame; default body z)
     leaning through ``angle``.  ``direction=1``: leaning further;
@@ -183,8 +206,15 @@ class TiltRate(eqx.Module):
 _EXTREMA = {"both": 0, "max": 1, "min": -1}
 
 
-def tilt_extremum(problem, axis: ArrayLike = (0.0, 0.0, 1.0), *, extremum: str = "both",
-                  terminate: bool | int = False, max_count: int | None = None, direction: int | None = None) -> Event:
+def tilt_extremum(
+    problem,
+    axis: ArrayLike = (0.0, 0.0, 1.0),
+    *,
+    extremum: str = "both",
+    terminate: bool | int = False,
+    max_count: int | None = None,
+    direction: int | None = None,
+) -> Event:
     """The turning points of a body axis's tilt from the vertical (a top's
     nutation): where ``d tilt/dt = 0``.  A top released at rest in its
     nutation starts at a turning point, which does not count (`lierk._event`).
@@ -209,16 +239,25 @@ def tilt_extremum(problem, axis: ArrayLike = (0.0, 0.0, 1.0), *, extremum: str =
             raise ValueError("tilt_extremum takes extremum= ('max', 'min' or 'both'), not both it and direction=")
         names = {v: k for k, v in _EXTREMA.items()}
         if direction not in names:
-            raise ValueError(f"tilt_extremum(direction=...) must be 1, -1 or 0, got {direction!r}; use extremum='max' or 'min'")
-        warnings.warn(f"tilt_extremum(direction={direction}) is deprecated: use extremum={names[direction]!r}",
-                      DeprecationWarning, stacklevel=2)
+            raise ValueError(
+                f"tilt_extremum(direction=...) must be 1, -1 or 0, got {direction!r}; use extremum='max' or 'min'"
+            )
+        warnings.warn(
+            f"tilt_extremum(direction={direction}) is deprecated: use extremum={names[direction]!r}",
+            DeprecationWarning,
+            stacklevel=2,
+        )
         extremum = names[direction]
     if extremum not in _EXTREMA:
         raise ValueError(f"extremum must be 'max', 'min' or 'both', got {extremum!r}")
     dtype = problem.R0.dtype
     # At a largest tilt cos(tilt) stops falling: its rate rises through zero.
-    return Event(TiltRate(problem, _unit(axis, "axis", dtype)), terminate=terminate, direction=_EXTREMA[extremum],
-                 max_count=max_count)
+    return Event(
+        TiltRate(problem, _unit(axis, "axis", dtype)),
+        terminate=terminate,
+        direction=_EXTREMA[extremum],
+        max_count=max_count,
+    )
 
 
 class InvariantDrift(eqx.Module):
@@ -246,7 +285,9 @@ def _drift(problem, key: str, threshold, terminate, max_count) -> Event:
     return Event(cond, terminate=terminate, direction=1, max_count=max_count)
 
 
-def energy_drift(problem, threshold: ArrayLike, *, terminate: bool | int = False, max_count: int | None = None) -> Event:
+def energy_drift(
+    problem, threshold: ArrayLike, *, terminate: bool | int = False, max_count: int | None = None
+) -> Event:
     """The energy (kinetic plus the effects' potentials) changing by more
     than ``threshold`` relative to its initial value (|E0|; 1 J if it is 0):
     a check on a solve's accuracy, or the time a damped body has lost that
@@ -254,6 +295,8 @@ def energy_drift(problem, threshold: ArrayLike, *, terminate: bool | int = False
     return _drift(problem, "energy", threshold, terminate, max_count)
 
 
-def momentum_drift(problem, threshold: ArrayLike, *, terminate: bool | int = False, max_count: int | None = None) -> Event:
+def momentum_drift(
+    problem, threshold: ArrayLike, *, terminate: bool | int = False, max_count: int | None = None
+) -> Event:
     """``|L|`` changing by more than ``threshold`` relative to its initial value."""
     return _drift(problem, "|L|", threshold, terminate, max_count)

@@ -132,10 +132,12 @@ def _validated(inertia: ArrayLike, omega0: ArrayLike, R0: ArrayLike | None = Non
     return eqx.error_if(inputs, first_invalid(inputs), _INVALID)
 
 
-_INVALID = ("lierk.exact: an input is NaN, or a traced value failed the check that a known value fails at once, "
-            "with its name: inertia must be positive definite (symmetric, finite); omega0 has NaN or inf entries, "
-            "or a traced inertia and omega0 give a body state outside the dtype's range; R0 must be a rotation "
-            "matrix. Call with the concrete values to see which")
+_INVALID = (
+    "lierk.exact: an input is NaN, or a traced value failed the check that a known value fails at once, "
+    "with its name: inertia must be positive definite (symmetric, finite); omega0 has NaN or inf entries, "
+    "or a traced inertia and omega0 give a body state outside the dtype's range; R0 must be a rotation "
+    "matrix. Call with the concrete values to see which"
+)
 
 
 def _working_constants(inertia: Array, omega0: Array):
@@ -214,8 +216,27 @@ def _working_constants(inertia: Array, omega0: Array):
     sgn = jnp.where(case_b, -1.0, 1.0).astype(dtype)
     lam = sgn * spread * _safe_sqrt(rQ / (J1 * J2 * J3))
     return dict(
-        W=Wt.T, J=J, x=x, y=y, z=z, A1=A1, A2=A2, A3=A3, lam=lam, k2=k2, k2c=k2c,
-        r=r, rc=rc, P=P, Qv=Qv, d=d, G=_safe_sqrt(G2), twoT=twoT, sep=sep, stat=stat, dtype=dtype,
+        W=Wt.T,
+        J=J,
+        x=x,
+        y=y,
+        z=z,
+        A1=A1,
+        A2=A2,
+        A3=A3,
+        lam=lam,
+        k2=k2,
+        k2c=k2c,
+        r=r,
+        rc=rc,
+        P=P,
+        Qv=Qv,
+        d=d,
+        G=_safe_sqrt(G2),
+        twoT=twoT,
+        sep=sep,
+        stat=stat,
+        dtype=dtype,
     )
 
 
@@ -232,9 +253,7 @@ def _minimal_rotation(m: Array, G: Array) -> Array:
 def _rz(psi: Array) -> Array:
     c, s = jnp.cos(psi), jnp.sin(psi)
     z, o = jnp.zeros_like(psi), jnp.ones_like(psi)
-    return jnp.stack(
-        [jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2
-    )
+    return jnp.stack([jnp.stack([c, -s, z], -1), jnp.stack([s, c, z], -1), jnp.stack([z, z, o], -1)], -2)
 
 
 def free_rigid_body(
@@ -404,11 +423,13 @@ def _momentum_change(inertia: Array, m: Array, h: Array) -> Array:
     # A1/(A2 A3), A2/(A1 A3) and k^2 A3/(A1 A2), from the invariants: s is
     # 1/sqrt(J1 J2 J3 r Qv), so that lam = +-(J3 - J1) r Qv s.
     s = jax.lax.rsqrt(J1 * J2 * J3 * jnp.where(stat, 1.0, r * c["Qv"]))
-    dw = jnp.stack([
-        x * (cb_less_db2 - kcs) - (r * J1 * s) * y * z * sb * db,
-        -y * (db * db_less_cb + kcs) + (J2 * s) * x * z * sb,
-        z * (k2 * sb2 * (db / (1.0 + db) - ca * ca)) - (rc * J3 * s) * x * y * sb * cb,
-    ]) / jnp.where(D > 0, D, 1.0)
+    dw = jnp.stack(
+        [
+            x * (cb_less_db2 - kcs) - (r * J1 * s) * y * z * sb * db,
+            -y * (db * db_less_cb + kcs) + (J2 * s) * x * z * sb,
+            z * (k2 * sb2 * (db / (1.0 + db) - ca * ca)) - (rc * J3 * s) * x * y * sb * cb,
+        ]
+    ) / jnp.where(D > 0, D, 1.0)
     dw = jnp.where(stat | (D <= 0), 0.0, dw)
     return c["W"] @ dw
 
@@ -646,9 +667,7 @@ def _closed_form(inertia: Array, omega0: Array, t: Array, R0: Array):
     u = lam * t + u0
     sn_r, cn_r, dn_r, j, K = _ellipj_reduced(u, k2, k2c)
     sign = 1.0 - 2.0 * jnp.mod(j, 2.0)
-    m_t = jnp.stack(
-        [A1 * sign * cn_r, A2 * sign * sn_r, A3 * jnp.broadcast_to(dn_r, sign.shape)], axis=-1
-    )
+    m_t = jnp.stack([A1 * sign * cn_r, A2 * sign * sn_r, A3 * jnp.broadcast_to(dn_r, sign.shape)], axis=-1)
     m_t = jnp.where(stat, jnp.broadcast_to(m0, m_t.shape), m_t)
 
     # Precession angle (module docstring).

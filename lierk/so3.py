@@ -246,8 +246,11 @@ def _exp_fractions(theta2: Array) -> tuple[tuple, tuple]:
     # computed once per angle and stored, instead of being re-derived inside
     # every consumer's fused loop (once per vector component).
     one = jnp.ones_like(x2)
-    numerators = (jnp.where(near, S * C, sin_x * cos_x), jnp.where(near, 0.5 * S * S, 0.5 * sin_x * sin_x),
-                  jnp.where(near, E_near, sin_x - x * cos_x))
+    numerators = (
+        jnp.where(near, S * C, sin_x * cos_x),
+        jnp.where(near, 0.5 * S * S, 0.5 * sin_x * sin_x),
+        jnp.where(near, E_near, sin_x - x * cos_x),
+    )
     denominators = (jnp.where(near, one, x), jnp.where(near, one, xf2), jnp.where(near, 4.0 * S, 4.0 * xf2 * sin_x))
     return numerators, denominators
 

@@ -20,16 +20,16 @@ jax.config.update("jax_enable_x64", True)
 jax.config.update("jax_numpy_dtype_promotion", "strict")
 # (Again through the config, in case a plugin imported jax first.)
 jax.config.update("jax_compilation_cache_dir", os.environ["JAX_COMPILATION_CACHE_DIR"])
-jax.config.update("jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"]))
+jax.config.update(
+    "jax_persistent_cache_min_compile_time_secs", float(os.environ["JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS"])
+)
 
 
 import gc  # noqa: E402
-
-import pytest  # noqa: E402
-
-
 import json  # noqa: E402
 import time  # noqa: E402
+
+import pytest  # noqa: E402
 
 import lierk.app.compilations  # noqa: E402
 

@@ -20,8 +20,15 @@ FIXED_SOLVERS = [
     lierk.RKMK(lierk.tableaux.RK4),
 ]
 # Kick-drift splittings: fixed step, exact free flow as the drift.
-SPLITTING_SOLVERS = [lierk.Strang(), lierk.Yoshida4(), lierk.BlanesMoan4(), lierk.Yoshida6(), lierk.BlanesMoan6(),
-                     lierk.BlanesMoanRKN4(), lierk.BlanesMoanRKN6()]
+SPLITTING_SOLVERS = [
+    lierk.Strang(),
+    lierk.Yoshida4(),
+    lierk.BlanesMoan4(),
+    lierk.Yoshida6(),
+    lierk.BlanesMoan6(),
+    lierk.BlanesMoanRKN4(),
+    lierk.BlanesMoanRKN6(),
+]
 FIXED_SOLVERS = FIXED_SOLVERS + SPLITTING_SOLVERS
 LIE_SOLVERS = [s for s in FIXED_SOLVERS if not isinstance(s, lierk.ExplicitEuler)]
 ADAPTIVE_SOLVERS = [lierk.RKF45(), lierk.DP54(), lierk.DOP853()]

@@ -159,7 +159,12 @@ class LagrangeTop:
         """``T = 4 I1 K(k)/sqrt(c3 (u3 - u1))``, ``k^2 = (u2 - u1)/(u3 - u1)``: the
         closed form of `period`, an independent check of the quadrature."""
         c3 = 2 * self.I1 * self.mgl
-        return 4 * self.I1 * special.ellipk((self.u2 - self.u1) / (self.u3 - self.u1)) / math.sqrt(c3 * (self.u3 - self.u1))
+        return (
+            4
+            * self.I1
+            * special.ellipk((self.u2 - self.u1) / (self.u3 - self.u1))
+            / math.sqrt(c3 * (self.u3 - self.u1))
+        )
 
 
 def symmetry_axis(inertia, pivot_to_com, rtol: float = 1e-12):
@@ -245,13 +250,17 @@ def lagrange_top(inertia, pivot_to_com, mg, R0, omega0) -> LagrangeTop:
         return 2 * I1_ * (E_ + mgl_ - mgl_ * v) * v * (2 - v) - (d_lo - m3_ * v) ** 2
 
     def df_lo(v):
-        return -2 * I1_ * mgl_ * v * (2 - v) + 2 * I1_ * (E_ + mgl_ - mgl_ * v) * (2 - 2 * v) + 2 * m3_ * (d_lo - m3_ * v)
+        return (
+            -2 * I1_ * mgl_ * v * (2 - v) + 2 * I1_ * (E_ + mgl_ - mgl_ * v) * (2 - 2 * v) + 2 * m3_ * (d_lo - m3_ * v)
+        )
 
     def f_hi(w):  # f(1 - w)
         return 2 * I1_ * (E_ - mgl_ + mgl_ * w) * w * (2 - w) - (d_hi + m3_ * w) ** 2
 
     def df_hi(w):
-        return 2 * I1_ * mgl_ * w * (2 - w) + 2 * I1_ * (E_ - mgl_ + mgl_ * w) * (2 - 2 * w) - 2 * m3_ * (d_hi + m3_ * w)
+        return (
+            2 * I1_ * mgl_ * w * (2 - w) + 2 * I1_ * (E_ - mgl_ + mgl_ * w) * (2 - 2 * w) - 2 * m3_ * (d_hi + m3_ * w)
+        )
 
     gap_lo = _polish(f_lo, df_lo, 1 + u1)
     gap_hi = _polish(f_hi, df_hi, 1 - u2)

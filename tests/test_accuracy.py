@@ -130,7 +130,12 @@ def _check_estimates(err, est, floor=1e-12):
 
 @pytest.mark.parametrize(
     "solver, kw",
-    [(lierk.RKMK4(), dict(dt=0.02)), (lierk.CF4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-8)), (lierk.DOP853(), dict(rtol=1e-10))],
+    [
+        (lierk.RKMK4(), dict(dt=0.02)),
+        (lierk.CF4(), dict(dt=0.05)),
+        (lierk.DP54(), dict(rtol=1e-8)),
+        (lierk.DOP853(), dict(rtol=1e-10)),
+    ],
     ids=["RKMK4", "CF4", "DP54", "DOP853"],
 )
 @pytest.mark.parametrize("name", ["tee", "hlw"])
@@ -180,7 +185,9 @@ def test_error_estimate_with_effects_against_scipy():
             R, m = x[:9].reshape(3, 3), x[9:]
             w = Iinv @ m
             tau = 9.81 * np.cross(R[2], chi)
-            return np.concatenate([(R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(), np.cross(m, w) + tau])
+            return np.concatenate(
+                [(R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(), np.cross(m, w) + tau]
+            )
 
         x0 = np.concatenate([R0.ravel(), I @ np.array([0.0, 0.0, s])])
         sol = solve_ivp(f, (0, t1), x0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts)
@@ -213,7 +220,9 @@ def test_error_estimate_hard_cases_are_finite_and_meaningful():
     # The separatrix (|m|^2 = 2 E I2): estimate still tracks the error.
     rest = lierk.solve(lierk.FreeRigidBody(TEE, jnp.zeros(3)), lierk.DP54(), T, rtol=1e-8, estimate_error=True)
     assert float(rest.error_estimate[-1]) == 0.0
-    sphere = lierk.solve(lierk.FreeRigidBody([2.0, 2.0, 2.0], [0.3, -1.0, 2.0]), lierk.RKMK4(), T, dt=0.1, estimate_error=True)
+    sphere = lierk.solve(
+        lierk.FreeRigidBody([2.0, 2.0, 2.0], [0.3, -1.0, 2.0]), lierk.RKMK4(), T, dt=0.1, estimate_error=True
+    )
     assert float(sphere.error_estimate[-1]) < 1e-12
     I = np.array([1.0, 2.0, 3.0])
     # m = (a, 0, c) is on the separatrix |m|^2 = 2 E I2 when
@@ -225,7 +234,9 @@ def test_error_estimate_hard_cases_are_finite_and_meaningful():
     assert np.isfinite(est) and 0.1 <= est / err <= 10, (est, err)
 
 
-@pytest.mark.parametrize("solver, kw", [(lierk.RKMK4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-8))], ids=["RKMK4", "DP54"])
+@pytest.mark.parametrize(
+    "solver, kw", [(lierk.RKMK4(), dict(dt=0.05)), (lierk.DP54(), dict(rtol=1e-8))], ids=["RKMK4", "DP54"]
+)
 def test_error_estimate_under_grad_leaves_the_gradient_alone(solver, kw):
     def final(w, estimate):
         sol = lierk.solve(lierk.FreeRigidBody(TEE, w), solver, 2.0, estimate_error=estimate, **kw)
@@ -246,7 +257,12 @@ def test_target_error_is_met_near_the_axis(solver):
     I = BODIES["box123"]
     W = near_axis(I, 24, seed=3)
     Rex = _exact(I, W, T)
-    run = jax.jit(jax.vmap(lambda w, eps: lierk.solve(lierk.FreeRigidBody(I, w), solver, T, target_error=eps, throw=False), in_axes=(0, None)))
+    run = jax.jit(
+        jax.vmap(
+            lambda w, eps: lierk.solve(lierk.FreeRigidBody(I, w), solver, T, target_error=eps, throw=False),
+            in_axes=(0, None),
+        )
+    )
     for eps in (1e-4, 1e-7, 1e-10):
         sol = run(W, eps)
         assert np.all(np.asarray(sol.result) == 0)
@@ -347,13 +363,15 @@ def test_target_error_that_gives_up_returns_its_most_accurate_solution():
 
 
 def _order_one_and_two(solver, problem, eps):
-    sol = lierk.solve(problem, solver, 2.0, target_error=eps, saveat=lierk.SaveAt(ts=jnp.array([0.5, 1.0]), t1=True),
-                      throw=False)
+    sol = lierk.solve(
+        problem, solver, 2.0, target_error=eps, saveat=lierk.SaveAt(ts=jnp.array([0.5, 1.0]), t1=True), throw=False
+    )
     return sol.R, sol.result, sol.error_estimate
 
 
-@pytest.mark.parametrize("solver", [lierk.ExplicitEuler(), lierk.LieEuler(), lierk.NaiveLieRK4(), lierk.Strang()],
-                         ids=lambda s: s.name)
+@pytest.mark.parametrize(
+    "solver", [lierk.ExplicitEuler(), lierk.LieEuler(), lierk.NaiveLieRK4(), lierk.Strang()], ids=lambda s: s.name
+)
 def test_target_error_with_fixed_steps_of_order_one_and_two(solver):
     """2/3 of the step is 1.5x more accurate at order 1 and 2.25x at order 2,
     below the 3x the search asks of every next solve: they stopped after one
@@ -371,8 +389,12 @@ def test_target_error_with_fixed_steps_of_order_one_and_two(solver):
         def f(t, x):
             R, m = x[:9].reshape(3, 3), x[9:]
             w = m / I
-            return np.concatenate([(R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(),
-                                   np.cross(m, w) + g * np.cross(R[2], chi)])
+            return np.concatenate(
+                [
+                    (R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(),
+                    np.cross(m, w) + g * np.cross(R[2], chi),
+                ]
+            )
 
         x0 = np.concatenate([np.eye(3).ravel(), np.asarray(problem.y0)])
         ref = solve_ivp(f, (0, 2.0), x0, method="DOP853", rtol=1e-13, atol=1e-13, t_eval=ts).y[:9].T.reshape(-1, 3, 3)
@@ -457,8 +479,9 @@ def test_target_error_sees_rounding_amplified_near_the_intermediate_axis():
     # 1e-11 and an error of 2.7e-10 at T (found by an adversarial pass).
     ts = np.array([50.0, 100.0, 150.0, 200.0])
     refs = np.asarray(lierk.exact.free_rigid_body(inertia, w, ts)[0])
-    sol = lierk.solve(lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), T, target_error=1e-10, saveat=lierk.SaveAt(ts=ts),
-                      throw=False)
+    sol = lierk.solve(
+        lierk.FreeRigidBody(inertia, w), lierk.RKMK4(), T, target_error=1e-10, saveat=lierk.SaveAt(ts=ts), throw=False
+    )
     err = np.linalg.norm(np.asarray(sol.R) - refs, axis=(-2, -1))
     if int(sol.result) == lierk.RESULTS.successful:
         assert np.all(err <= 2e-10), err
@@ -499,22 +522,46 @@ def test_float32_error_estimate_below_the_local_error_floor():
 # then in the comments): (principal moments, omega0, t1, target).
 _MISSED = {
     "DOP853": [
-        ([2.4056648399877476, 53.19857474460555, 13.453201351354885],
-         [33.30938772448865, -8.884355169719584, -7.725668935606718], 2.0, 1e-4),  # 37x
-        ([40.15699046024184, 70.31699770378613, 3.4061247072129412],
-         [-1.0973345624043482, 0.1303855879716061, 0.1539579506114999], 50.0, 1e-3),  # 8.0x
-        ([1.9839376736554735, 88.15716746874516, 60.23807868567418],
-         [-3.172368992120628, 25.304807479009455, 2.6823381846753493], 2.0, 1e-5),  # 1.4x
+        (
+            [2.4056648399877476, 53.19857474460555, 13.453201351354885],
+            [33.30938772448865, -8.884355169719584, -7.725668935606718],
+            2.0,
+            1e-4,
+        ),  # 37x
+        (
+            [40.15699046024184, 70.31699770378613, 3.4061247072129412],
+            [-1.0973345624043482, 0.1303855879716061, 0.1539579506114999],
+            50.0,
+            1e-3,
+        ),  # 8.0x
+        (
+            [1.9839376736554735, 88.15716746874516, 60.23807868567418],
+            [-3.172368992120628, 25.304807479009455, 2.6823381846753493],
+            2.0,
+            1e-5,
+        ),  # 1.4x
     ],
     "DP54": [
-        ([48.705849754569776, 7.050387236303322, 91.07043626260179],
-         [151.60852135242547, 60.725888574042756, 108.54814181390017], 0.2, 1e-3),  # 2.7x
-        ([14.34405130286774, 2.4448912473577886, 11.273129532463715],
-         [2.3170115988681803, 6.736978919108383, 2.616899133699039], 10.0, 1e-5),  # 1.4x
+        (
+            [48.705849754569776, 7.050387236303322, 91.07043626260179],
+            [151.60852135242547, 60.725888574042756, 108.54814181390017],
+            0.2,
+            1e-3,
+        ),  # 2.7x
+        (
+            [14.34405130286774, 2.4448912473577886, 11.273129532463715],
+            [2.3170115988681803, 6.736978919108383, 2.616899133699039],
+            10.0,
+            1e-5,
+        ),  # 1.4x
     ],
     "RKF45": [
-        ([11.59634017998046, 42.31440034907315, 98.63262377189076],
-         [111.99080419886756, 12.986835296982985, 72.99752903474428], 0.2, 1e-3),  # 1.2x
+        (
+            [11.59634017998046, 42.31440034907315, 98.63262377189076],
+            [111.99080419886756, 12.986835296982985, 72.99752903474428],
+            0.2,
+            1e-3,
+        ),  # 1.2x
     ],
     "RKMK4": [],
 }
@@ -555,14 +602,19 @@ def test_target_error_success_means_the_error_is_within_the_target(solver):
     @jax.jit
     @jax.vmap
     def run(inertia, w, ts, eps):
-        sol = lierk.solve(lierk.FreeRigidBody(inertia, w), solver, ts[-1], saveat=lierk.SaveAt(ts=ts), target_error=eps,
-                          throw=False)
+        sol = lierk.solve(
+            lierk.FreeRigidBody(inertia, w), solver, ts[-1], saveat=lierk.SaveAt(ts=ts), target_error=eps, throw=False
+        )
         return sol.R, sol.result, sol.error_estimate, sol.stats["num_solves"]
 
     R, code, est, solves = (np.asarray(x) for x in run(inertia, w, ts, eps))
     err = frob(R, _exact_at(inertia, w, ts))
     ok = code == lierk.RESULTS.successful
-    assert set(code) <= {lierk.RESULTS.successful, lierk.RESULTS.target_error_not_reached, lierk.RESULTS.max_steps_reached}
+    assert set(code) <= {
+        lierk.RESULTS.successful,
+        lierk.RESULTS.target_error_not_reached,
+        lierk.RESULTS.max_steps_reached,
+    }
     assert ok.mean() >= 0.75, code
     ratio = err / eps[:, None]
     assert np.all(ratio[ok] <= 1.0), (np.sort(ratio[ok].max(1))[-3:], np.flatnonzero(ok & (ratio.max(1) > 1)))
@@ -579,8 +631,14 @@ def test_target_error_success_means_the_error_is_within_the_target(solver):
     [
         ([1.0, 10.0, 100.0], [-1.441, -4.724, -0.098], 2.0, lierk.DOP853(), 1e-4, 8.2),
         ([1.0, 2.0, 3.0], [40.0, 1.0, 30.0], 3.0, lierk.DP54(), 1e-5, 1.93),
-        ([0.8002913002619765, 2.561976972060909, 2.9762860170939742],
-         [-733.8086303827467, -265.50334849960643, 611.394593275093], 0.2, lierk.DOP853(), 1e-3, 5.9),
+        (
+            [0.8002913002619765, 2.561976972060909, 2.9762860170939742],
+            [-733.8086303827467, -265.50334849960643, 611.394593275093],
+            0.2,
+            lierk.DOP853(),
+            1e-3,
+            5.9,
+        ),
     ],
     ids=["DOP853-1:10:100", "DP54-box", "DOP853-fast-spin"],
 )
@@ -589,7 +647,9 @@ def test_target_error_misses_found_by_the_adversarial_pass(inertia, w, t1, solve
     estimate below it (DOP853 on the 1:10:100 body errs 7.0e-4, 8.2e-4 and
     2.8e-5 at rtol 5e-5, 5e-6 and 5e-7: 10x tighter is not 10x better)."""
     sol = lierk.solve(lierk.FreeRigidBody(inertia, w), solver, t1, target_error=eps, throw=False)
-    err = np.linalg.norm(np.asarray(sol.R[-1]) - np.asarray(lierk.exact.free_rigid_body(np.asarray(inertia), np.asarray(w), t1)[0]))
+    err = np.linalg.norm(
+        np.asarray(sol.R[-1]) - np.asarray(lierk.exact.free_rigid_body(np.asarray(inertia), np.asarray(w), t1)[0])
+    )
     est = float(sol.error_estimate[-1])
     assert int(sol.result) == lierk.RESULTS.successful
     assert err <= eps and est >= err, (err, est)
@@ -612,12 +672,25 @@ def test_float32_target_error_verdicts_do_not_depend_on_vmap():
     vmap, and a fast spin amplifies that to 1e-5) leaves the estimate near
     the target."""
     rng = np.random.default_rng(7)
-    inertia = np.vstack([[[0.8293631672859192, 2.236222982406616, 2.8047595024108887],
-                          [1.4523614645004272, 3.204958915710449, 3.6469008922576904]], rng.uniform(0.5, 4.0, (6, 3))])
+    inertia = np.vstack(
+        [
+            [
+                [0.8293631672859192, 2.236222982406616, 2.8047595024108887],
+                [1.4523614645004272, 3.204958915710449, 3.6469008922576904],
+            ],
+            rng.uniform(0.5, 4.0, (6, 3)),
+        ]
+    )
     d = rng.normal(size=(6, 3))
-    w = np.vstack([[[52.97450637817383, -243.86846923828125, -778.5183715820312],
-                    [-142.72744750976562, -349.6810607910156, -666.4229125976562]],
-                   d / np.linalg.norm(d, axis=1, keepdims=True) * 10 ** rng.uniform(1.7, 2.9, (6, 1))])
+    w = np.vstack(
+        [
+            [
+                [52.97450637817383, -243.86846923828125, -778.5183715820312],
+                [-142.72744750976562, -349.6810607910156, -666.4229125976562],
+            ],
+            d / np.linalg.norm(d, axis=1, keepdims=True) * 10 ** rng.uniform(1.7, 2.9, (6, 1)),
+        ]
+    )
     inertia, w = inertia.astype(np.float32), w.astype(np.float32)
     ref = _exact_at(inertia.astype(float), w.astype(float), np.full(len(w), 0.2))
     solver = lierk.DOP853()
@@ -630,7 +703,9 @@ def test_float32_target_error_verdicts_do_not_depend_on_vmap():
     for eps in (1e-3, 1e-4, 1e-6):
         e = jnp.float32(eps)
         runs = [[np.asarray(x) for x in batched(inertia, w, e)]]
-        runs.append([np.stack(x) for x in zip(*[[np.asarray(y) for y in alone(inertia[i], w[i], e)] for i in range(len(w))])])
+        runs.append(
+            [np.stack(x) for x in zip(*[[np.asarray(y) for y in alone(inertia[i], w[i], e)] for i in range(len(w))])]
+        )
         for R, code, est, rtol in runs:
             assert R.dtype == np.float32
             err = frob(R.astype(float), ref)
@@ -661,13 +736,20 @@ def test_target_error_on_a_heavy_top_against_scipy():
     def f(t, x):
         R, m = x[:9].reshape(3, 3), x[9:]
         w = m / I
-        return np.concatenate([(R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(),
-                               np.cross(m, w) + g * np.cross(R[2], chi)])
+        return np.concatenate(
+            [
+                (R @ np.array([[0, -w[2], w[1]], [w[2], 0, -w[0]], [-w[1], w[0], 0]])).ravel(),
+                np.cross(m, w) + g * np.cross(R[2], chi),
+            ]
+        )
 
-    ref = solve_ivp(f, (0, 5.0), np.concatenate([np.eye(3).ravel(), I * w0]), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=t1s)
+    ref = solve_ivp(
+        f, (0, 5.0), np.concatenate([np.eye(3).ravel(), I * w0]), method="DOP853", rtol=1e-13, atol=1e-13, t_eval=t1s
+    )
     ref = ref.y[:9].T.reshape(-1, 3, 3)
     eps = np.array([1e-3, 3e-4, 1e-4, 1e-5, 1e-6])
     for solver in (lierk.RKF45(), lierk.DOP853(), lierk.RKMK4()):
+
         @jax.jit
         @jax.vmap
         def run(t1, eps):
@@ -675,7 +757,9 @@ def test_target_error_on_a_heavy_top_against_scipy():
             sol = lierk.solve(top, solver, t1, target_error=eps, throw=False)
             return sol.R[-1], sol.result, sol.error_estimate[-1]
 
-        R, code, est = (np.asarray(x).reshape(2, len(eps), *np.shape(x)[1:]) for x in run(np.repeat(t1s, len(eps)), np.tile(eps, 2)))
+        R, code, est = (
+            np.asarray(x).reshape(2, len(eps), *np.shape(x)[1:]) for x in run(np.repeat(t1s, len(eps)), np.tile(eps, 2))
+        )
         err = frob(R, ref[:, None])
         ok = code == lierk.RESULTS.successful
         assert ok.mean() >= 0.8, (solver.name, code)
@@ -688,7 +772,14 @@ def test_a_solve_that_blew_up_has_no_error_bound():
     step: at dt = 1 s it overflows before 2300 s, its finer twin (dt = 2/3 s)
     does not.  The rows past the overflow were given an estimate of 0."""
     body = lierk.FreeRigidBody([1.0, 1.0, 1.0], [0.0, 0.0, 1.0])
-    sol = lierk.solve(body, lierk.ExplicitEuler(), 2300.0, dt=1.0, saveat=lierk.SaveAt(t0=True, steps=100, t1=True),
-                      estimate_error=True, throw=False)
+    sol = lierk.solve(
+        body,
+        lierk.ExplicitEuler(),
+        2300.0,
+        dt=1.0,
+        saveat=lierk.SaveAt(t0=True, steps=100, t1=True),
+        estimate_error=True,
+        throw=False,
+    )
     assert int(sol.result) == lierk.RESULTS.nonfinite
     assert np.all(np.asarray(sol.error_estimate) == np.inf)

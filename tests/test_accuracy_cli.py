@@ -2,7 +2,6 @@
 errors against the exact solution, its per-decade table picks runs that
 really reach each decade, and mistakes end in one line."""
 
-import dataclasses
 import json
 import math
 import re
@@ -12,14 +11,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from PIL import Image
-
 from helpers import run_inprocess, write
+from PIL import Image
 
 import lierk
 import lierk.app.accuracy as A
-import lierk.exact
 import lierk.app.scene
+import lierk.exact
 from lierk.app import cli
 
 TINY_SCENE = """
@@ -59,11 +57,18 @@ def _exact_error(scene, row, ts):
     p = scene.problem
     if row["setting"] == "dt":
         m = round((ts[1] - ts[0]) / row["value"])
-        sol = lierk.solve(p, lierk.SOLVERS[row["solver"]](), scene.t1, dt=row["value"],
-                          saveat=lierk.SaveAt(t0=True, steps=m))
+        sol = lierk.solve(
+            p, lierk.SOLVERS[row["solver"]](), scene.t1, dt=row["value"], saveat=lierk.SaveAt(t0=True, steps=m)
+        )
     else:
-        sol = lierk.solve(p, lierk.SOLVERS[row["solver"]](), scene.t1, rtol=row["value"],
-                          saveat=lierk.SaveAt(ts=np.asarray(ts)), max_steps=2**17)
+        sol = lierk.solve(
+            p,
+            lierk.SOLVERS[row["solver"]](),
+            scene.t1,
+            rtol=row["value"],
+            saveat=lierk.SaveAt(ts=np.asarray(ts)),
+            max_steps=2**17,
+        )
     np.testing.assert_allclose(sol.ts, ts, rtol=0, atol=1e-12)
     R_exact = np.asarray(lierk.exact.free_rigid_body(p.inertia, p.omega0, np.asarray(ts), p.R0)[0])
     return float(np.max(np.linalg.norm(np.asarray(sol.R) - R_exact, axis=(-2, -1))))
@@ -81,8 +86,9 @@ def tiny_run(tmp_path_factory):
 
     so, se = io.StringIO(), io.StringIO()
     with redirect_stdout(so), redirect_stderr(se):
-        code = cli.main(["accuracy", str(scene_path), "--out", str(out), "--solvers", "RKMK4,DOP853",
-                         "--max-settings", "3"])
+        code = cli.main(
+            ["accuracy", str(scene_path), "--out", str(out), "--solvers", "RKMK4,DOP853", "--max-settings", "3"]
+        )
     return code, so.getvalue(), se.getvalue(), out, lierk.app.scene.load(scene_path)
 
 
@@ -186,8 +192,9 @@ def _row(solver, value, time, error, result=0):
 
 
 def _report(rows, floor_parts=(1e-13, None), check=None):
-    return A.AccuracyReport("hand", 1.0, np.linspace(0, 1, 3), tuple(rows), "made up", floor_parts[0], check,
-                            floor_parts[1], "float64")
+    return A.AccuracyReport(
+        "hand", 1.0, np.linspace(0, 1, 3), tuple(rows), "made up", floor_parts[0], check, floor_parts[1], "float64"
+    )
 
 
 def test_cheapest_per_decade_and_the_floor():
@@ -260,8 +267,13 @@ def test_numerical_reference_is_cross_checked_with_effects():
         fine = lierk.solve(scene.problem, lierk.CF4(), 0.3, dt=0.0003, saveat=lierk.SaveAt(t0=True, steps=100))
         np.testing.assert_allclose(fine.ts, rep.ts, atol=1e-14)
         for row in rep.rows:
-            sol = lierk.solve(scene.problem, lierk.RKMK4(), 0.3, dt=row.value,
-                              saveat=lierk.SaveAt(t0=True, steps=round(0.03 / row.value)))
+            sol = lierk.solve(
+                scene.problem,
+                lierk.RKMK4(),
+                0.3,
+                dt=row.value,
+                saveat=lierk.SaveAt(t0=True, steps=round(0.03 / row.value)),
+            )
             err = float(np.max(np.linalg.norm(np.asarray(sol.R) - np.asarray(fine.R), axis=(-2, -1))))
             assert row.error == pytest.approx(err, rel=1e-3)
 
@@ -295,7 +307,12 @@ def test_every_applicable_solver_runs_by_default():
     # Under torques the splittings too; the Runge-Kutta-Nystrom ones only
     # where no torque reads the momentum.
     assert A.default_solvers(_scene(GRAVITY_SCENE).problem) == free + (
-        "Strang", "BlanesMoan4", "BlanesMoan6", "BlanesMoanRKN4", "BlanesMoanRKN6")
+        "Strang",
+        "BlanesMoan4",
+        "BlanesMoan6",
+        "BlanesMoanRKN4",
+        "BlanesMoanRKN6",
+    )
     assert A.default_solvers(_scene(DAMPED_SCENE).problem) == free + ("Strang", "BlanesMoan4", "BlanesMoan6")
     assert A.default_solvers(_scene(GRAVITY_SCENE).problem) == A.METHODS
     # The embedded pairs' tableaux at fixed steps, by name in any case.
@@ -329,18 +346,33 @@ def test_one_compilation_per_solver_and_the_runs_are_lierk_solve_s():
 
         # The report's solvers unroll their stages (`A.method`): so does the
         # reference, and the rows then match lierk.solve's bit for bit.
-        R_ref = np.asarray(lierk.solve(p, lierk.DOP853(compact=False), scene.t1, rtol=1e-13, saveat=lierk.SaveAt(ts=ts),
-                                       max_steps=2**17).R)
+        R_ref = np.asarray(
+            lierk.solve(
+                p, lierk.DOP853(compact=False), scene.t1, rtol=1e-13, saveat=lierk.SaveAt(ts=ts), max_steps=2**17
+            ).R
+        )
         for row in rep.rows:
             m = A.method(row.solver)
             if row.setting == "dt":
-                sol = lierk.solve(p, m.solver, scene.t1, dt=row.value, saveat=lierk.SaveAt(ts=ts),
-                                  estimate_error=True, throw=False)
+                sol = lierk.solve(
+                    p, m.solver, scene.t1, dt=row.value, saveat=lierk.SaveAt(ts=ts), estimate_error=True, throw=False
+                )
             else:
-                sol = lierk.solve(p, m.solver, scene.t1, rtol=row.value, saveat=lierk.SaveAt(ts=ts),
-                                  max_steps=2**17, estimate_error=True, throw=False)
+                sol = lierk.solve(
+                    p,
+                    m.solver,
+                    scene.t1,
+                    rtol=row.value,
+                    saveat=lierk.SaveAt(ts=ts),
+                    max_steps=2**17,
+                    estimate_error=True,
+                    throw=False,
+                )
             assert (row.result, row.num_steps, row.num_fevals) == (
-                int(sol.result), int(sol.stats["num_steps"]), int(sol.stats["num_fevals"])), row
+                int(sol.result),
+                int(sol.stats["num_steps"]),
+                int(sol.stats["num_fevals"]),
+            ), row
             if not row.ok:
                 continue
             # The same steps as lierk.solve's: the same states, to the bit for

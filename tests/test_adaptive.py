@@ -281,8 +281,12 @@ def replay_jac():
 
 @pytest.mark.parametrize(
     "max_steps,adjoint",
-    [(300, lierk.RecursiveCheckpointAdjoint()), (5000, lierk.RecursiveCheckpointAdjoint()), (300, lierk.DirectAdjoint()),
-     (300, None)],
+    [
+        (300, lierk.RecursiveCheckpointAdjoint()),
+        (5000, lierk.RecursiveCheckpointAdjoint()),
+        (300, lierk.DirectAdjoint()),
+        (300, None),
+    ],
     ids=["checkpointed-300", "checkpointed-5000", "direct-300", "default-300"],
 )
 def test_reverse_mode_is_the_derivative_of_the_solve_taken_for_any_max_steps(replay_jac, max_steps, adjoint):
@@ -329,16 +333,20 @@ def test_steps_turn_the_body_by_at_most_max_angle():
     (2.7e-4 with the bound, 3.6e-4 without; the batch's worst case improved
     3x).  A given dt0 is bounded too."""
     top = lierk.RigidBodyWithEffects(
-        [0.6, 0.8, 0.3], [1.0, -1.5, 110.0], lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
+        [0.6, 0.8, 0.3],
+        [1.0, -1.5, 110.0],
+        lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
         effects=lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),
     )
     ref = lierk.solve(top, lierk.DOP853(), 2.0, rtol=1e-13, atol=1e-13, max_steps=100_000).R[-1]
 
     def run(max_angle):
         c = lierk.Controller(1e-4, 1e-4, max_angle=max_angle)
-        sol = lierk.solve(top, lierk.DOP853(), 2.0, controller=c, saveat=lierk.SaveAt(t0=True, steps=True), max_steps=1000)
+        sol = lierk.solve(
+            top, lierk.DOP853(), 2.0, controller=c, saveat=lierk.SaveAt(t0=True, steps=True), max_steps=1000
+        )
         n = int(sol.stats["num_accepted_steps"])
-        turn = np.diff(np.asarray(sol.ts[:n + 1])) * np.linalg.norm(np.asarray(sol.omega(top)[:n]), axis=-1)
+        turn = np.diff(np.asarray(sol.ts[: n + 1])) * np.linalg.norm(np.asarray(sol.omega(top)[:n]), axis=-1)
         return turn, int(sol.stats["num_rejected_steps"]), frob(sol.R[n], ref)
 
     turn, rejected, err = run(np.pi)
@@ -347,8 +355,15 @@ def test_steps_turn_the_body_by_at_most_max_angle():
     assert turn_free.max() > np.pi
     assert rejected < rejected_free
     assert err < 1.2 * err_free
-    sol = lierk.solve(top, lierk.DOP853(), 2.0, controller=lierk.Controller(1e-4, 1e-4), dt0=0.05,
-                      saveat=lierk.SaveAt(t0=True, steps=True), max_steps=1000)
+    sol = lierk.solve(
+        top,
+        lierk.DOP853(),
+        2.0,
+        controller=lierk.Controller(1e-4, 1e-4),
+        dt0=0.05,
+        saveat=lierk.SaveAt(t0=True, steps=True),
+        max_steps=1000,
+    )
     first = float(sol.ts[1]) * float(np.linalg.norm(np.asarray(sol.omega(top)[0])))
     assert first <= np.pi * (1 + 1e-9) and int(sol.stats["num_rejected_steps"]) == 0
     with pytest.raises(ValueError, match="max_angle"):

@@ -13,9 +13,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import OMEGA_GENERIC, TEE, fd_from_values, fd_jacobian, fd_points
 
 import lierk
-from helpers import OMEGA_GENERIC, TEE, fd_from_values, fd_jacobian, fd_points
 
 W0 = jnp.asarray(OMEGA_GENERIC)
 TARGET = jnp.asarray(np.asarray(lierk.so3.exp(jnp.asarray([0.2, -0.1, 0.4]))))
@@ -47,14 +47,16 @@ def test_every_mode_reads_the_derivative_of_the_solve(name):
     reference = lambda w: final(w, solver, lierk.ForwardMode(), **ref_kw)  # noqa: E731
     # Every mode in one program: compiled apart they cost a third more (the
     # splitting's elliptic-drift derivatives dominate the module's time).
-    J_ref, J_fwd, J_rev, g, R_ref, R_fd = jax.jit(lambda w: (
-        jax.jacfwd(reference)(w),
-        jax.jacfwd(lambda w: final(w, solver, **kw))(w),
-        jax.jacrev(lambda w: final(w, solver, **kw))(w),
-        jax.grad(lambda w: loss(w, solver, **kw))(w),
-        reference(w),
-        jax.vmap(reference)(jnp.asarray(fd_points(W0))),
-    ))(W0)
+    J_ref, J_fwd, J_rev, g, R_ref, R_fd = jax.jit(
+        lambda w: (
+            jax.jacfwd(reference)(w),
+            jax.jacfwd(lambda w: final(w, solver, **kw))(w),
+            jax.jacrev(lambda w: final(w, solver, **kw))(w),
+            jax.grad(lambda w: loss(w, solver, **kw))(w),
+            reference(w),
+            jax.vmap(reference)(jnp.asarray(fd_points(W0))),
+        )
+    )(W0)
     scale = float(jnp.linalg.norm(J_ref))
     g_ref = jnp.einsum("ij,ijk->k", 2 * (R_ref - TARGET), J_ref)
     assert float(jnp.linalg.norm(J_fwd - J_ref)) <= 1e-12 * scale
@@ -150,15 +152,25 @@ def test_gradient_with_respect_to_the_inertia_against_finite_differences():
 def test_float32_gradient():
     solver, kw = CASES["RKMK4"]
     w32 = W0.astype(jnp.float32)
-    g = jax.grad(lambda w: jnp.sum((lierk.solve(lierk.FreeRigidBody(TEE.astype(np.float32), w), solver, 2.0, **kw).R[-1]
-                                    - TARGET.astype(jnp.float32)) ** 2))(w32)
+    g = jax.grad(
+        lambda w: jnp.sum(
+            (
+                lierk.solve(lierk.FreeRigidBody(TEE.astype(np.float32), w), solver, 2.0, **kw).R[-1]
+                - TARGET.astype(jnp.float32)
+            )
+            ** 2
+        )
+    )(w32)
     assert g.dtype == jnp.float32
     np.testing.assert_allclose(g, jax.grad(lambda w: loss(w, solver, **kw))(W0), rtol=2e-4)
 
 
 @pytest.mark.parametrize(
     "kw, match",
-    [(dict(max_inputs=0), "positive int"), (dict(fallback=lierk.RecursiveCheckpointAdjoint()), "must support forward mode")],
+    [
+        (dict(max_inputs=0), "positive int"),
+        (dict(fallback=lierk.RecursiveCheckpointAdjoint()), "must support forward mode"),
+    ],
 )
 def test_bad_settings_are_refused(kw, match):
     with pytest.raises(ValueError, match=match):
@@ -179,7 +191,9 @@ def test_values_a_user_function_closes_over_are_differentiated():
         g_jit = jax.jit(jax.grad(lambda a: torque_loss(a, solver, **kw)))(0.3)
         # Jitted: a closure over a concrete value is a constant of the
         # program, so each difference point would otherwise compile anew.
-        fd = fd_jacobian(jax.jit(lambda a: torque_loss(a[0], solver, adjoint=lierk.ForwardMode(), **kw)), jnp.array([0.3]), h=1e-4)
+        fd = fd_jacobian(
+            jax.jit(lambda a: torque_loss(a[0], solver, adjoint=lierk.ForwardMode(), **kw)), jnp.array([0.3]), h=1e-4
+        )
         np.testing.assert_allclose([g, g_jit], [fd[0], fd[0]], rtol=1e-7)
 
     def event_time(c):
@@ -240,20 +254,20 @@ def test_captured_tracers_are_found_wherever_a_function_keeps_them():
 
     def check(x):
         cases = {
-            "closure": (lambda: (lambda t: x * t))(),
+            "closure": (lambda: lambda t: x * t)(),
             "default": lambda t, a=x: a * t,
             "partial": functools.partial(lambda a, t: a * t, x),
             "keyword": functools.partial(lambda t, a: a * t, a=x),
-            "nested": (lambda: (lambda t: [{"k": (x,)}][0]["k"][0] * t))(),
-            "object": (lambda h: (lambda t: h.value * t))(Holder(x)),
-            "module": (lambda eff: (lambda t: eff.c * t))(lierk.Damping(x)),
+            "nested": (lambda: lambda t: [{"k": (x,)}][0]["k"][0] * t)(),
+            "object": (lambda h: lambda t: h.value * t)(Holder(x)),
+            "module": (lambda eff: lambda t: eff.c * t)(lierk.Damping(x)),
             "method": Holder(x).__init__,
             "callable object": _Gain(x),
-            "method reading a global": (lambda g: (lambda t: g.from_global(t)))(_Gain(None)),
-            "class attribute": (lambda c: (lambda t: c.gain * t))(type("Params", (), {"gain": x})),
-            "module attribute": (lambda m: (lambda t: m.gain * t))(_module_holding(x)),
-            "object array": (lambda a: (lambda t: a[0] * t))(_objects(x)),
-            "jitted closure": jax.jit((lambda: (lambda t: x * t))()),
+            "method reading a global": (lambda g: lambda t: g.from_global(t))(_Gain(None)),
+            "class attribute": (lambda c: lambda t: c.gain * t)(type("Params", (), {"gain": x})),
+            "module attribute": (lambda m: lambda t: m.gain * t)(_module_holding(x)),
+            "object array": (lambda a: lambda t: a[0] * t)(_objects(x)),
+            "jitted closure": jax.jit((lambda: lambda t: x * t)()),
         }
         _STORE["gain"] = x
         for name, fn in cases.items():
@@ -266,15 +280,15 @@ def test_captured_tracers_are_found_wherever_a_function_keeps_them():
     # What it cannot look inside counts as holding one: an object without
     # attributes, one that refuses to be read, a function that reads its
     # globals by name.
-    assert _may_capture_tracer((lambda o: (lambda t: t * o))(_Opaque()))
-    assert _may_capture_tracer((lambda o: (lambda t: t * o))(_Refusing()))
+    assert _may_capture_tracer((lambda o: lambda t: t * o)(_Opaque()))
+    assert _may_capture_tracer((lambda o: lambda t: t * o)(_Refusing()))
     assert _may_capture_tracer(lambda t: globals()["_STORE"]["gain"] * t)
     assert not _may_capture_tracer(lambda t: jnp.cos(t) * np.pi)
     # A long chain is walked without recursion (it raised RecursionError).
     chain = None
     for _ in range(3000):
         chain = Holder(chain)
-    assert not _may_capture_tracer((lambda c: (lambda t: c.value * t))(chain))
+    assert not _may_capture_tracer((lambda c: lambda t: c.value * t)(chain))
 
 
 _STORE = {}  # a user script's global state
@@ -315,28 +329,44 @@ class _Refusing:
 def test_adaptive_derivatives_in_the_times_are_those_of_the_solve():
     """The last step is clipped to t1 (or a save time), so R(t1) moves with
     t1; the derivative was 0 while the step size was out of the gradient."""
+
     def final(t0, t1, adjoint=None):
-        return lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.DP54(), t1, t0=t0, rtol=1e-10, atol=1e-10, adjoint=adjoint).R[-1]
+        return lierk.solve(
+            lierk.FreeRigidBody(TEE, W0), lierk.DP54(), t1, t0=t0, rtol=1e-10, atol=1e-10, adjoint=adjoint
+        ).R[-1]
 
     # Both times in one program per mode.
     Js = jax.jacfwd(final, argnums=(0, 1))(0.1, 2.0)
     J_revs = jax.jacrev(lambda *a: final(*a, lierk.RecursiveCheckpointAdjoint()), argnums=(0, 1))(0.1, 2.0)
     for argnum, J, J_rev in zip((0, 1), Js, J_revs):
-        fd = fd_jacobian(lambda x: final(*(jnp.array([x[0], 2.0]) if argnum == 0 else jnp.array([0.1, x[0]])),
-                                         lierk.ForwardMode()), jnp.array([0.1 if argnum == 0 else 2.0]), h=1e-3)[..., 0]
+        fd = fd_jacobian(
+            lambda x: final(*(jnp.array([x[0], 2.0]) if argnum == 0 else jnp.array([0.1, x[0]])), lierk.ForwardMode()),
+            jnp.array([0.1 if argnum == 0 else 2.0]),
+            h=1e-3,
+        )[..., 0]
         np.testing.assert_allclose(J, fd, atol=1e-7)
         np.testing.assert_allclose(J_rev, fd, atol=1e-7)
     # The steps are decisions: the first step's size has no derivative.
-    g = jax.grad(lambda d: lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.DP54(), 2.0, rtol=1e-8, dt0=d).R[-1, 0, 1])(0.01)
+    g = jax.grad(lambda d: lierk.solve(lierk.FreeRigidBody(TEE, W0), lierk.DP54(), 2.0, rtol=1e-8, dt0=d).R[-1, 0, 1])(
+        0.01
+    )
     assert float(g) == 0.0
 
 
 def test_padding_rows_do_not_poison_a_gradient():
     """Adaptive SaveAt(steps=True) pads with NaN; a loss that skips them
     (nansum) gets the gradient of the rows it reads."""
+
     def loss(w, adjoint=None):
-        sol = lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.DP54(), 2.0, rtol=1e-8, saveat=lierk.SaveAt(steps=True),
-                          max_steps=64, adjoint=adjoint)
+        sol = lierk.solve(
+            lierk.FreeRigidBody(TEE, w),
+            lierk.DP54(),
+            2.0,
+            rtol=1e-8,
+            saveat=lierk.SaveAt(steps=True),
+            max_steps=64,
+            adjoint=adjoint,
+        )
         return jnp.nansum(sol.R[:, 0, 1] ** 2)
 
     g = jax.grad(loss)(W0)

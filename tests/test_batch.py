@@ -15,12 +15,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import TEE
 
 import lierk
 from lierk import _batch as batch
 from lierk import sweep, sweep_chunks
-
-from helpers import TEE
 
 
 def _final_R(omega0, dt):
@@ -121,7 +120,7 @@ def test_float64_inputs_follow_jax_precision_setting():
     # inputs become float32, as jnp.asarray would make them.
     with jax.enable_x64(False):
         out = sweep(lambda v: v * 2.0, np.arange(4.0))
-        (*_, chunk), = sweep_chunks(lambda v: {"a": v * 2.0}, np.arange(3.0), chunk_size=3)
+        ((*_, chunk),) = sweep_chunks(lambda v: {"a": v * 2.0}, np.arange(3.0), chunk_size=3)
     assert out.dtype == jnp.float32 and chunk["a"].dtype == np.float32
     np.testing.assert_array_equal(np.asarray(out), [0.0, 2.0, 4.0, 6.0])
 

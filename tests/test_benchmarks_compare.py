@@ -44,10 +44,24 @@ def test_a_cell_more_than_ten_percent_slower_is_flagged_and_five_percent_is_not(
 
 
 def test_an_error_more_than_ten_percent_larger_is_flagged_above_the_rounding_floor():
-    base = [{"worse": cell(1.0, 1e-8), "close": cell(1.0, 1e-8), "rounding": cell(1.0, 1e-15),
-             "nan": cell(1.0, 1e-8), "better": cell(1.0, 1e-8)}]
-    head = [{"worse": cell(1.0, 1.2e-8), "close": cell(1.0, 1.05e-8), "rounding": cell(1.0, 5e-14),
-             "nan": cell(1.0, float("nan")), "better": cell(1.0, 1e-9)}]
+    base = [
+        {
+            "worse": cell(1.0, 1e-8),
+            "close": cell(1.0, 1e-8),
+            "rounding": cell(1.0, 1e-15),
+            "nan": cell(1.0, 1e-8),
+            "better": cell(1.0, 1e-8),
+        }
+    ]
+    head = [
+        {
+            "worse": cell(1.0, 1.2e-8),
+            "close": cell(1.0, 1.05e-8),
+            "rounding": cell(1.0, 5e-14),
+            "nan": cell(1.0, float("nan")),
+            "better": cell(1.0, 1e-9),
+        }
+    ]
     r = rows(base, head)
     assert r["worse"]["flags"] == ["error 1.20x"]
     assert r["close"]["flags"] == r["rounding"]["flags"] == r["better"]["flags"] == []
@@ -55,10 +69,22 @@ def test_an_error_more_than_ten_percent_larger_is_flagged_above_the_rounding_flo
 
 
 def test_failing_or_losing_an_api_at_head_is_flagged_and_a_new_cell_is_not():
-    base = [{"fails": cell(1.0), "gone": cell(1.0), "new": cell(na="needs lierk.sweep"),
-             "never": cell(na="needs lierk.sweep")}]
-    head = [{"fails": cell(failed="RuntimeError: boom"), "gone": cell(na="needs lierk.sweep"), "new": cell(1.0),
-             "never": cell(na="needs lierk.sweep")}]
+    base = [
+        {
+            "fails": cell(1.0),
+            "gone": cell(1.0),
+            "new": cell(na="needs lierk.sweep"),
+            "never": cell(na="needs lierk.sweep"),
+        }
+    ]
+    head = [
+        {
+            "fails": cell(failed="RuntimeError: boom"),
+            "gone": cell(na="needs lierk.sweep"),
+            "new": cell(1.0),
+            "never": cell(na="needs lierk.sweep"),
+        }
+    ]
     r = rows(base, head)
     assert r["fails"]["flags"] == ["fails at HEAD"] and r["gone"]["flags"] == ["gone at HEAD"]
     assert r["new"]["flags"] == [] and r["new"]["notes"] == ["new at HEAD"] and r["never"]["flags"] == []
@@ -97,7 +123,11 @@ def test_a_cell_missing_its_api_is_na_and_one_that_raises_is_failed(monkeypatch)
     assert results["events_rkmk4_flip"]["na"] == "needs lierk.solve(event)"
     assert results["first_solve"]["failed"].startswith("ZeroDivisionError")
     assert "first_jacfwd" not in results
-    assert headline.select(["jac_top", "free_rkmk4"]) == ["free_rkmk4", "jac_top_dop853_forward", "jac_top_dop853_jacfwd"]
+    assert headline.select(["jac_top", "free_rkmk4"]) == [
+        "free_rkmk4",
+        "jac_top_dop853_forward",
+        "jac_top_dop853_jacfwd",
+    ]
     with pytest.raises(ValueError, match="unknown cell"):
         headline.select(["jac_to"])
 
@@ -105,8 +135,22 @@ def test_a_cell_missing_its_api_is_na_and_one_that_raises_is_failed(monkeypatch)
 def test_headline_quick_measures_this_checkouts_lierk_against_the_closed_form(tmp_path):
     out = tmp_path / "cells.json"
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    subprocess.run([sys.executable, str(BENCH / "headline.py"), "--quick", "--json", str(out),
-                    "--cells", "free_rkmk4", "events_rkmk4_flip"], env=env, check=True, capture_output=True, text=True)
+    subprocess.run(
+        [
+            sys.executable,
+            str(BENCH / "headline.py"),
+            "--quick",
+            "--json",
+            str(out),
+            "--cells",
+            "free_rkmk4",
+            "events_rkmk4_flip",
+        ],
+        env=env,
+        check=True,
+        capture_output=True,
+        text=True,
+    )
     cells = json.loads(out.read_text())
     assert Path(cells["_meta"]["lierk"]) == ROOT / "lierk"
     assert sorted(cells) == ["_meta", "events_rkmk4_flip", "free_rkmk4"]

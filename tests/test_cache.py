@@ -49,8 +49,9 @@ def simulate(tmp_path, root, name):
     env["LIERK_CACHE_DIR"] = str(root)
     out = tmp_path / name
     scene = write(tmp_path, SCENE)
-    p = subprocess.run([LIERK, "simulate", scene, "--out", out, "--no-gif"], env=env, capture_output=True,
-                       text=True, timeout=600)
+    p = subprocess.run(
+        [LIERK, "simulate", scene, "--out", out, "--no-gif"], env=env, capture_output=True, text=True, timeout=600
+    )
     assert p.returncode == 0, p.stderr
     with np.load(out / "cached.npz") as f:
         return p.stderr, f["R"]
@@ -64,7 +65,11 @@ def counts(stderr):
 
 def entries(root):
     """JAX's entries (named ``<program>-<key>-cache``)."""
-    return [p for p in (root / lierk.app.cache.machine_fingerprint()).rglob("*") if p.is_file() and not p.name.startswith(".")]
+    return [
+        p
+        for p in (root / lierk.app.cache.machine_fingerprint()).rglob("*")
+        if p.is_file() and not p.name.startswith(".")
+    ]
 
 
 def test_a_second_run_compiles_nothing_and_corrupted_entries_are_compiled_again(tmp_path):
@@ -106,7 +111,11 @@ def test_an_unwritable_cache_is_one_warning_and_a_normal_run(tmp_path):
     warnings = [line for line in stderr.splitlines() if "warning" in line]
     assert len(warnings) == 1 and "compilation cache off" in warnings[0] and str(not_a_dir) in warnings[0], stderr
     assert not COUNTS.search(stderr)
-    assert R2.shape == (11, 3, 3) and np.abs(R2[-1] - lierk.exact.free_rigid_body(lierk.inertia.tee_handle(), [1.0, 0.05, 0.3], 0.5)[0]).max() < 1e-9
+    assert (
+        R2.shape == (11, 3, 3)
+        and np.abs(R2[-1] - lierk.exact.free_rigid_body(lierk.inertia.tee_handle(), [1.0, 0.05, 0.3], 0.5)[0]).max()
+        < 1e-9
+    )
 
 
 def test_the_directory_is_keyed_by_the_machine(tmp_path):
@@ -190,7 +199,11 @@ def test_using_cache_without_a_directory_keeps_every_program_in_lierk_s(monkeypa
     jax.config.update("jax_compilation_cache_dir", None)
     try:
         with lierk.app.cache.using_cache() as use:
-            assert jax.config.jax_compilation_cache_dir == use.path == str(tmp_path / lierk.app.cache.machine_fingerprint())
+            assert (
+                jax.config.jax_compilation_cache_dir
+                == use.path
+                == str(tmp_path / lierk.app.cache.machine_fingerprint())
+            )
             assert jax.config.jax_persistent_cache_min_compile_time_secs == 0.0
         assert jax.config.jax_compilation_cache_dir is None
     finally:

@@ -13,13 +13,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import run_inprocess, write
 from PIL import Image
 
-from helpers import run_inprocess, write
-
 import lierk
-import lierk.exact
 import lierk.app.scene
+import lierk.exact
 from lierk import _progress as cli_progress
 from lierk.app import cli, plot
 
@@ -130,11 +129,13 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
     assert all(b > a for a, b in zip(elapsed, elapsed[1:])) and left[-1] == 0 and left[0] > left[-2]
     # The rate with an SI prefix and a space before the unit.
     members = io.StringIO()
-    m = cli_progress.Progress("sweep", 20000, "members", stream=members, lines=1,
-                              clock=iter([0.0, 1.0, 1.0, 2.0]).__next__)
+    m = cli_progress.Progress(
+        "sweep", 20000, "members", stream=members, lines=1, clock=iter([0.0, 1.0, 1.0, 2.0]).__next__
+    )
     m.update(20000)
     assert members.getvalue().strip().endswith("20.0k/20.0k members [00:01 elapsed, 00:00 left, 20.0k members/s]"), (
-        members.getvalue())
+        members.getvalue()
+    )
     quiet = io.StringIO()
     q = cli_progress.Progress("run", 1.0, quiet=True, stream=quiet)
     q.update(1.0)
@@ -154,29 +155,48 @@ def test_progress_off_a_terminal_is_a_few_distinct_increasing_lines():
         (["sweep", "{scene}", "--out", "{out}", "--omega-x", "1:0:5"], 2, "START must be < STOP"),
         (["sweep", "{scene}", "--out", "{out}", "--omega-y", "0:1:x"], 2, "START:STOP:N"),
         (["sweep", "{scene}", "--out", "{out}", "--omega-x", "1"], 2, "nothing to sweep"),
-        (["sweep", "{scene}", "--out", "{out}", "--omega-x", "0:1:2", "--omega-y", "0:1:2", "--omega-z", "0:1:2"],
-         2, "at most two"),
+        (
+            ["sweep", "{scene}", "--out", "{out}", "--omega-x", "0:1:2", "--omega-y", "0:1:2", "--omega-z", "0:1:2"],
+            2,
+            "at most two",
+        ),
         (["frobnicate"], 2, "invalid choice"),
         (["simulate", "{scene}", "--out", "{out}", "--target-error", "0"], 2, "--target-error must be a positive"),
         (["simulate", "{scene}", "--out", "{out}", "--target-error", "nan"], 2, "--target-error must be a positive"),
         (["simulate", "{bad_target}", "--out", "{out}"], 2, "run.target_error must be > 0"),
-        (["simulate", "{unreachable}", "--out", "{out}", "--quiet", "--no-gif"], 1,
-         "target_error = 1e-30 was not reached"),
-        (["sweep", "{target}", "--out", "{out}", "--omega-y", "0:0.1:2"], 2,
-         "sweep needs a scene with run.dt or run.rtol"),
+        (
+            ["simulate", "{unreachable}", "--out", "{out}", "--quiet", "--no-gif"],
+            1,
+            "target_error = 1e-30 was not reached",
+        ),
+        (
+            ["sweep", "{target}", "--out", "{out}", "--omega-y", "0:0.1:2"],
+            2,
+            "sweep needs a scene with run.dt or run.rtol",
+        ),
         # These used to end in tracebacks (OverflowError) or run for ever.
         (["simulate", "{tiny_dt}", "--out", "{out}"], 2, "is inf steps, more than a run may take"),
         (["simulate", "{huge_t1}", "--out", "{out}"], 2, "is 1e+302 steps, more than a run may take"),
         (["simulate", "{scene}", "--out", "{out}", "--t1", "1e300"], 2, "is 1e+302 steps, more than a run may take"),
-        (["sweep", "{scene}", "--out", "{out}", "--t1", "1e300", "--omega-y", "0:0.1:2"], 2, "more than a run may take"),
+        (
+            ["sweep", "{scene}", "--out", "{out}", "--t1", "1e300", "--omega-y", "0:0.1:2"],
+            2,
+            "more than a run may take",
+        ),
         (["simulate", "{huge_t1_adaptive}", "--out", "{out}", "--float32"], 2, "outside single precision's range"),
         # Used to exit 0 with six NumPy warnings and "|L|: nan".
-        (["simulate", "{huge_inertia}", "--out", "{out}"], 2,
-         "body: body.inertia = [1.e+300, 1.e+300, 1.e+300] kg m^2 with initial.omega = [0.3, 1. , 0.2] rad/s: "
-         "det(I), the product of the principal moments, = 1e+900 overflows float64"),
+        (
+            ["simulate", "{huge_inertia}", "--out", "{out}"],
+            2,
+            "body: body.inertia = [1.e+300, 1.e+300, 1.e+300] kg m^2 with initial.omega = [0.3, 1. , 0.2] rad/s: "
+            "det(I), the product of the principal moments, = 1e+900 overflows float64",
+        ),
         # Printed as the setting, where lierk.solve refuses it (the same rule).
-        (["simulate", "{tiny_rtol}", "--out", "{out}"], 2,
-         "run.rtol = 1e-20, run.atol = 1e-20: rtol + atol = 2e-20 is below the rounding of float64 (eps = 2.2e-16)"),
+        (
+            ["simulate", "{tiny_rtol}", "--out", "{out}"],
+            2,
+            "run.rtol = 1e-20, run.atol = 1e-20: rtol + atol = 2e-20 is below the rounding of float64 (eps = 2.2e-16)",
+        ),
         (["simulate", "{small_rtol}", "--out", "{out}", "--float32"], 2, "is below the rounding of float32"),
         # Used to fail after the whole run, with OSError: File name too long.
         (["simulate", "{long_name}", "--out", "{out}"], 2, "name: the outputs are named after it"),
@@ -193,19 +213,25 @@ def test_mistakes_end_in_one_line(tmp_path, capsys, argv, status, message):
         "scene": write(tmp_path, TEE_SCENE),
         "too_few_steps": write(tmp_path, ADAPTIVE_SCENE.replace("n_save = 41", "max_steps = 2"), "few.toml"),
         "bad_target": write(
-            tmp_path, TEE_SCENE.replace("dt = 0.01", "target_error = -1e-8").replace("save_every = 2", ""), "bad_target.toml"
+            tmp_path,
+            TEE_SCENE.replace("dt = 0.01", "target_error = -1e-8").replace("save_every = 2", ""),
+            "bad_target.toml",
         ),
-        "target": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "target_error = 1e-8").replace("save_every = 2", ""),
-                        "target.toml"),
-        "unreachable": write(tmp_path, SMALL_TARGET_SCENE.replace("target_error = 1e-10", "target_error = 1e-30"),
-                             "unreachable.toml"),
+        "target": write(
+            tmp_path, TEE_SCENE.replace("dt = 0.01", "target_error = 1e-8").replace("save_every = 2", ""), "target.toml"
+        ),
+        "unreachable": write(
+            tmp_path, SMALL_TARGET_SCENE.replace("target_error = 1e-10", "target_error = 1e-30"), "unreachable.toml"
+        ),
         "tiny_dt": write(tmp_path, TEE_SCENE.replace("dt = 0.01", "dt = 1e-320"), "tiny_dt.toml"),
         "huge_t1": write(tmp_path, TEE_SCENE.replace("t1 = 100.0", "t1 = 1e300"), "huge_t1.toml"),
         # (rtol 1e-6: float32 cannot meet the scene's 1e-10, which is refused first.)
-        "huge_t1_adaptive": write(tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300").replace("1e-10", "1e-6"),
-                                  "huge_adaptive.toml"),
-        "huge_inertia": write(tmp_path, ADAPTIVE_SCENE.replace("[1.0, 2.0, 3.0]", "[1e300, 1e300, 1e300]"),
-                              "huge_inertia.toml"),
+        "huge_t1_adaptive": write(
+            tmp_path, ADAPTIVE_SCENE.replace("t1 = 2.0", "t1 = 1e300").replace("1e-10", "1e-6"), "huge_adaptive.toml"
+        ),
+        "huge_inertia": write(
+            tmp_path, ADAPTIVE_SCENE.replace("[1.0, 2.0, 3.0]", "[1e300, 1e300, 1e300]"), "huge_inertia.toml"
+        ),
         "tiny_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-20"), "tiny_rtol.toml"),
         "small_rtol": write(tmp_path, ADAPTIVE_SCENE.replace("rtol = 1e-10", "rtol = 1e-8"), "small_rtol.toml"),
         "long_name": write(tmp_path, TEE_SCENE.replace('"tee test"', '"' + "x" * 400 + '"'), "long_name.toml"),
@@ -288,8 +314,18 @@ def test_a_step_longer_than_the_run_is_one_step(tmp_path, capsys):
 def test_flip_interval_only_for_scenes_that_flip(tmp_path, capsys, letter, flips):
     # tee_handle_b and _c spin near the smallest and largest axes ("stable"):
     # they used to print a finite flip interval.
-    argv = ["simulate", EXAMPLES / f"tee_handle_{letter}.toml", "--out", tmp_path, "--t1", "0.02", "--chunks", "1",
-            "--no-gif", "--quiet"]
+    argv = [
+        "simulate",
+        EXAMPLES / f"tee_handle_{letter}.toml",
+        "--out",
+        tmp_path,
+        "--t1",
+        "0.02",
+        "--chunks",
+        "1",
+        "--no-gif",
+        "--quiet",
+    ]
     code, out, err = run_inprocess(argv, capsys)
     assert code == 0, err
     assert ("intermediate-axis flip interval (exact): 23.631 s" in out) == flips
@@ -309,7 +345,8 @@ def test_explicit_euler_on_an_impossible_asymmetric_body(tmp_path, capsys):
     assert code == 0, err
     assert [line for line in err.splitlines() if "warning" in line] == [
         "lierk simulate: warning: body.inertia [0.5, 0.6, 1.5] breaks the triangle inequality I_max <= I_a + I_b: "
-        "no rigid body has these principal moments; the equations are solved as given"]
+        "no rigid body has these principal moments; the equations are solved as given"
+    ]
     assert "  flips not tracked with ExplicitEuler: ExplicitEuler leaves SO(3)" in out
     assert "event_flip" not in _npz(tmp_path / "out" / "adaptive.npz")
 
@@ -326,8 +363,20 @@ def test_console_script_errors_without_traceback(tmp_path):
     "argv, words",
     [
         ([], ["simulate", "sweep", "accuracy"]),
-        (["simulate"], ["SCENE.toml", "--out", "--t1", "--quiet", "--devices", ".gif", "--target-error",
-                        "body angular momentum m = I omega", "with or without effects"]),
+        (
+            ["simulate"],
+            [
+                "SCENE.toml",
+                "--out",
+                "--t1",
+                "--quiet",
+                "--devices",
+                ".gif",
+                "--target-error",
+                "body angular momentum m = I omega",
+                "with or without effects",
+            ],
+        ),
         (["accuracy"], ["SCENE.toml", "--out", "--solvers", "--max-settings", "--quick", "work_precision.png"]),
         (["sweep"], ["--omega-x", "START:STOP:N", "--grid", "--span", "flip interval", "--chunk-size"]),
     ],
@@ -406,7 +455,9 @@ def test_simulate_matches_a_direct_solve(tmp_path):
         ["simulate", scene_path, "--out", out, "--t1", "0.5", "--chunks", "3", "--frames", "4"]
     )
     assert code == 0, stderr
-    assert "compiled in" in stderr and "t: 100% 0.50/0.50 s" in stderr and "Traceback" not in stderr  # progress, not quiet
+    assert (
+        "compiled in" in stderr and "t: 100% 0.50/0.50 s" in stderr and "Traceback" not in stderr
+    )  # progress, not quiet
 
     scene = lierk.app.scene.load(scene_path)
     import dataclasses
@@ -506,8 +557,9 @@ def test_simulate_target_error_keeps_the_events(tmp_path, capsys):
     assert _exact_errors(data).max() <= eps
     # A flip event that ends the run: the saved times stop before it.
     stop = text + '\n[[events]]\nkind = "flip"\nterminate = true\n'
-    code, stdout, stderr = run_inprocess(["simulate", write(tmp_path, stop), "--out", out, "--target-error", eps,
-                                          "--quiet", "--no-gif"], capsys)
+    code, stdout, stderr = run_inprocess(
+        ["simulate", write(tmp_path, stop), "--out", out, "--target-error", eps, "--quiet", "--no-gif"], capsys
+    )
     assert code == 0, stderr
     data = _npz(out / "tee_test.npz")
     np.testing.assert_allclose(data["event_flip"], [first], atol=1e-7)
@@ -620,7 +672,6 @@ def test_sweep_along_one_component_and_default_grid(tmp_path, capsys):
     data = _npz(out / "tee_test_sweep.npz")
     np.testing.assert_allclose(data["omega0_y"], [-0.05, 0.05, 0.15], atol=1e-14)
     np.testing.assert_allclose(data["omega0_z"], [0.2, 0.3, 0.4], atol=1e-14)
-
 
 
 def test_simulate_shows_top_angles_and_flips(tmp_path, capsys, monkeypatch):

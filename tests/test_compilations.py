@@ -63,8 +63,9 @@ def test_simulate_compiles_a_handful_of_programs(scene, most, tmp_path):
 def test_every_program_of_a_simulation_can_be_kept_in_the_cache(run, tmp_path):
     # A run-time check on a traced value is a host callback, and JAX keeps
     # no program with one: the solve compiled again in every process.
-    scene = lierk.app.scene.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
-                                   "run": {**run, "t1": 0.5}})
+    scene = lierk.app.scene.from_dict(
+        {"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]}, "run": {**run, "t1": 0.5}}
+    )
     before = jax.config.jax_persistent_cache_min_compile_time_secs
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     jax.clear_caches()
@@ -129,9 +130,11 @@ def test_the_collector_is_held_off_while_lierk_traces_and_left_as_it_was():
 
     w = np.array([0.3, -0.2, 1.0])
     assert gc.isenabled()
-    calls = (lambda: solve(w, _CollectorProbe(1)),  # from Python: lierk's own program
-             lambda: jax.jit(solve)(w, _CollectorProbe(2)),  # inside a caller's trace
-             lambda: jax.jacfwd(solve)(w, _CollectorProbe(3)))
+    calls = (
+        lambda: solve(w, _CollectorProbe(1)),  # from Python: lierk's own program
+        lambda: jax.jit(solve)(w, _CollectorProbe(2)),  # inside a caller's trace
+        lambda: jax.jacfwd(solve)(w, _CollectorProbe(3)),
+    )
     for call in calls:
         _COLLECTOR_SEEN.clear()
         call()
@@ -156,24 +159,35 @@ def test_new_numbers_reuse_the_compiled_program():
     # compiled each array operation around its loop (61 programs).
     I1, I2 = [2.0, 3.0, 4.0], [2.5, 3.5, 4.1]
     w1, w2 = [0.3, -0.2, 5.0], [0.2, 0.1, 4.0]
-    fixed = [lambda t0=t0, t1=t1, dt=dt, I=I, w=w: lierk.solve(_body(I, w), lierk.RKMK4(), t1, t0=t0, dt=dt, max_steps=64).R
-             for t0, t1, dt, I, w in ((0.0, 0.5, 0.01, I1, w1), (0.1, 0.4, 0.02, I2, w2))]
+    fixed = [
+        lambda t0=t0, t1=t1, dt=dt, I=I, w=w: lierk.solve(_body(I, w), lierk.RKMK4(), t1, t0=t0, dt=dt, max_steps=64).R
+        for t0, t1, dt, I, w in ((0.0, 0.5, 0.01, I1, w1), (0.1, 0.4, 0.02, I2, w2))
+    ]
     assert _compiles(fixed) == [2, 0]  # the solve and the body's inverse inertia (one program each)
-    adaptive = [lambda t1=t1, r=r, a=a, w=w: lierk.solve(_body(I1, w), lierk.DP54(), t1, rtol=r, atol=a, estimate_error=True).R
-                for t1, r, a, w in ((0.5, 1e-6, 1e-8, w1), (0.7, 1e-7, 1e-9, w2))]
+    adaptive = [
+        lambda t1=t1, r=r, a=a, w=w: lierk.solve(_body(I1, w), lierk.DP54(), t1, rtol=r, atol=a, estimate_error=True).R
+        for t1, r, a, w in ((0.5, 1e-6, 1e-8, w1), (0.7, 1e-7, 1e-9, w2))
+    ]
     assert _compiles(adaptive) == [2, 0]
-    target = [lambda t1=t1, e=e: lierk.solve(_body(I1, w1), lierk.DP54(), t1, target_error=e).R for t1, e in ((0.3, 1e-5), (0.4, 1e-6))]
+    target = [
+        lambda t1=t1, e=e: lierk.solve(_body(I1, w1), lierk.DP54(), t1, target_error=e).R
+        for t1, e in ((0.3, 1e-5), (0.4, 1e-6))
+    ]
     assert _compiles(target) == [2, 0]
     event = lierk.Event(lambda t, R, y: R[2, 2] - 0.5)
     events = [lambda t1=t1: lierk.solve(_body(I1, w1), lierk.DP54(), t1, rtol=1e-6, event=event).R for t1 in (0.3, 0.6)]
     assert _compiles(events) == [2, 0]
-    sens = [lambda t1=t1, r=r: lierk.sensitivity(_body(I1, w1), lierk.DP54(), t1, rtol=r, estimate_error=False).jacobian
-            for t1, r in ((0.3, 1e-6), (0.5, 1e-7))]
+    sens = [
+        lambda t1=t1, r=r: lierk.sensitivity(_body(I1, w1), lierk.DP54(), t1, rtol=r, estimate_error=False).jacobian
+        for t1, r in ((0.3, 1e-6), (0.5, 1e-7))
+    ]
     assert _compiles(sens) == [2, 0]
     # A fixed-step count without max_steps sizes the loop: a new count is a
     # new program, the same count is not.
-    steps = [lambda t1=t1: lierk.sensitivity(_body(I1, w1), lierk.RKMK4(), t1, dt=0.01, estimate_error=False).jacobian
-             for t1 in (0.3, 0.3 + 1e-12, 0.5)]
+    steps = [
+        lambda t1=t1: lierk.sensitivity(_body(I1, w1), lierk.RKMK4(), t1, dt=0.01, estimate_error=False).jacobian
+        for t1 in (0.3, 0.3 + 1e-12, 0.5)
+    ]
     assert _compiles(steps) == [2, 0, 1]
 
 
@@ -203,8 +217,9 @@ def test_an_eager_derivative_checks_the_body_in_one_program_per_check():
         momentum_jacobian([0.1, float("nan"), 1.0])
 
 
-@pytest.mark.parametrize("inertia", [(2.0, 3.0, 4.0), ((2.0, 0.1, 0.0), (0.1, 3.0, 0.2), (0.0, 0.2, 4.0))],
-                         ids=["diagonal", "full"])
+@pytest.mark.parametrize(
+    "inertia", [(2.0, 3.0, 4.0), ((2.0, 0.1, 0.0), (0.1, 3.0, 0.2), (0.0, 0.2, 4.0))], ids=["diagonal", "full"]
+)
 def test_a_body_of_constants_inside_jit_inverts_its_inertia_on_the_host(inertia):
     # Inside jit the checked inertia is staged (a tracer) even when given as
     # constants; its inverse was an LU factorisation, a while loop in every
@@ -239,9 +254,14 @@ def test_a_call_with_no_traced_argument_runs_its_own_program_with_the_one_body_o
     monkeypatch.setenv("XLA_FLAGS", "")
     assert lierk.one_body_compiler_options() == {"xla_cpu_use_fusion_emitters": False}
     calls = []
-    for name, program in (("solve", _solve._program), ("jvp", _solve._program_jvp), ("sensitivity", _sensitivity._sensitivity),
-                          ("exact", lierk.exact._free_motion_program)):
+    for name, program in (
+        ("solve", _solve._program),
+        ("jvp", _solve._program_jvp),
+        ("sensitivity", _sensitivity._sensitivity),
+        ("exact", lierk.exact._free_motion_program),
+    ):
         for kind in ("default", "_own"):
+
             def spy(*args, _f=getattr(program, kind), _tag=(name, kind), **kwargs):
                 calls.append(_tag)
                 return _f(*args, **kwargs)
@@ -310,7 +330,9 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
     _marking_the_stage_loop(monkeypatch)
 
     def solve(w, solver=lierk.DP54(), max_steps=None):
-        top = lierk.RigidBodyWithEffects(np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81))
+        top = lierk.RigidBodyWithEffects(
+            np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81)
+        )
         return lierk.solve(top, solver, 1.0, rtol=1e-10, atol=1e-10, max_steps=max_steps).R[-1]
 
     w = np.array([1.0, 0.05, 0.3])
@@ -328,15 +350,21 @@ def test_one_body_loops_over_a_long_tableaus_stages_and_a_batch_unrolls_them(mon
     assert not _loops(jax.jit(jax.vmap(solve)), ws)
     assert not _loops(jax.vmap(jax.jit(solve)), ws)
     assert not _loops(jax.jit(lambda w: solve(w, lierk.DP54(compact=False))), w)
-    assert not _loops(jax.jit(lambda w: lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0,
-                                                     dt=0.1).R[-1]), w)
+    assert not _loops(
+        jax.jit(
+            lambda w: lierk.solve(lierk.FreeRigidBody(np.array([2.0, 3.0, 4.0]), w), lierk.RKMK4(), 1.0, dt=0.1).R[-1]
+        ),
+        w,
+    )
     # Values made while tracing one program and kept for another broke
     # JAX's dispatch of the next (a cache of device scalars, tried and
     # dropped: the batch's second call failed).
     jitted = np.asarray(jax.jit(solve)(w))
     for batch in (jax.jit(jax.vmap(solve)), jax.vmap(jax.jit(solve))):
         batch(ws)
-        np.testing.assert_allclose(batch(ws), [jitted, jitted], rtol=0, atol=1e-14)  # a second call: JAX's fast dispatch
+        np.testing.assert_allclose(
+            batch(ws), [jitted, jitted], rtol=0, atol=1e-14
+        )  # a second call: JAX's fast dispatch
     # A derivative around a vmap(jit): the batching rule's outputs and the
     # custom derivative's must batch alike (a grad failed to lower: the
     # count of saved states was batched in one and not in the other).
@@ -359,7 +387,9 @@ def test_one_bodys_jacobian_loops_over_rkmk4s_stages_and_a_batch_of_them_unrolls
     _marking_the_stage_loop(monkeypatch)
 
     def final(w):
-        body = lierk.RigidBodyWithEffects(np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81))
+        body = lierk.RigidBodyWithEffects(
+            np.array([2.0, 3.0, 4.0]), w, effects=lierk.Gravity([0.1, 0.0, 0.5], 1.0, 9.81)
+        )
         return lierk.solve(body, lierk.RKMK4(), 1.0, dt=0.1).R[-1]
 
     w = np.array([1.0, 0.05, 0.3])
@@ -390,7 +420,14 @@ def test_the_rule_reads_no_private_jax_and_no_tracer_class():
     root = Path(lierk.__file__).parent
     for path in root.rglob("*.py"):
         text = path.read_text()
-        for pattern in (r"jax\._src", r"BatchTracer", r"JaxprTracer", r"JVPTracer", r"\.batch_dim\b", r"trace_state_clean"):
+        for pattern in (
+            r"jax\._src",
+            r"BatchTracer",
+            r"JaxprTracer",
+            r"JVPTracer",
+            r"\.batch_dim\b",
+            r"trace_state_clean",
+        ):
             assert not re.search(pattern, text), f"{path.relative_to(root.parent)} matches {pattern}"
 
 
@@ -402,7 +439,9 @@ def test_one_bodys_adaptive_solve_compiles_few_kernels():
     # jax.jit was 77 kernels; written to fuse, 52 (48 with the suite's quick
     # XLA flags).  diffrax's Dopri8 is 26.
     def final(w, tol):
-        top = lierk.RigidBodyWithEffects([2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),))
+        top = lierk.RigidBodyWithEffects(
+            [2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),)
+        )
         return lierk.solve(top, lierk.DOP853(), 1.0, rtol=tol, atol=tol, throw=False).R[-1]
 
     text = jax.jit(final).lower(jax.numpy.array([1.0, 0.3, 20.0]), jax.numpy.asarray(1e-8)).compile().as_text()
@@ -428,7 +467,9 @@ def test_one_bodys_jacobian_compiles_one_linearisation_and_few_kernels(monkeypat
     monkeypatch.setattr(lierk.RigidBodyWithEffects, "modes", spy)
 
     def final(w, tol):
-        top = lierk.RigidBodyWithEffects([2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),))
+        top = lierk.RigidBodyWithEffects(
+            [2.0, 3.0, 4.0], w, effects=(lierk.Gravity(np.array([0.1, 0.0, 0.5]), 1.0, 9.81),)
+        )
         return lierk.solve(top, lierk.DOP853(), 1.0, rtol=tol, atol=tol, throw=False).R[-1]
 
     lowered = jax.jit(jax.jacfwd(final)).lower(jax.numpy.array([1.0, 0.3, 20.0]), jax.numpy.asarray(1e-8))

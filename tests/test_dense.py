@@ -12,10 +12,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import TEE, fd_from_values, fd_points, order_fit
 
 import lierk
 import lierk.exact
-from helpers import TEE, fd_from_values, fd_points, order_fit
 
 OMEGA = np.array([1.0, 0.05, 0.3])
 BODY = lierk.FreeRigidBody(TEE, OMEGA)
@@ -58,7 +58,9 @@ def test_dp54_interpolant_is_at_least_order_5():
     # the slope tends to 6 from above (6.27 to 6.45 on these steps; 6.8 at
     # h = 0.8), so only the bound is claimed.
     hs = np.geomspace(0.05, 0.2, 4)
-    err = np.linalg.norm(np.asarray(_one_step_midpoints(BODY, lierk.DP54(), hs)) - np.asarray(exact_R(hs / 2)), axis=(1, 2))
+    err = np.linalg.norm(
+        np.asarray(_one_step_midpoints(BODY, lierk.DP54(), hs)) - np.asarray(exact_R(hs / 2)), axis=(1, 2)
+    )
     assert order_fit(hs, err) >= 6 - 0.15
 
 
@@ -68,7 +70,9 @@ def test_dp54_interpolant_is_at_least_order_5():
 # time asked for (no interpolation), within 1.6e-12 of a BlanesMoanRKN6
 # solve at dt = 0.0025 s (itself within 1.1e-14 of dt = 0.005 s).
 TOP = lierk.RigidBodyWithEffects(
-    [5.0, 5.0, 1.0], [0.3, 0.0, 50.0], R0=lierk.so3.exp(np.array([0.0, 0.3, 0.0])),
+    [5.0, 5.0, 1.0],
+    [0.3, 0.0, 50.0],
+    R0=lierk.so3.exp(np.array([0.0, 0.3, 0.0])),
     effects=(lierk.Gravity([0.0, 0.0, 1.0], 20.0 / 9.81, 9.81),),
 )
 MIDPOINT_HS = np.geomspace(0.03, 0.1, 4)
@@ -162,8 +166,12 @@ def exact_R_of(inertia, omega0, t, piece=512):
     # BlanesMoan6 on the asymmetric body (the elliptic drift, in a loop over
     # the stages), the others on a symmetric one (the two-rotation drift,
     # unrolled: seconds less to compile, and the same failure before).
-    [(lierk.BlanesMoan6(), 0.2, SLOW_I), (lierk.Strang(), 0.05, SYMMETRIC_I), (lierk.Yoshida4(), 0.1, SYMMETRIC_I),
-     (lierk.BlanesMoan4(), 0.1, SYMMETRIC_I)],
+    [
+        (lierk.BlanesMoan6(), 0.2, SLOW_I),
+        (lierk.Strang(), 0.05, SYMMETRIC_I),
+        (lierk.Yoshida4(), 0.1, SYMMETRIC_I),
+        (lierk.BlanesMoan4(), 0.1, SYMMETRIC_I),
+    ],
     ids=["BlanesMoan6", "Strang-symmetric", "Yoshida4-symmetric", "BlanesMoan4-symmetric"],
 )
 def test_splitting_dense_output_on_a_free_body_is_exact_to_rounding(solver, dt, inertia):
@@ -209,7 +217,9 @@ def test_splitting_dense_output_in_float32():
     # t = 1 s, is 3e-6 at 50 rad/s).
     f32 = lambda x: np.asarray(x, np.float32)  # noqa: E731
     top32 = lierk.RigidBodyWithEffects(
-        f32([5.0, 5.0, 1.0]), f32([0.3, 0.0, 50.0]), R0=f32(TOP.R0),
+        f32([5.0, 5.0, 1.0]),
+        f32([0.3, 0.0, 50.0]),
+        R0=f32(TOP.R0),
         effects=(lierk.Gravity(f32([0.0, 0.0, 1.0]), f32(20.0 / 9.81), f32(9.81)),),
     )
     saveat = lierk.SaveAt(steps=1, dense=True)
@@ -295,7 +305,9 @@ def test_more_than_half_a_turn_per_step():
     sphere = lierk.FreeRigidBody(np.eye(3), [0.0, 0.0, 4.0])
     sol = lierk.solve(sphere, lierk.CF4(), 2.0, dt=1.0, saveat=lierk.SaveAt(dense=True))
     R = sol.evaluate(jnp.array([0.25, 0.5, 1.5]))[0]
-    np.testing.assert_allclose(R, lierk.so3.exp(jnp.array([0.25, 0.5, 1.5])[:, None] * jnp.array([0.0, 0.0, 4.0])), atol=1e-13)
+    np.testing.assert_allclose(
+        R, lierk.so3.exp(jnp.array([0.25, 0.5, 1.5])[:, None] * jnp.array([0.0, 0.0, 4.0])), atol=1e-13
+    )
 
 
 def test_evaluate_under_vmap_matches_a_loop():
@@ -342,13 +354,15 @@ def test_evaluate_is_differentiable_in_t_and_in_the_inputs():
     t = 1.2345  # inside a step
     w = jnp.asarray(OMEGA)
     # Every derivative and the differences' values from one program.
-    J, g, dR, (R, m), values = eqx.filter_jit(lambda w, t: (
-        jax.jacfwd(lambda w: R_at(w, t)[0].ravel())(w),
-        jax.grad(lambda w: R_at(w, t)[0][0, 2])(w),
-        jax.jacfwd(lambda t: R_at(w, t)[0])(t),
-        R_at(w, t),
-        jax.vmap(lambda p: R_at(p, t)[0].ravel())(jnp.asarray(fd_points(OMEGA, 1e-3))),
-    ))(w, jnp.asarray(t))
+    J, g, dR, (R, m), values = eqx.filter_jit(
+        lambda w, t: (
+            jax.jacfwd(lambda w: R_at(w, t)[0].ravel())(w),
+            jax.grad(lambda w: R_at(w, t)[0][0, 2])(w),
+            jax.jacfwd(lambda t: R_at(w, t)[0])(t),
+            R_at(w, t),
+            jax.vmap(lambda p: R_at(p, t)[0].ravel())(jnp.asarray(fd_points(OMEGA, 1e-3))),
+        )
+    )(w, jnp.asarray(t))
     np.testing.assert_allclose(J, fd_from_values(values, 1e-3), rtol=1e-6, atol=1e-8)
     np.testing.assert_allclose(g, J[2], rtol=1e-10, atol=1e-13)
     # d/dt of the interpolant is the motion's dR/dt = R hat(omega), to the
@@ -410,11 +424,17 @@ def test_solves_without_dense_output_or_events_never_reach_their_code(monkeypatc
     jax.clear_caches()  # trace anew, not from a solve an earlier test compiled
     w = jnp.asarray(OMEGA)
     jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1).R)(w)
-    jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.DOP853(), 1.0, rtol=1e-8,
-                                         saveat=lierk.SaveAt(steps=True), max_steps=16).R)(w)
+    jax.make_jaxpr(
+        lambda w: (
+            lierk.solve(
+                BODY.with_omega0(w), lierk.DOP853(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(steps=True), max_steps=16
+            ).R
+        )
+    )(w)
     with pytest.raises(AssertionError, match="reached"):
-        jax.make_jaxpr(lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1,
-                                             saveat=lierk.SaveAt(dense=True)).R)(w)
+        jax.make_jaxpr(
+            lambda w: lierk.solve(BODY.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.1, saveat=lierk.SaveAt(dense=True)).R
+        )(w)
 
 
 def test_dop853_continuous_extension_is_scipys():

@@ -16,9 +16,9 @@ import jax.numpy as jnp
 import numpy as np
 import optimistix as optx
 import pytest
+from helpers import derivatives_and_differences
 
 import lierk
-from helpers import derivatives_and_differences
 
 so3 = lierk.so3
 WHEELS = jnp.eye(3)
@@ -52,8 +52,13 @@ def test_it_is_the_loop_of_solves_it_replaces():
         command = law(k, t, R, y)
         np.testing.assert_allclose(u[k], command, rtol=0, atol=1e-15)
         wheels = lierk.ReactionWheels(WHEELS, jnp.full(3, JS), y[1], torque=command)
-        step = lierk.solve(lierk.RigidBodyWithEffects(I_ASYM, inertia_inv @ y[0], R0=R, effects=(wheels,)),
-                           lierk.RKMK4(), t + 1.5, t0=t, dt=0.5)
+        step = lierk.solve(
+            lierk.RigidBodyWithEffects(I_ASYM, inertia_inv @ y[0], R0=R, effects=(wheels,)),
+            lierk.RKMK4(),
+            t + 1.5,
+            t0=t,
+            dt=0.5,
+        )
         R, y = step.R[-1], (step.y[0][-1], step.y[1][-1])
         np.testing.assert_allclose(sol.R[k + 1], R, rtol=0, atol=1e-14)
         np.testing.assert_allclose(sol.y[0][k + 1], y[0], rtol=0, atol=1e-15)
@@ -65,8 +70,11 @@ def test_it_is_the_loop_of_solves_it_replaces():
 
 def test_float32_problems_stay_in_float32():
     def run(dtype):
-        body = lierk.RigidBodyWithEffects(np.diag([3.0, 4.0, 5.0]).astype(dtype), np.array([0.1, -0.2, 0.3], dtype),
-                                          effects=(lierk.BodyTorque(np.zeros(3, dtype)),))
+        body = lierk.RigidBodyWithEffects(
+            np.diag([3.0, 4.0, 5.0]).astype(dtype),
+            np.array([0.1, -0.2, 0.3], dtype),
+            effects=(lierk.BodyTorque(np.zeros(3, dtype)),),
+        )
         law = lambda k, t, R, y: -0.5 * y + 0.01 * so3.to_mrp(R)  # noqa: E731
         return lierk.solve_sampled(body, lierk.RKMK4(), law, lambda p: p.effects[0].tau, 0.5, 8, dt=0.25)
 
@@ -88,8 +96,9 @@ def test_a_failed_period_is_reported():
 def test_bad_input_is_refused_by_name():
     body = with_wheels(I_ASYM)
     law = lambda k, t, R, y: jnp.zeros(3)  # noqa: E731
-    free = lierk.RigidBodyWithEffects(I_ASYM, np.zeros(3),
-                                      effects=(lierk.ReactionWheels(WHEELS, jnp.full(3, JS), np.zeros(3)),))
+    free = lierk.RigidBodyWithEffects(
+        I_ASYM, np.zeros(3), effects=(lierk.ReactionWheels(WHEELS, jnp.full(3, JS), np.zeros(3)),)
+    )
     with pytest.raises(ValueError, match="control selects None"):
         lierk.solve_sampled(free, lierk.RKMK4(), law, motor_torques, 1.0, 2, dt=0.5)
     with pytest.raises(ValueError, match=r"law returns \(2,\), but control selects \(3,\)"):
@@ -115,25 +124,32 @@ TARGET = so3.exp(jnp.array([0.4, -0.3, 0.6]))
 def slew_loss(U):
     """A scalar of a held-command manoeuvre of the asymmetric body with wheels:
     its miss of the target, its final rate and wheel speeds, and its effort."""
-    sol, _ = lierk.solve_sampled(with_wheels(I_ASYM), lierk.RKMK4(), lambda k, t, R, y: U[k], motor_torques,
-                                 T_FD / N_FD, N_FD, dt=0.5)
+    sol, _ = lierk.solve_sampled(
+        with_wheels(I_ASYM), lierk.RKMK4(), lambda k, t, R, y: U[k], motor_torques, T_FD / N_FD, N_FD, dt=0.5
+    )
     miss = so3.log(TARGET.T @ sol.R[-1])
-    return (jnp.sum(miss * jnp.array([1.0, -2.0, 0.5])) + 10.0 * jnp.sum(sol.y[0][-1] ** 2)
-            + 0.1 * jnp.sum(sol.y[1][-1]) + 2.0 * jnp.sum(U**2))
+    return (
+        jnp.sum(miss * jnp.array([1.0, -2.0, 0.5]))
+        + 10.0 * jnp.sum(sol.y[0][-1] ** 2)
+        + 0.1 * jnp.sum(sol.y[1][-1])
+        + 2.0 * jnp.sum(U**2)
+    )
 
 
 def smooth_loss(samples):
     """The same through piecewise-linear motor torques in one solve: the
     samples are `ReactionWheels`' array leaves."""
-    wheels = lierk.ReactionWheels(WHEELS, jnp.full(3, JS), np.zeros(3), torque=samples,
-                                  times=jnp.linspace(0.0, T_FD, samples.shape[0]))
+    wheels = lierk.ReactionWheels(
+        WHEELS, jnp.full(3, JS), np.zeros(3), torque=samples, times=jnp.linspace(0.0, T_FD, samples.shape[0])
+    )
     sol = lierk.solve(lierk.RigidBodyWithEffects(I_ASYM, np.zeros(3), effects=(wheels,)), lierk.RKMK4(), T_FD, dt=0.5)
     miss = so3.log(TARGET.T @ sol.R[-1])
     return jnp.sum(miss * jnp.array([1.0, -2.0, 0.5])) + 10.0 * jnp.sum(sol.y[0][-1] ** 2) + 0.1 * jnp.sum(sol.y[1][-1])
 
 
-@pytest.mark.parametrize("loss, shape", [(slew_loss, (N_FD, 3)), (smooth_loss, (N_FD + 1, 3))],
-                         ids=["held commands", "interpolated samples"])
+@pytest.mark.parametrize(
+    "loss, shape", [(slew_loss, (N_FD, 3)), (smooth_loss, (N_FD + 1, 3))], ids=["held commands", "interpolated samples"]
+)
 def test_gradient_with_respect_to_the_torques_matches_central_differences(loss, shape):
     # 24 or 27 inputs: past ForwardSensitivity's 6, so reverse mode goes
     # through the fixed-step scans.  Compared along three random directions
@@ -195,8 +211,9 @@ def test_the_minimum_effort_slew_of_a_sphere_is_the_closed_form(drive):
         body, control, J_eff, sign = with_wheels(J * np.eye(3)), motor_torques, J - JS, -1.0
 
     def miss(U):
-        sol, _ = lierk.solve_sampled(body, lierk.RKMK4(), lambda k, t, R, y: U[k], control, period, N,
-                                     dt=period / 4, throw=False)
+        sol, _ = lierk.solve_sampled(
+            body, lierk.RKMK4(), lambda k, t, R, y: U[k], control, period, N, dt=period / 4, throw=False
+        )
         m = sol.y[0][-1] if drive == "wheels" else sol.y[-1]
         return jnp.concatenate([so3.log(target.T @ sol.R[-1]), T * m / J])
 
@@ -215,12 +232,20 @@ def test_the_minimum_effort_slew_of_a_sphere_is_the_closed_form(drive):
 
 # --- memory --------------------------------------------------------------------
 
+
 def _gradient_temporaries(periods, steps_per_period):
     body = lierk.RigidBodyWithEffects(I_ASYM, np.zeros(3), effects=(lierk.BodyTorque(jnp.zeros(3)),))
 
     def loss(U):
-        sol, _ = lierk.solve_sampled(body, lierk.RKMK4(), lambda k, t, R, y: U[k], lambda p: p.effects[0].tau,
-                                     1.0, periods, dt=1.0 / steps_per_period)
+        sol, _ = lierk.solve_sampled(
+            body,
+            lierk.RKMK4(),
+            lambda k, t, R, y: U[k],
+            lambda p: p.effects[0].tau,
+            1.0,
+            periods,
+            dt=1.0 / steps_per_period,
+        )
         return sol.R[-1, 0, 1] + jnp.sum(sol.y[-1])
 
     compiled = jax.jit(jax.grad(loss)).lower(jnp.zeros((periods, 3))).compile()

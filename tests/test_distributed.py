@@ -114,7 +114,9 @@ def test_unreachable_coordinator_is_a_clear_error_within_the_timeout():
     proc = _run(_START, f"127.0.0.1:{port}", 2, 1)
     assert proc.returncode == 0, proc.stderr[-2000:]
     out = proc.stdout
-    assert out.startswith("RuntimeError after") and f"no coordinator answered at 127.0.0.1:{port} within 2 s" in out, out
+    assert out.startswith("RuntimeError after") and f"no coordinator answered at 127.0.0.1:{port} within 2 s" in out, (
+        out
+    )
     assert float(out.split()[2]) < 10
 
 
@@ -163,7 +165,10 @@ def _two_processes(tmp_path, env_of, args_of):
     procs = [
         subprocess.Popen(
             [sys.executable, "-c", _SWEEP, *map(str, args_of(i, tmp_path / f"p{i}.npz"))],
-            env=env_of(i), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+            env=env_of(i),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
         )
         for i in range(2)
     ]
@@ -182,14 +187,18 @@ def _two_processes(tmp_path, env_of, args_of):
 @pytest.mark.skipif(not _GLOO, reason="this jaxlib is built without gloo CPU collectives")
 def test_two_processes_equal_one_process_bit_for_bit(tmp_path):
     # The reference: one process, the same two devices' worth of rows.
-    ref = _run(_SWEEP, "env", tmp_path / "ref.npz", env=dict(_ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2"))
+    ref = _run(
+        _SWEEP, "env", tmp_path / "ref.npz", env=dict(_ENV, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    )
     assert ref.returncode == 0, ref.stderr[-3000:]
     assert ref.stdout.split() == ["OK", "False", "0", "1", "2"], ref.stdout
     want = np.load(tmp_path / "ref.npz")
 
     port = _free_port()
     outs, got = _two_processes(tmp_path, lambda i: _ENV, lambda i, out: ("args", out, f"127.0.0.1:{port}", i))
-    assert [o.strip().splitlines()[-1].split() for o in outs] == [["OK", "True", str(i), "2", "2"] for i in range(2)], outs
+    assert [o.strip().splitlines()[-1].split() for o in outs] == [["OK", "True", str(i), "2", "2"] for i in range(2)], (
+        outs
+    )
     for g in got:
         for k in want.files:
             np.testing.assert_array_equal(g[k], want[k], err_msg=k)  # 0 ulp
@@ -203,10 +212,19 @@ def test_two_processes_equal_one_process_bit_for_bit(tmp_path):
     port = _free_port()
 
     def slurm(i):
-        return dict(_ENV, SLURM_JOB_ID="4242", SLURM_STEP_NODELIST="127.0.0.1", SLURM_NTASKS="2",
-                    SLURM_PROCID=str(i), SLURM_LOCALID=str(i), JAX_COORDINATOR_PORT=str(port))
+        return dict(
+            _ENV,
+            SLURM_JOB_ID="4242",
+            SLURM_STEP_NODELIST="127.0.0.1",
+            SLURM_NTASKS="2",
+            SLURM_PROCID=str(i),
+            SLURM_LOCALID=str(i),
+            JAX_COORDINATOR_PORT=str(port),
+        )
 
     outs, got = _two_processes(tmp_path, slurm, lambda i, out: ("env", out))
-    assert [o.strip().splitlines()[-1].split() for o in outs] == [["OK", "True", str(i), "2", "2"] for i in range(2)], outs
+    assert [o.strip().splitlines()[-1].split() for o in outs] == [["OK", "True", str(i), "2", "2"] for i in range(2)], (
+        outs
+    )
     for g in got:
         np.testing.assert_array_equal(g["R"], want["R"])

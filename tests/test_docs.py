@@ -109,6 +109,7 @@ def _close(a: float, b: float) -> bool:
 
 def output_mismatch(got: str, want: str) -> str | None:
     """None if ``got`` matches ``want`` (same text, numbers close), else why not."""
+
     def split(s):
         s = " ".join(s.split())
         return _NUMBER.sub("#", s), [float(x) for x in _NUMBER.findall(s)]
@@ -141,6 +142,7 @@ def test_blocks_pair_code_with_its_output_and_see_the_skip_marker():
 
 
 # --- the pages run -------------------------------------------------------------
+
 
 def _asserts(code: str) -> int:
     """Assert statements and ``np.testing.assert_*`` calls in ``code``."""
@@ -289,7 +291,8 @@ def test_the_committed_generated_parts_match_their_sources():
     for page, marker, renderer in hooks.COMMITTED:
         text = (DOCS / page).read_text()
         assert hooks.region(text, marker) == getattr(hooks, renderer)().strip(), (
-            f"docs/{page}: the part under {marker} is stale; run python docs/hooks.py")
+            f"docs/{page}: the part under {marker} is stale; run python docs/hooks.py"
+        )
 
 
 def test_the_checked_pages_exist_and_few_blocks_are_skipped():
@@ -304,6 +307,7 @@ def test_the_checked_pages_exist_and_few_blocks_are_skipped():
 
 
 # --- shell commands ------------------------------------------------------------
+
 
 def _shell_commands():
     for path in pages():
@@ -336,6 +340,7 @@ def test_lierk_commands_parse_and_make_targets_exist():
 
 
 # --- generated pages -----------------------------------------------------------
+
 
 def _hooks():
     spec = importlib.util.spec_from_file_location("docs_hooks", DOCS / "hooks.py")
@@ -380,8 +385,11 @@ def test_scene_schema_is_generated_from_the_schema_module():
     hooks = _hooks()
     assert hooks.SCHEMA_MARKER in (DOCS / "guides" / "scenes-and-cli.md").read_text()
     text = hooks.render_scene_schema()
-    structs = [getattr(scene_schema, n) for n in scene_schema.__all__
-               if isinstance(getattr(scene_schema, n), type) and issubclass(getattr(scene_schema, n), msgspec.Struct)]
+    structs = [
+        getattr(scene_schema, n)
+        for n in scene_schema.__all__
+        if isinstance(getattr(scene_schema, n), type) and issubclass(getattr(scene_schema, n), msgspec.Struct)
+    ]
     assert len(structs) >= 20
     for cls in structs:
         assert f"{{#schema-{cls.__name__.lower()}}}" in text, cls
@@ -397,5 +405,5 @@ def test_every_page_is_in_the_nav_and_every_nav_entry_exists():
     config = (ROOT / "mkdocs.yml").read_text()
     in_nav = set(re.findall(r":\s*([\w/.-]+\.md)\s*$", config, re.M))
     on_disk = {p.relative_to(DOCS).as_posix() for p in DOCS.rglob("*.md")}
-    assert in_nav == on_disk, (in_nav ^ on_disk)
+    assert in_nav == on_disk, in_nav ^ on_disk
     assert "hooks:" in config and "docs/hooks.py" in config

@@ -12,8 +12,7 @@ from helpers import reference_R
 from scipy.integrate import solve_ivp
 
 import lierk
-from lierk import RigidBodyWithEffects
-from lierk import BodyTorque, Damping, Gravity, SpaceTorque
+from lierk import BodyTorque, Damping, Gravity, RigidBodyWithEffects, SpaceTorque
 
 # Simo & Wong's heavy symmetric top: J = diag(5, 5, 1) about the pivot,
 # M g l = 20, fast spin about the symmetry axis, slightly tilted.
@@ -62,7 +61,11 @@ def drift(x):
         #   DP54 rtol 1e-10: energy 1.1e-12, L_vertical 5.4e-11, R 2.1e-10, m 2.5e-9
         #   RKMK4 h = 1e-3:  energy 1.5e-11, L_vertical 1.2e-9,  R 7.6e-8,  m 1.1e-6
         # Bounds are ~10x.
-        (lierk.DP54(), dict(rtol=1e-10, atol=1e-10, max_steps=20000), dict(energy=1e-11, L_vertical=5e-10, R=2e-9, m=2.5e-8)),
+        (
+            lierk.DP54(),
+            dict(rtol=1e-10, atol=1e-10, max_steps=20000),
+            dict(energy=1e-11, L_vertical=5e-10, R=2e-9, m=2.5e-8),
+        ),
         (lierk.RKMK4(), dict(dt=1e-3), dict(energy=1.5e-10, L_vertical=1.2e-8, R=8e-7, m=1.1e-5)),
     ],
     ids=["DP54", "RKMK4"],
@@ -178,7 +181,9 @@ def _traced_effects(problem) -> set[str]:
     solver = lierk.RKMK4()
     jaxpr = jax.make_jaxpr(lambda p, R, y: solver.step(p, 0.0, 0.01, R, y))(problem, problem.R0, problem.y0)
     text = jaxpr.pretty_print(name_stack=True)
-    return {n for n in ("Gravity", "BodyTorque", "SpaceTorque", "TimedTorque", "Damping") if f"lierk_effect_{n}" in text}
+    return {
+        n for n in ("Gravity", "BodyTorque", "SpaceTorque", "TimedTorque", "Damping") if f"lierk_effect_{n}" in text
+    }
 
 
 def test_absent_effects_are_never_traced():
@@ -187,7 +192,13 @@ def test_absent_effects_are_never_traced():
     assert _traced_effects(only_damping) == {"Damping"}
     # The probe sees every effect that is present.
     timed = lierk.TimedTorque([[0.0, 0.0, 0.0], [0.0, 0.0, 1.0]], times=[0.0, 1.0], frame="space")
-    every = (Gravity([0.0, 0.0, 0.1], 1.0), BodyTorque([1.0, 0.0, 0.0]), SpaceTorque([0.0, 0.0, 1.0]), timed, Damping(0.1))
+    every = (
+        Gravity([0.0, 0.0, 0.1], 1.0),
+        BodyTorque([1.0, 0.0, 0.0]),
+        SpaceTorque([0.0, 0.0, 1.0]),
+        timed,
+        Damping(0.1),
+    )
     assert _traced_effects(RigidBodyWithEffects(inertia, omega0, effects=every)) == {
         "Gravity",
         "BodyTorque",
@@ -196,7 +207,11 @@ def test_absent_effects_are_never_traced():
         "Damping",
     }
     # A time-dependent torque is compiled only where a scene has one.
-    assert _traced_effects(RigidBodyWithEffects(inertia, omega0, effects=every[:3])) == {"Gravity", "BodyTorque", "SpaceTorque"}
+    assert _traced_effects(RigidBodyWithEffects(inertia, omega0, effects=every[:3])) == {
+        "Gravity",
+        "BodyTorque",
+        "SpaceTorque",
+    }
     # Without effects the field is the bare Euler equation: its jaxpr has one
     # multiply-add fewer per stage than with damping.
     bare = jax.make_jaxpr(RigidBodyWithEffects(inertia, omega0).field)(0.0, jnp.eye(3), jnp.ones(3))
@@ -219,10 +234,13 @@ def test_float32_runs_in_float32():
     # Adaptive steps too (their tolerances read the effects' energy scale,
     # whose 0 for Damping was float64 under x64: the loop's carry changed
     # dtype and the solve failed to trace; found by an adversarial pass).
-    damped = RigidBodyWithEffects(np.array([2.0, 3.0, 1.5], f32), np.array([0.1, 1.0, 0.2], f32), effects=(Damping(f32(0.4)),))
+    damped = RigidBodyWithEffects(
+        np.array([2.0, 3.0, 1.5], f32), np.array([0.1, 1.0, 0.2], f32), effects=(Damping(f32(0.4)),)
+    )
     sol = lierk.solve(damped, lierk.DOP853(), 5.0, rtol=1e-5)
-    ref = lierk.solve(RigidBodyWithEffects([2.0, 3.0, 1.5], [0.1, 1.0, 0.2], effects=(Damping(0.4),)), lierk.DOP853(), 5.0,
-                      rtol=1e-10)
+    ref = lierk.solve(
+        RigidBodyWithEffects([2.0, 3.0, 1.5], [0.1, 1.0, 0.2], effects=(Damping(0.4),)), lierk.DOP853(), 5.0, rtol=1e-10
+    )
     assert sol.R.dtype == jnp.float32
     assert np.linalg.norm(np.asarray(sol.R[-1], float) - np.asarray(ref.R[-1])) < 1e-4
 
@@ -253,8 +271,9 @@ def test_diagonal_inertia_takes_the_elementwise_path_with_the_same_result():
     seen = []
 
     def final(inertia):
-        p = RigidBodyWithEffects(inertia, OMEGA_TOP, R0=lierk.so3.from_euler(0.0, TILT, 0.0),
-                                 effects=(Gravity([0.0, 0.0, 1.0], 1.0, 20.0),))
+        p = RigidBodyWithEffects(
+            inertia, OMEGA_TOP, R0=lierk.so3.from_euler(0.0, TILT, 0.0), effects=(Gravity([0.0, 0.0, 1.0], 1.0, 20.0),)
+        )
         seen.append(p.diagonal)
         sol = lierk.solve(p, lierk.DOP853(), 0.5, rtol=1e-10, atol=1e-10)
         return sol.R[-1], sol.y[-1]

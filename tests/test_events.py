@@ -13,13 +13,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import TEE, fd_jacobian
 from scipy.integrate import quad
 from scipy.optimize import brentq
+from test_tops import TOPS, _problem, quadrature
 
 import lierk
 import lierk.exact
-from helpers import TEE, fd_jacobian
-from test_tops import TOPS, _problem, quadrature
 
 CASE_A = np.array([1.0, 0.05, 0.0])  # the report's case a: flips every 23.63 s
 BODY = lierk.FreeRigidBody(TEE, CASE_A)
@@ -33,7 +33,9 @@ def exact_flip_times(omega0, t1, n_grid=4001):
     ts = np.linspace(0.0, t1, n_grid)
     m1 = np.asarray(jax.vmap(lambda t: _exact_m(omega0, t))(ts))[:, 0]
     k = np.nonzero(np.signbit(m1[1:]) != np.signbit(m1[:-1]))[0]
-    return np.array([brentq(lambda t: float(_exact_m(omega0, t)[0]), ts[i], ts[i + 1], xtol=1e-14, rtol=1e-15) for i in k])
+    return np.array(
+        [brentq(lambda t: float(_exact_m(omega0, t)[0]), ts[i], ts[i + 1], xtol=1e-14, rtol=1e-15) for i in k]
+    )
 
 
 @eqx.filter_jit
@@ -51,8 +53,11 @@ def _times(record):
 @pytest.mark.parametrize(
     "solver, kwargs, tol",
     # Measured: 9.1e-11 s, 9.6e-11 s, 2.6e-9 s.
-    [(lierk.DOP853(), dict(rtol=1e-10, max_steps=4000), 1e-9), (lierk.RKMK4(), dict(dt=0.01), 1e-9),
-     (lierk.DP54(), dict(rtol=1e-10, max_steps=4000), 1e-8)],
+    [
+        (lierk.DOP853(), dict(rtol=1e-10, max_steps=4000), 1e-9),
+        (lierk.RKMK4(), dict(dt=0.01), 1e-9),
+        (lierk.DP54(), dict(rtol=1e-10, max_steps=4000), 1e-8),
+    ],
     ids=["DOP853", "RKMK4", "DP54"],
 )
 def test_flip_times_match_the_exact_solution(solver, kwargs, tol):
@@ -102,8 +107,10 @@ def test_lagrange_top_tilt_extrema_match_the_quadrature(name):
     top, q = TOPS[name], quadrature(name)
     problem = _problem(top)
     axis = top["chi"] / np.linalg.norm(top["chi"])
-    events = (lierk.conditions.tilt_extremum(problem, axis, extremum="max"),
-              lierk.conditions.tilt_extremum(problem, axis, extremum="min"))
+    events = (
+        lierk.conditions.tilt_extremum(problem, axis, extremum="max"),
+        lierk.conditions.tilt_extremum(problem, axis, extremum="min"),
+    )
     sol = _solve(problem, lierk.DOP853(), top["t1"], events, rtol=1e-12, max_steps=8000)
     lows, highs = _times(sol.events[0]), _times(sol.events[1])
     k = np.arange(1, len(lows) + 1)
@@ -120,10 +127,24 @@ def test_lagrange_top_tilt_extrema_match_the_quadrature(name):
     # with u = u2 - w^2 the integrand is smooth.
     theta_c = 0.5 * (q.theta_min + q.theta_max)
     c3 = 2 * q.I1 * q.mgl
-    t_c = q.I1 * quad(lambda w: 2 / math.sqrt(c3 * (q.u2 - q.u1 - w * w) * (q.u3 - q.u2 + w * w)),
-                      0.0, math.sqrt(q.u2 - math.cos(theta_c)), epsabs=0.0, epsrel=1e-13)[0]
-    sol = _solve(problem, lierk.DOP853(), top["t1"], lierk.conditions.tilt(theta_c, axis, terminate=True), rtol=1e-12,
-                 max_steps=8000)
+    t_c = (
+        q.I1
+        * quad(
+            lambda w: 2 / math.sqrt(c3 * (q.u2 - q.u1 - w * w) * (q.u3 - q.u2 + w * w)),
+            0.0,
+            math.sqrt(q.u2 - math.cos(theta_c)),
+            epsabs=0.0,
+            epsrel=1e-13,
+        )[0]
+    )
+    sol = _solve(
+        problem,
+        lierk.DOP853(),
+        top["t1"],
+        lierk.conditions.tilt(theta_c, axis, terminate=True),
+        rtol=1e-12,
+        max_steps=8000,
+    )
     # Measured: 6.5e-12 s (Simo-Wong), 2e-13 s (DiffMan).
     assert float(sol.ts[-1]) == pytest.approx(t_c, abs=5e-11)
 
@@ -154,11 +175,13 @@ def test_event_time_gradient_matches_finite_differences_of_the_exact_flip():
     # Central differences of the exact first flip (4th order, h = 1e-4).
     fd = fd_jacobian(lambda w: exact_flip_times(w, 14.0)[0], CASE_A, h=1e-4)
     # (One program: compiled apart the three cost a third more.)
-    fwd, rev, ada = eqx.filter_jit(lambda w: (
-        jax.jacfwd(lambda w: _first_flip(w, dt=0.01))(w),
-        jax.grad(lambda w: _first_flip(w, dt=0.01))(w),
-        jax.jacfwd(lambda w: _first_flip(w, lierk.DOP853(), rtol=1e-10, adjoint=lierk.ForwardMode()))(w),
-    ))(w)
+    fwd, rev, ada = eqx.filter_jit(
+        lambda w: (
+            jax.jacfwd(lambda w: _first_flip(w, dt=0.01))(w),
+            jax.grad(lambda w: _first_flip(w, dt=0.01))(w),
+            jax.jacfwd(lambda w: _first_flip(w, lierk.DOP853(), rtol=1e-10, adjoint=lierk.ForwardMode()))(w),
+        )
+    )(w)
     # Measured: -9.09, -54.5, -121.6 s per rad/s, all three within 7e-10
     # (relative) of the differences.
     for g in (fwd, rev, ada):
@@ -175,9 +198,9 @@ def test_event_time_gradient_in_a_condition_parameter():
         return lierk.solve(body, lierk.RKMK4(), 5.0, dt=0.01, event=ev).ts[-1]
 
     # The derivative and the differences' values from one program.
-    g, values = eqx.filter_jit(lambda a: (jax.jacfwd(t_star)(a), jax.vmap(t_star)(a + jnp.asarray([0.0, 1e-5, -1e-5]))))(
-        jnp.asarray(0.3)
-    )
+    g, values = eqx.filter_jit(
+        lambda a: (jax.jacfwd(t_star)(a), jax.vmap(t_star)(a + jnp.asarray([0.0, 1e-5, -1e-5])))
+    )(jnp.asarray(0.3))
     fd = (values[1] - values[2]) / 2e-5
     assert 0.1 < float(values[0]) < 5.0
     np.testing.assert_allclose(g, fd, rtol=1e-8)  # measured 8e-12
@@ -211,7 +234,9 @@ def test_saved_rows_after_a_terminating_event_are_not_reached():
     # Chunks that fill the run: the last chunk's row is the t1 row.
     full = _solve(BODY, lierk.RKMK4(), 1.0, ev, saveat=lierk.SaveAt(steps=5, t1=True), dt=0.1)
     assert np.isnan(np.asarray(full.R[0])).all() and float(full.ts[-1]) == pytest.approx(0.33, abs=1e-15)
-    adaptive = _solve(BODY, lierk.DOP853(), 1.0, ev, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 1.0, 5), t1=True), rtol=1e-9)
+    adaptive = _solve(
+        BODY, lierk.DOP853(), 1.0, ev, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 1.0, 5), t1=True), rtol=1e-9
+    )
     assert np.isnan(np.asarray(adaptive.R[2:5])).all() and int(adaptive.n_saved) == 3
     steps = _solve(BODY, lierk.DOP853(), 1.0, ev, saveat=lierk.SaveAt(steps=True), rtol=1e-9, max_steps=64)
     assert float(steps.ts[int(steps.n_saved) - 1]) == pytest.approx(0.33, abs=1e-15)
@@ -223,8 +248,9 @@ def test_batch_members_stop_at_their_own_events():
 
     def run(w):
         body = BODY.with_omega0(w)
-        return lierk.solve(body, lierk.DOP853(), 20.0, rtol=1e-10, event=lierk.conditions.flip(body, terminate=True),
-                           throw=False)
+        return lierk.solve(
+            body, lierk.DOP853(), 20.0, rtol=1e-10, event=lierk.conditions.flip(body, terminate=True), throw=False
+        )
 
     batch = eqx.filter_jit(jax.vmap(run))(jnp.asarray(omegas))
     np.testing.assert_array_equal(batch.result, [lierk.RESULTS.event_occurred] * 2 + [lierk.RESULTS.successful])
@@ -342,8 +368,15 @@ def test_the_valid_rows_of_a_solve_cut_short_end_with_its_final_state():
         assert abs(ts[-1] - t_flip) < 1e-8 and float(sol.ts[-1]) == ts[-1]
         np.testing.assert_array_equal(R[-1], np.asarray(sol.R[-1]))
     # Cut short by max_steps (no event): the same layout.
-    sol = lierk.solve(BODY, lierk.DOP853(), 60.0, rtol=1e-10, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 60.0, 61), t1=True),
-                      max_steps=40, throw=False)
+    sol = lierk.solve(
+        BODY,
+        lierk.DOP853(),
+        60.0,
+        rtol=1e-10,
+        saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 60.0, 61), t1=True),
+        max_steps=40,
+        throw=False,
+    )
     ts, R, _ = sol.trajectory()
     assert int(sol.result) == lierk.RESULTS.max_steps_reached and np.isfinite(R).all() and np.all(np.diff(ts) >= 0)
     assert ts[-1] == float(sol.ts[-1]) < 60.0

@@ -19,13 +19,12 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
 import scipy.special as sp  # noqa: E402
+from helpers import fd_jacobian  # noqa: E402
 from scipy.integrate import quad, solve_ivp  # noqa: E402
 from scipy.optimize import brentq  # noqa: E402
 
 from lierk import _elliptic as E  # noqa: E402
-import lierk  # noqa: E402
 from lierk import exact, so3  # noqa: E402
-from helpers import fd_jacobian  # noqa: E402
 
 # Jitted once at module level: each compiles once per shape/dtype and is then
 # reused by every test (the unjitted graph takes seconds per eager call).
@@ -134,12 +133,20 @@ def test_ellipk_and_carlson():
     # Pi against adaptive quadrature of its integrand.
     phi = np.linspace(-4, 4, 9)
     for n, mm in ((-2.5, 0.7), (-0.3, 0.999), (0.4, 0.2)):
+
         def integrand(th):
             return 1 / ((1 - n * np.sin(th) ** 2) * np.sqrt(1 - mm * np.sin(th) ** 2))
 
         ref = [
-            quad(integrand, 0, p, points=[np.sign(p) * np.pi / 2] if abs(p) > 2 else None,
-                 epsabs=1e-15, epsrel=1e-15, limit=200)[0]
+            quad(
+                integrand,
+                0,
+                p,
+                points=[np.sign(p) * np.pi / 2] if abs(p) > 2 else None,
+                epsabs=1e-15,
+                epsrel=1e-15,
+                limit=200,
+            )[0]
             for p in phi
         ]
         assert np.abs(np.asarray(E.ellippi(n, phi, mm)) - ref).max() < 1e-13
@@ -245,8 +252,10 @@ def taylor_reference(moments, m0, ts, h, attitude=True, order=30, digits=34):
             for k in range(order):
                 wr = [wi[::-1] for wi in w]
                 for v in series:
-                    c = [sum(map(mul, v[(i + 1) % 3], wr[(i + 2) % 3])) - sum(map(mul, v[(i + 2) % 3], wr[(i + 1) % 3]))
-                         for i in range(3)]
+                    c = [
+                        sum(map(mul, v[(i + 1) % 3], wr[(i + 2) % 3])) - sum(map(mul, v[(i + 2) % 3], wr[(i + 1) % 3]))
+                        for i in range(3)
+                    ]
                     for i in range(3):
                         v[i].append(c[i] / (k + 1))
                 for i in range(3):
@@ -766,8 +775,9 @@ def _closest_axis_reversals(inertia, omega0, horizon):
     def euler(t, m):
         return np.cross(m, m / I)
 
-    sol = solve_ivp(euler, (0, horizon), m0, method="DOP853", rtol=1e-12, atol=1e-14 * np.linalg.norm(m0),
-                    dense_output=True)
+    sol = solve_ivp(
+        euler, (0, horizon), m0, method="DOP853", rtol=1e-12, atol=1e-14 * np.linalg.norm(m0), dense_output=True
+    )
     grid = np.linspace(0, horizon, 40001)
     m = sol.sol(grid)
     closest = np.argmax(np.abs(m), axis=0)

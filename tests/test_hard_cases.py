@@ -68,7 +68,9 @@ def test_separatrix_starts(solver, kw, bound):
         sol = run(jnp.asarray(w))
         t = np.asarray(sol.ts)
         err = np.linalg.norm(np.asarray(sol.R) - exact_R(TEE, w, t), axis=(-2, -1)).max()
-        dL = rel_drift(np.concatenate([[float(p.invariants(p.R0, p.y0)["|L|"])], np.asarray(sol.invariants(p)["|L|"])])).max()
+        dL = rel_drift(
+            np.concatenate([[float(p.invariants(p.R0, p.y0)["|L|"])], np.asarray(sol.invariants(p)["|L|"])])
+        ).max()
         orth = float(np.asarray(sol.orthogonality_error).max())
         print(f"{solver.name} {w}: err {err:.2e}, |m| drift {dL:.2e}, orth {orth:.2e}")
         assert err < bound
@@ -146,7 +148,9 @@ def test_nearly_symmetric_inertia():
         err = np.linalg.norm(np.asarray(sol.R[-1]) - R_ex)
         dE = abs(float(sol.invariants(p)["energy"][-1]) / E0 - 1)
         orth = float(sol.orthogonality_error[-1])
-        print(f"{solver.name}: err {err:.2e}, energy drift {dE:.2e}, orth {orth:.2e}, steps {int(sol.stats['num_steps'])}")
+        print(
+            f"{solver.name}: err {err:.2e}, energy drift {dE:.2e}, orth {orth:.2e}, steps {int(sol.stats['num_steps'])}"
+        )
         assert err < bound
         assert dE < 3e-9
         assert orth < 1e-12
@@ -162,7 +166,9 @@ def test_fast_spin_fixed_steps_stay_on_so3(solver):
     a finite rotation.  The momentum-state default integrates Euler's
     equations far outside any explicit method's stability region, and must
     say so rather than return a number."""
-    sol = lierk.solve(lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20), throw=False)
+    sol = lierk.solve(
+        lierk.SpatialFreeRigidBody(TEE, FAST), solver, 0.2, dt=1e-3, saveat=lierk.SaveAt(steps=20), throw=False
+    )
     # A splitting composes exact flows (any step is right); the Lie-group
     # Runge-Kutta methods lose the energy at 10 rad per step and must say so.
     splitting = isinstance(solver, lierk.AbstractSplitting)
@@ -191,7 +197,9 @@ def test_fast_spin_adaptive_chooses_small_steps(solver):
     err = np.linalg.norm(np.asarray(sol.R[-1]) - exact_R(TEE, FAST, T))
     n_acc = int(sol.stats["num_accepted_steps"])
     mean_angle = 1e4 * T / n_acc
-    print(f"{solver.name}: err {err:.2e}, accepted {n_acc}, rejected {int(sol.stats['num_rejected_steps'])}, mean |omega| h {mean_angle:.3f} rad")
+    print(
+        f"{solver.name}: err {err:.2e}, accepted {n_acc}, rejected {int(sol.stats['num_rejected_steps'])}, mean |omega| h {mean_angle:.3f} rad"
+    )
     # Measured: RKF45 8.2e-5 (561 steps, mean |omega| h 0.18 rad), DP54 2.8e-5
     # (507, 0.20 rad), DOP853 5.6e-6 (102, 0.98 rad).  The error is that of a
     # 100 rad rotation at rtol 1e-8 (time-rescaling: the same as 100 s at 1 rad/s).
@@ -263,7 +271,9 @@ def test_float32_floors(solver, kw):
     gap = np.linalg.norm(R32 - np.asarray(sol64.R[-1]))
     err = np.linalg.norm(R32 - exact_R(TEE, OMEGA_GENERIC, T))
     orth = float(so3.orthogonality_error(R32))
-    print(f"{solver.name} float32: gap to float64 {gap:.2e}, error vs exact {err:.2e}, orth {orth:.2e}, result {int(sol32.result)}")
+    print(
+        f"{solver.name} float32: gap to float64 {gap:.2e}, error vs exact {err:.2e}, orth {orth:.2e}, result {int(sol32.result)}"
+    )
     # Measured gaps: ExplicitEuler 6.1e-6, LieEuler 1.1e-6, NaiveLieRK4 5.4e-7,
     # RKMK4 7.3e-7, CF4 2.6e-6, RKMK(RK4) 9.2e-7, RKF45 1.0e-6, DP54 7.8e-6,
     # DOP853 1.7e-5; orthogonality <= 1.1e-7 (ExplicitEuler: 0.17).  Error vs
@@ -299,7 +309,9 @@ def test_gradient_across_flip():
         f = jax.jit(f)
         J = np.asarray(jax.jit(jax.jacfwd(f))(w0))
         eps = 1e-6
-        J_fd = np.stack([(np.asarray(f(w0 + eps * e)) - np.asarray(f(w0 - eps * e))) / (2 * eps) for e in jnp.eye(3)], -1)
+        J_fd = np.stack(
+            [(np.asarray(f(w0 + eps * e)) - np.asarray(f(w0 - eps * e))) / (2 * eps) for e in jnp.eye(3)], -1
+        )
         fd_gap = np.abs(J - J_fd).max() / scale
         ex_gap = np.abs(J - J_exact).max() / scale
         print(f"T = {T:.3f} s, |J| = {scale:.2e}: vs central differences {fd_gap:.2e}, vs exact {ex_gap:.2e}")

@@ -8,13 +8,12 @@ import math
 import jax
 import numpy as np
 import pytest
+from helpers import TEE
 from scipy.spatial.transform import Rotation
 
 import lierk
-from lierk import inertia, so3
 import lierk as body  # angular_momentum, kinetic_energy, body_angular_velocity
-
-from helpers import TEE
+from lierk import inertia, so3
 
 
 def test_tee_handle_reproduces_the_report_to_8_digits():
@@ -54,7 +53,9 @@ def test_sphere_cylinder_box_textbook():
         np.testing.assert_allclose(inertia.solid_cylinder(m, r, l, axis), np.diag(d), rtol=1e-15)
     m, a, b, c = 5.0, 0.2, 0.4, 0.9
     np.testing.assert_allclose(
-        inertia.box(m, a, b, c), np.diag([m * (b * b + c * c), m * (a * a + c * c), m * (a * a + b * b)]) / 12, rtol=1e-15
+        inertia.box(m, a, b, c),
+        np.diag([m * (b * b + c * c), m * (a * a + c * c), m * (a * a + b * b)]) / 12,
+        rtol=1e-15,
     )
 
 

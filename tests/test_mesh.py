@@ -23,7 +23,13 @@ def cylinder_mesh(radius, length, n):
     """A closed prism with n sides inscribed in the cylinder (axis z)."""
     phi = 2 * np.pi * np.arange(n) / n
     ring = np.stack([radius * np.cos(phi), radius * np.sin(phi)], 1)
-    v = np.concatenate([np.c_[ring, np.full(n, -length / 2)], np.c_[ring, np.full(n, length / 2)], [[0, 0, -length / 2], [0, 0, length / 2]]])
+    v = np.concatenate(
+        [
+            np.c_[ring, np.full(n, -length / 2)],
+            np.c_[ring, np.full(n, length / 2)],
+            [[0, 0, -length / 2], [0, 0, length / 2]],
+        ]
+    )
     f = []
     for i in range(n):
         j = (i + 1) % n
@@ -38,14 +44,19 @@ def test_box_is_exact_and_moves_and_turns_with_the_mesh():
     p = lierk.inertia.from_mesh((v, f), density=rho)
     np.testing.assert_allclose(p.mass, mass, rtol=1e-14)
     np.testing.assert_allclose(p.inertia, np.asarray(lierk.inertia.box(mass, *dims)), rtol=1e-13, atol=1e-18)
-    np.testing.assert_allclose(p.principal_moments, np.sort(np.diag(np.asarray(lierk.inertia.box(mass, *dims)))), rtol=1e-13)
+    np.testing.assert_allclose(
+        p.principal_moments, np.sort(np.diag(np.asarray(lierk.inertia.box(mass, *dims)))), rtol=1e-13
+    )
     # Turned by Q and moved by c: centre c, inertia Q I Q^T about it.
     Q, c = Rotation.from_rotvec([0.3, -0.7, 1.1]).as_matrix(), np.array([5.0, -3.0, 20.0])
     p2 = lierk.inertia.from_mesh((v @ Q.T + c, f), density=rho)
     np.testing.assert_allclose(p2.center_of_mass, c, atol=1e-12)
     np.testing.assert_allclose(p2.inertia, Q @ p.inertia @ Q.T, rtol=1e-9, atol=1e-12 * np.max(p.inertia))
-    np.testing.assert_allclose(p2.principal_axes @ np.diag(p2.principal_moments) @ p2.principal_axes.T, p2.inertia,
-                               atol=1e-12 * np.max(p.inertia))
+    np.testing.assert_allclose(
+        p2.principal_axes @ np.diag(p2.principal_moments) @ p2.principal_axes.T,
+        p2.inertia,
+        atol=1e-12 * np.max(p.inertia),
+    )
     assert np.linalg.det(p2.principal_axes) > 0
 
 
@@ -74,7 +85,13 @@ def write_stl(path, triangles, binary):
     else:
         lines = ["solid test"]
         for t in triangles:
-            lines += ["facet normal 0 0 0", "outer loop", *[f"vertex {x:.9e} {y:.9e} {z:.9e}" for x, y, z in t], "endloop", "endfacet"]
+            lines += [
+                "facet normal 0 0 0",
+                "outer loop",
+                *[f"vertex {x:.9e} {y:.9e} {z:.9e}" for x, y, z in t],
+                "endloop",
+                "endfacet",
+            ]
         path.write_text("\n".join(lines + ["endsolid test"]) + "\n")
 
 
@@ -83,7 +100,9 @@ def test_files_read_back_to_the_same_inertia(tmp_path, kind):
     v, f = box_mesh(300.0, 200.0, 100.0)  # millimetres
     if kind == "obj":
         path = tmp_path / "box.obj"
-        path.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f))
+        path.write_text(
+            "".join(f"v {x} {y} {z}\n" for x, y, z in v) + "".join(f"f {a + 1} {b + 1} {c + 1}\n" for a, b, c in f)
+        )
     else:
         path = tmp_path / "box.stl"
         write_stl(path, v[f], binary=kind == "binary-stl")

@@ -6,16 +6,21 @@ import numpy as np
 import pytest
 
 import lierk
-from lierk.app import scene as S
 from lierk import so3
+from lierk.app import scene as S
 from lierk.app.omega_sweep import omega_grid, open_sweep_store, sweep_method, sweep_omega0
 
 TEE = [9.82271303e-05, 7.22671030e-05, 1.57865031e-04]
 
 
 def _scene(**run):
-    return S.from_dict({"body": {"kind": "tensor", "inertia": TEE}, "initial": {"omega": [1.0, 0.05, 0.3]},
-                        "run": {"solver": "RKMK4", "t1": 0.5, "dt": 0.05, **run}})
+    return S.from_dict(
+        {
+            "body": {"kind": "tensor", "inertia": TEE},
+            "initial": {"omega": [1.0, 0.05, 0.3]},
+            "run": {"solver": "RKMK4", "t1": 0.5, "dt": 0.05, **run},
+        }
+    )
 
 
 def test_sweep_matches_a_python_loop_of_sensitivities():
@@ -30,7 +35,9 @@ def test_sweep_matches_a_python_loop_of_sensitivities():
             w = res.grid[i, j]
             np.testing.assert_allclose(w, [1.0, axes[1][i], axes[2][j]])
             s = lierk.sensitivity(scene.problem.with_omega0(w), scene.solver, 0.5, dt=0.05, method="variational")
-            np.testing.assert_allclose(res.values["sensitivity"][i, j], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10)
+            np.testing.assert_allclose(
+                res.values["sensitivity"][i, j], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10
+            )
             np.testing.assert_allclose(res.values["angle"][i, j], np.linalg.norm(np.asarray(so3.log(s.R))), rtol=1e-10)
             tau = float(lierk.exact.flip_interval(scene.problem.inertia, w))
             assert res.values["flip_interval"][i, j] == pytest.approx(tau, rel=1e-12) or not np.isfinite(tau)
@@ -47,7 +54,9 @@ def test_a_splitting_sweep_takes_the_derivative():
         # (Without the estimate's finer solve: the Jacobian is the same, and
         # the reference compiles in half the time.)
         s = lierk.sensitivity(scene.problem.with_omega0(res.grid[i]), scene.solver, 0.5, dt=0.05, estimate_error=False)
-        np.testing.assert_allclose(res.values["sensitivity"][i], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10)
+        np.testing.assert_allclose(
+            res.values["sensitivity"][i], np.sqrt(np.sum(np.asarray(s.jacobian_R) ** 2)), rtol=1e-10
+        )
 
 
 def test_a_stored_sweep_resumes_to_the_same_numbers(tmp_path):
@@ -74,8 +83,13 @@ def test_bad_sweeps_are_refused():
         sweep_omega0(scene, [[1.0, 1.1], [0.0, 0.1], [0.2, 0.3]])
     with pytest.raises(ValueError, match="omega0 is zero"):
         omega_grid(np.zeros(3))
-    target = S.from_dict({"body": {"kind": "tensor", "inertia": TEE}, "initial": {"omega": [1.0, 0.05, 0.3]},
-                          "run": {"solver": "RKMK4", "t1": 0.5, "target_error": 1e-6}})
+    target = S.from_dict(
+        {
+            "body": {"kind": "tensor", "inertia": TEE},
+            "initial": {"omega": [1.0, 0.05, 0.3]},
+            "run": {"solver": "RKMK4", "t1": 0.5, "target_error": 1e-6},
+        }
+    )
     with pytest.raises(ValueError, match="target_error chooses a setting"):
         sweep_omega0(target, omega_grid([1.0, 0.05, 0.3], span=0.1, n=2))
 
@@ -100,8 +114,12 @@ def test_summary_gives_the_ranges_lierk_sweep_prints():
         "  flip interval: 7.5 .. 12 s",
     ]
     # No failures and no flip anywhere (or a body with effects): those lines go.
-    calm = OmegaSweep(axes, {**values, "flip_interval": np.full((2, 2), np.inf)}, np.zeros((2, 2), bool), 0.5, "variational")
+    calm = OmegaSweep(
+        axes, {**values, "flip_interval": np.full((2, 2), np.inf)}, np.zeros((2, 2), bool), 0.5, "variational"
+    )
     assert [line.split(":")[0] for line in calm.summary().splitlines()] == [
-        "  ||dR(T)/d omega0|| (variational equations)", "  finite-time Lyapunov exponent"]
+        "  ||dR(T)/d omega0|| (variational equations)",
+        "  finite-time Lyapunov exponent",
+    ]
     no_flip = {k: v for k, v in values.items() if k != "flip_interval"}
     assert len(OmegaSweep(axes, no_flip, failed, 0.5).summary().splitlines()) == 3

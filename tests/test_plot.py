@@ -4,17 +4,14 @@ files they write decode with the documented sizes."""
 import matplotlib.image
 import numpy as np
 import pytest
+from helpers import OMEGA_GENERIC, TEE
 from PIL import Image
 
 import lierk
-from lierk import so3
+from lierk import Damping, RigidBodyWithEffects, so3
 from lierk.app import plot
-from lierk import RigidBodyWithEffects
-from lierk import Damping
 from lierk.app.diagnostics import diagnostics
 from lierk.app.omega_sweep import OmegaSweep
-
-from helpers import OMEGA_GENERIC, TEE
 
 
 @pytest.fixture(scope="module")
@@ -66,8 +63,9 @@ def test_no_label_of_a_solves_figure_is_clipped(flip, name):
     else:
         # A heavy top: energy conserved, |L| not, so two panels.
         top = RigidBodyWithEffects([5.0, 5.0, 1.0], [0.3, 0.0, 5.0], effects=(lierk.Gravity([0.0, 0.0, 0.5], 1.0),))
-        fig = plot.invariants(lierk.solve(top, lierk.RKMK4(), 1.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=True)),
-                              top, title)
+        fig = plot.invariants(
+            lierk.solve(top, lierk.RKMK4(), 1.0, dt=0.01, saveat=lierk.SaveAt(t0=True, steps=True)), top, title
+        )
         assert len(fig.axes) == 2
     renderer = FigureCanvasAgg(fig).get_renderer()
     fig.draw(renderer)
@@ -77,7 +75,11 @@ def test_no_label_of_a_solves_figure_is_clipped(flip, name):
     drawn = fig.get_tightbbox(renderer)
     width, height = fig.get_size_inches()
     tol = 0.01
-    assert drawn.x0 >= -tol and drawn.y0 >= -tol and drawn.x1 <= width + tol and drawn.y1 <= height + tol, (drawn, width, height)
+    assert drawn.x0 >= -tol and drawn.y0 >= -tol and drawn.x1 <= width + tol and drawn.y1 <= height + tol, (
+        drawn,
+        width,
+        height,
+    )
 
 
 @pytest.mark.parametrize("degrees", [False, True])
@@ -165,7 +167,9 @@ def test_animation_has_the_requested_frames_and_size(flip, tmp_path):
     # The body turns by ~3 rad in 3 s: the picture changes (measured: 4.8% of
     # the pixels), and not only the time label: at rest, 0.013% change.
     assert _changed(first, last) > 0.03
-    rest = lierk.solve(lierk.FreeRigidBody(TEE, np.zeros(3)), lierk.RKMK4(), 3.0, dt=0.5, saveat=lierk.SaveAt(t0=True, steps=True))
+    rest = lierk.solve(
+        lierk.FreeRigidBody(TEE, np.zeros(3)), lierk.RKMK4(), 3.0, dt=0.5, saveat=lierk.SaveAt(t0=True, steps=True)
+    )
     path = plot.animate(rest, lierk.inertia.tee_handle_parts(), tmp_path / "rest.gif", L=problem.L, frames=5, fps=10)
     with Image.open(path) as im:
         im.seek(0)
@@ -185,8 +189,17 @@ def test_blitted_frames_are_the_pixels_of_full_draws(flip, parts):
     problem, sol = flip
     parts = lierk.inertia.tee_handle_parts() if parts == "tee" else None
     ts, R, _ = sol.trajectory()
-    make = lambda: plot._animation(ts, R, parts, problem.L, frames=4, title="t", inertia=None, origin=None,  # noqa: E731
-                                   trail=True)
+    make = lambda: plot._animation(
+        ts,
+        R,
+        parts,
+        problem.L,
+        frames=4,
+        title="t",
+        inertia=None,
+        origin=None,  # noqa: E731
+        trail=True,
+    )
     blitted = plot._frames(make())
     full = make()
     canvas = FigureCanvasAgg(full.fig)
@@ -232,7 +245,11 @@ def test_demo_writes_one_grid_per_case_and_the_flip_interval(tmp_path, capsys):
 def test_top_angles_are_precession_nutation_spin(flip):
     _, sol = flip
     fig = plot.euler_angles(sol, "t", convention="zxz")
-    assert [ax.get_ylabel().split(" [")[0] for ax in fig.axes] == [r"precession $\phi$", r"nutation $\theta$", r"spin $\psi$"]
+    assert [ax.get_ylabel().split(" [")[0] for ax in fig.axes] == [
+        r"precession $\phi$",
+        r"nutation $\theta$",
+        r"spin $\psi$",
+    ]
     angles = np.stack([ax.get_lines()[0].get_ydata() for ax in fig.axes], axis=-1)
     np.testing.assert_allclose(so3.from_euler(angles[:, 0], angles[:, 1], angles[:, 2], "zxz"), sol.R, atol=1e-12)
 

@@ -80,8 +80,13 @@ def test_splittings_refuse_a_problem_that_is_not_a_rigid_body():
 def test_accuracy_uses_the_closed_form_for_the_reports_spatial_body():
     """It asked for `effects == ()`, which the spatial body did not have, and
     paid for a numerical reference (DOP853 checked by DP54)."""
-    scene = lierk.app.scene.from_dict({"body": {"kind": "tensor", "inertia": TEE.diagonal().tolist()}, "initial": {"omega": W.tolist()},
-                                   "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1}})
+    scene = lierk.app.scene.from_dict(
+        {
+            "body": {"kind": "tensor", "inertia": TEE.diagonal().tolist()},
+            "initial": {"omega": W.tolist()},
+            "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1},
+        }
+    )
     spatial = dataclasses.replace(scene, problem=lierk.SpatialFreeRigidBody(TEE, W))
     report = lierk.app.accuracy.work_precision(spatial, ["RKMK4"], {"RKMK4": [0.05]}, n_times=3, repeats=1)
     assert report.reference.startswith("lierk.exact") and report.check is None
@@ -95,9 +100,12 @@ def test_restart_checks_the_attitude_as_the_constructor_does():
     body = lierk.FreeRigidBody(TEE, W)
     R = np.asarray(lierk.so3.exp(jnp.array([0.2, -0.4, 0.7])))
     m = np.asarray(body.y0)
-    bad = {"twice": (2 * R, "rotation matrix"), "reflected": (-R, "rotation matrix"),
-           "trajectory": (np.stack([R] * 5), r"shape \(3, 3\), got shape \(5, 3, 3\)"),
-           "NaN": (np.where(np.eye(3) > 0, np.nan, R), "NaN")}
+    bad = {
+        "twice": (2 * R, "rotation matrix"),
+        "reflected": (-R, "rotation matrix"),
+        "trajectory": (np.stack([R] * 5), r"shape \(3, 3\), got shape \(5, 3, 3\)"),
+        "NaN": (np.where(np.eye(3) > 0, np.nan, R), "NaN"),
+    }
     for name, (R_bad, match) in bad.items():
         with pytest.raises(ValueError, match=match):
             lierk.FreeRigidBody(TEE, W, R0=R_bad)
@@ -108,8 +116,9 @@ def test_restart_checks_the_attitude_as_the_constructor_does():
     np.testing.assert_array_equal(np.asarray(restarted.y0), m)
     # Traced, it is checked inside the program, as a traced R0 is: a solve
     # from it ends with invalid_problem and NaN states.
-    run = jax.jit(lambda R: (lambda s: (s.result, s.R))(
-        lierk.solve(body.restart(R, m), lierk.RKMK4(), 0.1, dt=0.05, throw=False)))
+    run = jax.jit(
+        lambda R: (lambda s: (s.result, s.R))(lierk.solve(body.restart(R, m), lierk.RKMK4(), 0.1, dt=0.05, throw=False))
+    )
     code, R1 = run(R)
     assert int(code) == 0 and np.isfinite(np.asarray(R1)).all()
     code, R1 = run(2 * R)

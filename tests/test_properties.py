@@ -14,7 +14,6 @@ from __future__ import annotations
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
@@ -105,8 +104,15 @@ def test_bad_inertia_names_inertia(i, bad):
 )
 def test_bad_solve_values_name_their_key(key, bad):
     body = lierk.FreeRigidBody([1.0, 2.0, 2.5], [1.0, 0.1, 0.0])
-    kw = {"dt": dict(dt=bad), "rtol": dict(rtol=bad), "atol": dict(rtol=1e-6, atol=bad), "t1": dict(dt=0.1),
-          "t0": dict(dt=0.1, t0=bad), "target_error": dict(target_error=bad), "dt0": dict(rtol=1e-6, dt0=bad)}[key]
+    kw = {
+        "dt": dict(dt=bad),
+        "rtol": dict(rtol=bad),
+        "atol": dict(rtol=1e-6, atol=bad),
+        "t1": dict(dt=0.1),
+        "t0": dict(dt=0.1, t0=bad),
+        "target_error": dict(target_error=bad),
+        "dt0": dict(rtol=1e-6, dt0=bad),
+    }[key]
     solver = lierk.RKMK4() if "dt" in kw or "target_error" in kw else lierk.DP54()
     t1 = bad if key == "t1" else 1.0
     if key == "t0" and bad < 0 and math.isfinite(bad):

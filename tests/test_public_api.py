@@ -18,22 +18,35 @@ KNOWN_PRIVATE: set = set()
 
 
 def test_at_most_twelve_public_modules_sit_under_lierk():
-    public = sorted(p.stem if p.is_file() else p.name for p in ROOT.iterdir()
-                    if not p.name.startswith(("_", ".")) and (p.suffix == ".py" or (p / "__init__.py").exists()))
+    public = sorted(
+        p.stem if p.is_file() else p.name
+        for p in ROOT.iterdir()
+        if not p.name.startswith(("_", ".")) and (p.suffix == ".py" or (p / "__init__.py").exists())
+    )
     assert public == ["app", "checks", "conditions", "exact", "inertia", "so3", "tableaux"]
     assert len(public) <= 12
 
 
 def test_import_lierk_loads_neither_the_application_nor_matplotlib_nor_tqdm():
-    code = ("import sys, lierk; "
-            "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'tqdm') or m.startswith('lierk.app')))")
+    code = (
+        "import sys, lierk; "
+        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'tqdm') or m.startswith('lierk.app')))"
+    )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
 
 
 def test_the_base_classes_a_user_extends_are_exported():
-    for name in ("AbstractEffect", "AbstractProblem", "AbstractRigidBody", "AbstractSolver", "AbstractRKMK",
-                 "AbstractSplitting", "AbstractAdjoint", "AbstractStepController"):
+    for name in (
+        "AbstractEffect",
+        "AbstractProblem",
+        "AbstractRigidBody",
+        "AbstractSolver",
+        "AbstractRKMK",
+        "AbstractSplitting",
+        "AbstractAdjoint",
+        "AbstractStepController",
+    ):
         cls = getattr(lierk, name)
         assert isinstance(cls, type) and cls.__name__ == name
     assert issubclass(lierk.Gravity, lierk.AbstractEffect)
@@ -42,8 +55,19 @@ def test_the_base_classes_a_user_extends_are_exported():
     assert issubclass(lierk.DOP853, lierk.AbstractRKMK) and issubclass(lierk.AbstractRKMK, lierk.AbstractSolver)
 
 
-@pytest.mark.parametrize("old", ["lierk.fields", "lierk.effects", "lierk.body", "lierk.rigid_body",
-                                 "lierk.solve", "lierk.loops", "lierk.scene", "lierk.cli"])
+@pytest.mark.parametrize(
+    "old",
+    [
+        "lierk.fields",
+        "lierk.effects",
+        "lierk.body",
+        "lierk.rigid_body",
+        "lierk.solve",
+        "lierk.loops",
+        "lierk.scene",
+        "lierk.cli",
+    ],
+)
 def test_the_old_module_paths_are_gone(old):
     # `lierk.solve` is the function, not a module
     with pytest.raises(ModuleNotFoundError):
@@ -66,13 +90,17 @@ def _private_imports(path: pathlib.Path):
 
 
 def test_the_application_uses_only_the_public_api():
-    found = {(p.stem, m) for p in (ROOT / "app").glob("*.py")
-             for m in _private_imports(p) if m.startswith("_")}
+    found = {(p.stem, m) for p in (ROOT / "app").glob("*.py") for m in _private_imports(p) if m.startswith("_")}
     assert found <= KNOWN_PRIVATE, sorted(found - KNOWN_PRIVATE)
     # Nor does it read private names through the package.
-    reads = {(p.stem, m) for p in (ROOT / "app").glob("*.py")
-             for m in re.findall(r"\blierk\.(_\w+)", "\n".join(
-                 line for line in p.read_text().splitlines() if not line.lstrip().startswith("#")))}
+    reads = {
+        (p.stem, m)
+        for p in (ROOT / "app").glob("*.py")
+        for m in re.findall(
+            r"\blierk\.(_\w+)",
+            "\n".join(line for line in p.read_text().splitlines() if not line.lstrip().startswith("#")),
+        )
+    }
     assert not reads, sorted(reads)
 
 

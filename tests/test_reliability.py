@@ -29,13 +29,16 @@ def test_traced_tolerances_are_checked_under_jit():
         jax.block_until_ready(run(0.0, 0.0))
 
 
-@pytest.mark.parametrize("rtol, atol, message", [
-    (-1.0, 1e-8, "rtol must be >= 0 and finite"),
-    (float("nan"), 1e-8, "rtol must be >= 0 and finite"),
-    (1e-8, float("inf"), "atol must be >= 0 and finite"),
-    (-1.0, -1.0, "rtol must be >= 0 and finite"),
-    (0.0, 0.0, "rtol \\+ atol must be > 0"),
-])
+@pytest.mark.parametrize(
+    "rtol, atol, message",
+    [
+        (-1.0, 1e-8, "rtol must be >= 0 and finite"),
+        (float("nan"), 1e-8, "rtol must be >= 0 and finite"),
+        (1e-8, float("inf"), "atol must be >= 0 and finite"),
+        (-1.0, -1.0, "rtol must be >= 0 and finite"),
+        (0.0, 0.0, "rtol \\+ atol must be > 0"),
+    ],
+)
 def test_traced_tolerances_are_checked_together_and_the_first_failure_is_named(rtol, atol, message):
     # The three tolerance checks are one run-time check (one branched error):
     # each value that fails must still be named, the first in order.
@@ -164,7 +167,9 @@ def test_a_single_effect_need_not_be_a_tuple():
     a = lierk.RigidBodyWithEffects(TEE, OMEGA_GENERIC, effects=lierk.Damping(1e-6))
     b = lierk.RigidBodyWithEffects(TEE, OMEGA_GENERIC, effects=(lierk.Damping(1e-6),))
     assert len(a.effects) == 1
-    np.testing.assert_array_equal(lierk.solve(a, lierk.RKMK4(), 1.0, dt=0.1).R, lierk.solve(b, lierk.RKMK4(), 1.0, dt=0.1).R)
+    np.testing.assert_array_equal(
+        lierk.solve(a, lierk.RKMK4(), 1.0, dt=0.1).R, lierk.solve(b, lierk.RKMK4(), 1.0, dt=0.1).R
+    )
 
 
 def test_reverse_mode_gradient_does_not_depend_on_max_steps():
@@ -204,16 +209,18 @@ def test_under_resolved_run_is_reported_by_its_invariants():
     # Resolved, the same run is a success.
     assert int(lierk.solve(p, lierk.RKMK4(), 200.0, dt=0.1, throw=False).result) == 0
     # Under vmap each member gets its own code.
-    codes = jax.vmap(lambda s: lierk.solve(lierk.FreeRigidBody(TEE, s * w), lierk.RKMK4(), 2000.0, dt=2.0, throw=False).result)(
-        jnp.array([0.01, 1.0])
-    )
+    codes = jax.vmap(
+        lambda s: lierk.solve(lierk.FreeRigidBody(TEE, s * w), lierk.RKMK4(), 2000.0, dt=2.0, throw=False).result
+    )(jnp.array([0.01, 1.0]))
     assert list(np.asarray(codes)) == [0, lierk.RESULTS.invariant_drift]
 
 
 def test_stiff_needle_is_solved_to_its_tolerance():
     # RKF45 on I = (1e-6, 1, 1) at rtol 1e-6 once reached an error of 2.8 with success.
     I = np.array([1e-6, 1.0, 1.0])
-    sol = lierk.solve(lierk.FreeRigidBody(I, OMEGA_GENERIC), lierk.RKF45(), 10.0, rtol=1e-6, max_steps=100000, throw=False)
+    sol = lierk.solve(
+        lierk.FreeRigidBody(I, OMEGA_GENERIC), lierk.RKF45(), 10.0, rtol=1e-6, max_steps=100000, throw=False
+    )
     assert int(sol.result) == 0
     assert float(jnp.linalg.norm(sol.R[-1] - reference_R(np.diag(I), OMEGA_GENERIC, 10.0))) < 30 * 1e-6
 
@@ -242,7 +249,9 @@ def _fixed(dt=0.05, t1=1.0, R0=None, I=_TOP_I, effects=()):
 
 
 def _adaptive(ts):
-    return lierk.solve(lierk.FreeRigidBody(_TOP_I, _W), lierk.DOP853(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(ts=ts), throw=False)
+    return lierk.solve(
+        lierk.FreeRigidBody(_TOP_I, _W), lierk.DOP853(), 1.0, rtol=1e-8, saveat=lierk.SaveAt(ts=ts), throw=False
+    )
 
 
 _BAD_CASES = {
@@ -253,15 +262,24 @@ _BAD_CASES = {
     "save times past t1": (_adaptive, np.array([0.2, 0.5]), np.array([0.5, 2.0]), lierk.RESULTS.invalid_save_times),
     "R0 = 2 I": (lambda x: _fixed(R0=x), np.eye(3), 2 * np.eye(3), lierk.RESULTS.invalid_problem),
     "indefinite inertia": (lambda x: _fixed(I=x), _TOP_I, np.array([2.0, -3.0, 4.0]), lierk.RESULTS.invalid_problem),
-    "negative mass": (lambda x: _fixed(effects=lierk.Gravity([0.0, 0.0, 0.1], x)), 1.0, -1.0, lierk.RESULTS.invalid_problem),
+    "negative mass": (
+        lambda x: _fixed(effects=lierk.Gravity([0.0, 0.0, 0.1], x)),
+        1.0,
+        -1.0,
+        lierk.RESULTS.invalid_problem,
+    ),
     "negative damping": (lambda x: _fixed(effects=lierk.Damping(x)), 0.1, -0.1, lierk.RESULTS.invalid_problem),
     "negative spin inertia": (
-        lambda x: _fixed(effects=lierk.ReactionWheels(np.eye(3), x * jnp.ones(3), np.zeros(3))), 0.01, -0.01,
+        lambda x: _fixed(effects=lierk.ReactionWheels(np.eye(3), x * jnp.ones(3), np.zeros(3))),
+        0.01,
+        -0.01,
         lierk.RESULTS.invalid_problem,
     ),
     "unsorted torque times": (
         lambda x: _fixed(effects=lierk.TimedTorque(np.zeros((3, 3)), x)),
-        np.array([0.0, 0.5, 1.0]), np.array([0.0, 1.0, 0.5]), lierk.RESULTS.invalid_problem,
+        np.array([0.0, 0.5, 1.0]),
+        np.array([0.0, 1.0, 0.5]),
+        lierk.RESULTS.invalid_problem,
     ),
 }
 
@@ -276,7 +294,9 @@ def test_a_bad_traced_input_never_comes_back_as_success(case):
     assert int(ok_code) == 0 and np.isfinite(np.asarray(ok_R)).all()
     bad_code, bad_R = run(bad)
     assert int(bad_code) == code and np.isnan(np.asarray(bad_R)).all(), (case, int(bad_code))
-    codes, Rs = jax.jit(jax.vmap(lambda x: (lambda s: (s.result, s.R))(fn(x))))(jnp.stack([jnp.asarray(good), jnp.asarray(bad)]))
+    codes, Rs = jax.jit(jax.vmap(lambda x: (lambda s: (s.result, s.R))(fn(x))))(
+        jnp.stack([jnp.asarray(good), jnp.asarray(bad)])
+    )
     np.testing.assert_array_equal(np.asarray(codes), [0, code])
     np.testing.assert_allclose(np.asarray(Rs[0]), np.asarray(ok_R), rtol=0, atol=1e-14)
 
@@ -298,8 +318,11 @@ def test_throw_raises_a_bad_traced_input_by_its_name():
     with pytest.raises(Exception, match="dt must be > 0"):
         jax.block_until_ready(run(-0.05))
     with pytest.raises(Exception, match="R0 must be a rotation matrix"):
-        jax.block_until_ready(jax.jit(lambda R0: lierk.solve(lierk.FreeRigidBody(TEE, OMEGA_GENERIC, R0=R0), lierk.RKMK4(), 1.0,
-                                                              dt=0.05).R)(2 * jnp.eye(3)))
+        jax.block_until_ready(
+            jax.jit(
+                lambda R0: lierk.solve(lierk.FreeRigidBody(TEE, OMEGA_GENERIC, R0=R0), lierk.RKMK4(), 1.0, dt=0.05).R
+            )(2 * jnp.eye(3))
+        )
 
 
 def test_a_float32_refusal_says_how_to_get_float64():

@@ -15,9 +15,8 @@ import pytest
 from helpers import reference_R
 
 import lierk
+from lierk import Damping, Gravity, RigidBodyWithEffects
 from lierk.app import scene as S
-from lierk import RigidBodyWithEffects
-from lierk import Damping, Gravity
 
 EXAMPLES = pathlib.Path(__file__).resolve().parent.parent / "examples"
 TEE = np.diag([9.82271303e-05, 7.22671030e-05, 1.57865031e-04])
@@ -40,7 +39,9 @@ def test_tee_handle_examples(letter, omega0):
     sol = short(scene, 2.0).solve()
     assert sol.R.shape == (21, 3, 3)  # t = 0 and every 10th of 200 steps
     np.testing.assert_allclose(np.asarray(sol.ts)[[0, -1]], [0.0, 2.0])
-    assert np.abs(np.asarray(sol.R[-1]) - reference_R(TEE, omega0, 2.0)).max() < 1.5e-9  # RKMK4 h=0.01: measured 1.7e-11 (a) to 1.5e-10 (c)
+    assert (
+        np.abs(np.asarray(sol.R[-1]) - reference_R(TEE, omega0, 2.0)).max() < 1.5e-9
+    )  # RKMK4 h=0.01: measured 1.7e-11 (a) to 1.5e-10 (c)
 
 
 def test_sphere_example_turns_uniformly():
@@ -132,12 +133,22 @@ def test_attitude_forms_agree():
     for f in forms:
         R0 = S.from_dict(_tee(initial={"omega": [1.0, 0.0, 0.0], **f})).problem.R0
         np.testing.assert_allclose(R0, R, atol=1e-14)
-    np.testing.assert_array_equal(S.from_dict(_tee(initial={"omega": [1.0, 0, 0], "attitude": "identity"})).problem.R0, np.eye(3))
+    np.testing.assert_array_equal(
+        S.from_dict(_tee(initial={"omega": [1.0, 0, 0], "attitude": "identity"})).problem.R0, np.eye(3)
+    )
 
 
 def test_composite_rotated_part_and_tensor_gravity():
     # A box rotated by 90 degrees about z has its x and y edges swapped.
-    part = {"kind": "box", "mass": 2.0, "lx": 1.0, "ly": 2.0, "lz": 3.0, "euler": [np.pi / 2, 0.0, 0.0], "offset": [0.1, 0, 0]}
+    part = {
+        "kind": "box",
+        "mass": 2.0,
+        "lx": 1.0,
+        "ly": 2.0,
+        "lz": 3.0,
+        "euler": [np.pi / 2, 0.0, 0.0],
+        "offset": [0.1, 0, 0],
+    }
     sc = S.from_dict(_tee(body={"kind": "composite", "parts": [part]}))
     np.testing.assert_allclose(sc.problem.inertia, lierk.inertia.box(2.0, 2.0, 1.0, 3.0), atol=1e-14)
     np.testing.assert_allclose(sc.center_of_mass, [0.1, 0, 0])
@@ -184,15 +195,22 @@ BAD = [
     (("body", "parts", 0, "mass"), -1.0, r"body.parts\[0\].mass must be > 0, got -1.0"),
     (("body", "parts", 0, "radius"), 0.0, r"body.parts\[0\].radius must be > 0"),
     (("body", "parts", 0, "radius"), DELETE, r"body.parts\[0\]: missing required key 'radius'"),
-    (("body", "parts", 0, "matrix"), [[1, 0, 0], [0, 1, 0], [0, 0, -1]], r"body.parts\[0\].matrix: R0 must be a rotation"),
+    (
+        ("body", "parts", 0, "matrix"),
+        [[1, 0, 0], [0, 1, 0], [0, 0, -1]],
+        r"body.parts\[0\].matrix: R0 must be a rotation",
+    ),
     (("initial", "omega"), DELETE, "initial: missing required key 'omega'"),
     (("initial", "omega"), [1.0, 2.0], r"initial.omega must be a list of 3 numbers"),
     (("initial", "spin"), 1.0, "initial: unknown key 'spin'"),
     (("initial", "attitude"), "upright", "initial.attitude = 'upright' is not allowed; choose one of: 'identity'"),
     (("initial", "matrix"), [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "initial.matrix: R0 must be a rotation matrix"),
     (("initial", "quaternion"), [0, 0, 0, 0], "initial.quaternion must be a nonzero quaternion"),
-    (("effects", 0, "kind"), "magnetism",
-     r"effects\[0\].kind = 'magnetism' is not allowed; did you mean 'magnetic'\?; choose one of: 'gravity'"),
+    (
+        ("effects", 0, "kind"),
+        "magnetism",
+        r"effects\[0\].kind = 'magnetism' is not allowed; did you mean 'magnetic'\?; choose one of: 'gravity'",
+    ),
     (("effects", 0, "k"), 1.0, r"effects\[0\]: unknown key 'k'"),
     (("effects", 0, "c"), DELETE, r"effects\[0\]: missing required key 'c'"),
     (("effects", 0, "c"), -0.1, r"effects\[0\].c must be >= 0"),
@@ -230,7 +248,10 @@ def test_bad_run_combinations():
         S.from_dict(with_run({"solver": "DP54", "dt": 0.1, "t1": 1.0, "atol": 1e-6}))
     with pytest.raises(ValueError, match=r"effects\[0\].mass is required"):
         S.from_dict(
-            _tee(body={"kind": "tensor", "inertia": [1.0, 1.0, 1.0]}, effects=[{"kind": "gravity", "pivot": [0, 0, -1.0]}])
+            _tee(
+                body={"kind": "tensor", "inertia": [1.0, 1.0, 1.0]},
+                effects=[{"kind": "gravity", "pivot": [0, 0, -1.0]}],
+            )
         )
     with pytest.raises(ValueError, match="body.inertia: inertia must be positive definite"):
         S.from_dict(_tee(body={"kind": "tensor", "inertia": [1.0, -1.0, 1.0]}))
@@ -239,8 +260,11 @@ def test_bad_run_combinations():
 def test_a_name_too_long_for_the_outputs_files_is_refused_on_loading():
     """A 400-character name ran, and failed when its outputs were written
     (``OSError: File name too long``)."""
-    with pytest.raises(ValueError, match=r"name: the outputs are named after it \(x{20}\.\.\._components.png\), and 400 "
-                                         r"bytes is more than a file name may take \(240 bytes"):
+    with pytest.raises(
+        ValueError,
+        match=r"name: the outputs are named after it \(x{20}\.\.\._components.png\), and 400 "
+        r"bytes is more than a file name may take \(240 bytes",
+    ):
         S.from_dict(_tee(name="x" * 400))
     # Counted in bytes, as file systems count them (2 a letter here), after
     # the characters a file name leaves out.
@@ -371,35 +395,59 @@ def test_with_t1_is_checked_like_run_t1():
 @pytest.mark.parametrize(
     "changes, match",
     [
-        ({"body": {"kind": "box", "mass": 1e-300, "lx": 1e-5, "ly": 1e-5, "lz": 1e-5}},
-         "body: the inertia .* is singular or too small to invert"),
+        (
+            {"body": {"kind": "box", "mass": 1e-300, "lx": 1e-5, "ly": 1e-5, "lz": 1e-5}},
+            "body: the inertia .* is singular or too small to invert",
+        ),
         # (A subnormal inertia: NumPy keeps it, where XLA flushed it to zero and reported a NaN.)
-        ({"body": {"kind": "box", "mass": 1e-310, "lx": 1.0, "ly": 1.0, "lz": 1.0}},
-         "body: the inertia .* is singular or too small to invert"),
-        ({"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}, "initial": {"omega": [1e300, 0.0, 0.0]}},
-         "body: the initial momentum I omega overflows"),
-        ({"body": {"kind": "box", "mass": 1e300, "lx": 1e200, "ly": 1.0, "lz": 1.0}}, "the inertia is not finite|NaN or inf"),
-        ({"body": {"kind": "sphere", "mass": 1.0, "radius": 0.1}, "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e300]}]},
-         "body about the gravity pivot: the inertia is not finite"),
+        (
+            {"body": {"kind": "box", "mass": 1e-310, "lx": 1.0, "ly": 1.0, "lz": 1.0}},
+            "body: the inertia .* is singular or too small to invert",
+        ),
+        (
+            {"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}, "initial": {"omega": [1e300, 0.0, 0.0]}},
+            "body: the initial momentum I omega overflows",
+        ),
+        (
+            {"body": {"kind": "box", "mass": 1e300, "lx": 1e200, "ly": 1.0, "lz": 1.0}},
+            "the inertia is not finite|NaN or inf",
+        ),
+        (
+            {
+                "body": {"kind": "sphere", "mass": 1.0, "radius": 0.1},
+                "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e300]}],
+            },
+            "body about the gravity pivot: the inertia is not finite",
+        ),
         # |L| = 1e155 is finite, its square is not.  (1e300 kg m^2 loaded and
         # printed "|L|: nan"; its moments are refused now, below.)
-        ({"body": {"kind": "tensor", "inertia": [1e100, 1e100, 1e100]}, "initial": {"omega": [1e55, 0.0, 0.0]}},
-         r"^body: body.inertia = \[1.e\+100, 1.e\+100, 1.e\+100\] kg m\^2 with initial.omega = \[1.e\+55, 0.e\+00, "
-         r"0.e\+00\] rad/s: \|L\|\^2 = \|I omega\|\^2 = 1e\+310 overflows float64, whose normal numbers lie between "
-         r"2.2e-308 and 1.8e\+308"),
-        ({"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}},
-         r"^body: body.inertia = \[1.e\+300, 1.e\+300, 1.e\+300\] kg m\^2 with initial.omega = \[1. , 0.05, 0. \] "
-         r"rad/s: det\(I\), the product of the principal moments, = 1e\+900 overflows float64"),
+        (
+            {"body": {"kind": "tensor", "inertia": [1e100, 1e100, 1e100]}, "initial": {"omega": [1e55, 0.0, 0.0]}},
+            r"^body: body.inertia = \[1.e\+100, 1.e\+100, 1.e\+100\] kg m\^2 with initial.omega = \[1.e\+55, 0.e\+00, "
+            r"0.e\+00\] rad/s: \|L\|\^2 = \|I omega\|\^2 = 1e\+310 overflows float64, whose normal numbers lie between "
+            r"2.2e-308 and 1.8e\+308",
+        ),
+        (
+            {"body": {"kind": "tensor", "inertia": [1e300, 1e300, 1e300]}},
+            r"^body: body.inertia = \[1.e\+300, 1.e\+300, 1.e\+300\] kg m\^2 with initial.omega = \[1. , 0.05, 0. \] "
+            r"rad/s: det\(I\), the product of the principal moments, = 1e\+900 overflows float64",
+        ),
         # Was refused as "not positive definite" (the check's determinant underflowed).
-        ({"body": {"kind": "tensor", "inertia": [1e-300, 2e-300, 3e-300]}},
-         r"body.inertia = \[1.e-300, 2.e-300, 3.e-300\] .*: det\(I\), the product of the principal moments, = 6e-900 "
-         r"underflows float64"),
+        (
+            {"body": {"kind": "tensor", "inertia": [1e-300, 2e-300, 3e-300]}},
+            r"body.inertia = \[1.e-300, 2.e-300, 3.e-300\] .*: det\(I\), the product of the principal moments, = 6e-900 "
+            r"underflows float64",
+        ),
         ({"initial": {"omega": [1e155, 0.0, 0.0]}}, r"\|omega\|\^2 = 1e\+310 overflows float64"),
         # Was "the initial momentum I omega overflows", which it does not (1e196).
         ({"initial": {"omega": [1e200, 0.0, 0.0]}}, "the initial kinetic energy omega . I omega / 2 overflows"),
-        ({"body": {"kind": "sphere", "mass": 1.0, "radius": 0.1},
-          "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e150]}]},
-         r"^body about the gravity pivot: inertia = .* det\(I\), the product of the principal moments, = .* overflows"),
+        (
+            {
+                "body": {"kind": "sphere", "mass": 1.0, "radius": 0.1},
+                "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e150]}],
+            },
+            r"^body about the gravity pivot: inertia = .* det\(I\), the product of the principal moments, = .* overflows",
+        ),
     ],
 )
 def test_bodies_whose_state_overflows_are_rejected(changes, match):
@@ -413,7 +461,9 @@ def test_state_range_holds_for_extreme_bodies_that_fit_and_follows_the_precision
         np.testing.assert_array_equal(np.diagonal(np.asarray(scene.problem.inertia)), moments)
     # Moments of 1e150 were refused as "not positive definite" (the check's
     # determinant overflowed); they are too large, and now the message says why.
-    with pytest.raises(ValueError, match=r"det\(I\), the product of the principal moments, = 6e\+450 overflows float64"):
+    with pytest.raises(
+        ValueError, match=r"det\(I\), the product of the principal moments, = 6e\+450 overflows float64"
+    ):
         S.from_dict(_tee(body={"kind": "tensor", "inertia": [1e150, 2e150, 3e150]}))
     # At rest nothing is squared, but the moments must fit.
     S.from_dict(_tee(body={"kind": "tensor", "inertia": [1e100, 1e100, 1e100]}, initial={"omega": [0.0, 0.0, 0.0]}))
@@ -423,8 +473,11 @@ def test_state_range_holds_for_extreme_bodies_that_fit_and_follows_the_precision
     big = _tee(body={"kind": "tensor", "inertia": [1e10, 2e10, 2.5e10]}, initial={"omega": [1e10, 0.0, 0.0]})
     S.from_dict(big)
     with jax.enable_x64(False):
-        with pytest.raises(ValueError, match=r"\|L\|\^2 = \|I omega\|\^2 = 1e\+40 overflows float32, whose normal "
-                                             r"numbers lie between 1.2e-38 and 3.4e\+38"):
+        with pytest.raises(
+            ValueError,
+            match=r"\|L\|\^2 = \|I omega\|\^2 = 1e\+40 overflows float32, whose normal "
+            r"numbers lie between 1.2e-38 and 3.4e\+38",
+        ):
             S.from_dict(big)
 
 
@@ -438,7 +491,8 @@ def test_an_impossible_inertia_is_warned_about_once_by_its_key(effects):
         scene = S.from_dict(d)
     assert [str(w.message) for w in shown] == [
         "body.inertia [0.5, 0.6, 1.5] breaks the triangle inequality I_max <= I_a + I_b: no rigid body has these "
-        "principal moments; the equations are solved as given"]
+        "principal moments; the equations are solved as given"
+    ]
     # Re-validating the body's own inertia (lierk.exact, as the report does) is silent too.
     with warnings.catch_warnings():
         warnings.simplefilter("error")
@@ -462,12 +516,17 @@ def test_load_reports_bytes_that_are_not_utf8(tmp_path):
 
 PIECE_SCENES = {
     # 1037 steps: the last save interval (every 10) and the last step are short.
-    "fixed": {"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
-              "run": {"solver": "RKMK4", "dt": 0.01, "t1": 10.37, "save_every": 10}},
-    "adaptive, effects": {"body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0], "mass": 1.0},
-                          "initial": {"omega": [0.3, 1.0, 0.2]},
-                          "effects": [{"kind": "damping", "c": 0.01}],
-                          "run": {"solver": "DP54", "rtol": 1e-10, "t1": 3.0, "n_save": 23}},
+    "fixed": {
+        "body": {"kind": "tee_handle"},
+        "initial": {"omega": [1.0, 0.05, 0.3]},
+        "run": {"solver": "RKMK4", "dt": 0.01, "t1": 10.37, "save_every": 10},
+    },
+    "adaptive, effects": {
+        "body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0], "mass": 1.0},
+        "initial": {"omega": [0.3, 1.0, 0.2]},
+        "effects": [{"kind": "damping", "c": 0.01}],
+        "run": {"solver": "DP54", "rtol": 1e-10, "t1": 3.0, "n_save": 23},
+    },
 }
 
 
@@ -510,8 +569,9 @@ def test_pieces_report_a_failed_piece_by_its_interval():
     assert int(sol.result) == lierk.RESULTS.max_steps_reached
 
 
-@pytest.mark.parametrize("kwargs, match", [({"n_pieces": 0}, "n_pieces must be a positive int"),
-                                           ({"n_pieces": 2, "dt": 0.1}, "only throw=")])
+@pytest.mark.parametrize(
+    "kwargs, match", [({"n_pieces": 0}, "n_pieces must be a positive int"), ({"n_pieces": 2, "dt": 0.1}, "only throw=")]
+)
 def test_bad_pieces_are_rejected(kwargs, match):
     with pytest.raises(ValueError, match=match):
         S.from_dict(copy.deepcopy(PIECE_SCENES["fixed"])).solve(**kwargs)
@@ -525,22 +585,32 @@ def test_saved_count_and_bytes_match_a_solve():
 
 
 def test_euler_convention_and_the_single_precision_check():
-    free = S.from_dict({"body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]}, "initial": {"omega": [0.3, 1.0, 0.2]},
-                        "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1}})
+    free = S.from_dict(
+        {
+            "body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]},
+            "initial": {"omega": [0.3, 1.0, 0.2]},
+            "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.1},
+        }
+    )
     assert free.euler_convention == "zyx"
     with pytest.raises(ValueError, match=r"run.dt = 1e-40 is outside single precision's range"):
         dataclasses.replace(free, solve_kwargs={"dt": 1e-40}).check_single_precision()
     with pytest.raises(ValueError, match=r"^t1 = 1e\+39 is outside"):
         dataclasses.replace(free, t1=1e39, solve_kwargs={"dt": 1.0}).check_single_precision()
     dataclasses.replace(free, solve_kwargs={"dt": 1e-3}).check_single_precision()  # in range: no error
-    top = dataclasses.replace(free, problem=RigidBodyWithEffects([1.0, 2.0, 3.0], [0.3, 1.0, 0.2],
-                                                                 effects=(lierk.Gravity([0, 0, 0.1], 1.0),)))
+    top = dataclasses.replace(
+        free, problem=RigidBodyWithEffects([1.0, 2.0, 3.0], [0.3, 1.0, 0.2], effects=(lierk.Gravity([0, 0, 0.1], 1.0),))
+    )
     assert top.euler_convention == "zxz"
 
 
 def test_describe_run_and_file_stem():
-    d = {"name": "heavy top!", "body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]},
-         "initial": {"omega": [0.3, 1.0, 0.2]}, "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.01}}
+    d = {
+        "name": "heavy top!",
+        "body": {"kind": "tensor", "inertia": [1.0, 2.0, 3.0]},
+        "initial": {"omega": [0.3, 1.0, 0.2]},
+        "run": {"solver": "RKMK4", "t1": 1.0, "dt": 0.01},
+    }
     fixed = S.from_dict(d)
     assert fixed.describe_run() == "RKMK4, dt = 0.01 s" and fixed.file_stem == "heavy_top"
     adaptive = S.from_dict({**d, "name": "--", "run": {"solver": "dp54", "t1": 1.0, "rtol": 1e-8, "atol": 1e-10}})

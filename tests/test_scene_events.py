@@ -10,9 +10,9 @@ import tomllib
 
 import numpy as np
 import pytest
+from helpers import run_inprocess, write
 
 import lierk
-from helpers import run_inprocess, write
 from lierk.app import plot
 from lierk.app import scene as S
 
@@ -32,8 +32,12 @@ def _top(events, **run):
 
 
 def test_scene_events_are_solved_and_end_the_run():
-    scene = _top([{"kind": "tilt_extremum", "extremum": "max", "name": "lowest"},
-                  {"kind": "tilt", "angle": 0.4, "crossing": "up", "terminate": 2, "name": "leans"}])
+    scene = _top(
+        [
+            {"kind": "tilt_extremum", "extremum": "max", "name": "lowest"},
+            {"kind": "tilt", "angle": 0.4, "crossing": "up", "terminate": 2, "name": "leans"},
+        ]
+    )
     assert [name for name, _ in scene.events] == ["lowest", "leans"]
     sol = scene.solve()
     assert int(sol.result) == lierk.RESULTS.event_occurred
@@ -50,8 +54,13 @@ def test_scene_events_are_solved_and_end_the_run():
 
 def test_pieces_find_what_one_solve_finds():
     # The next smallest tilt (t = PERIOD) ends the run in the second of three pieces.
-    scene = _top([{"kind": "tilt_extremum", "extremum": "min", "terminate": True},
-                  {"kind": "tilt", "angle": 0.4}, {"kind": "energy", "threshold": 1e-12, "name": "drift"}])
+    scene = _top(
+        [
+            {"kind": "tilt_extremum", "extremum": "min", "terminate": True},
+            {"kind": "tilt", "angle": 0.4},
+            {"kind": "energy", "threshold": 1e-12, "name": "drift"},
+        ]
+    )
     one, pieces = scene.solve(), scene.solve(n_pieces=3)
     assert int(one.result) == int(pieces.result) == lierk.RESULTS.event_occurred
     assert float(one.ts[-1]) == pytest.approx(PERIOD, abs=1e-4)
@@ -73,8 +82,10 @@ def test_pieces_find_what_one_solve_finds():
         ({"kind": "tilt"}, ["events[0]", "angle"]),
         ({"kind": "tilt", "angle": 4.0}, ["events[0].angle", "[0, pi]"]),
         ({"kind": "tilt", "angle": 0.4, "axis": [0, 0, 0]}, ["events[0].axis", "non-zero"]),
-        ({"kind": "pointing", "axis": [1, 0, 0], "target": [0, 0, 1], "angle": 0.2, "crossing": "sideways"},
-         ["events[0].crossing", "'up'"]),
+        (
+            {"kind": "pointing", "axis": [1, 0, 0], "target": [0, 0, 1], "angle": 0.2, "crossing": "sideways"},
+            ["events[0].crossing", "'up'"],
+        ),
         ({"kind": "energy", "threshold": -1.0}, ["events[0].threshold", "> 0"]),
         ({"kind": "flip", "terminate": 0}, ["events[0].terminate", "positive integer"]),
         ({"kind": "flip", "colour": "red"}, ["events[0]", "unknown key 'colour'"]),
@@ -96,8 +107,10 @@ def test_events_with_target_error_are_found_at_the_chosen_setting():
     """A target_error scene chooses its setting without the events, then
     finds them by a solve at that setting: the same times as a dt run to
     the target's order, and a terminating event cuts the saved run there."""
-    events = [{"kind": "tilt_extremum", "extremum": "max", "name": "lowest"},
-              {"kind": "tilt", "angle": 0.4, "crossing": "up", "terminate": 2, "name": "leans"}]
+    events = [
+        {"kind": "tilt_extremum", "extremum": "max", "name": "lowest"},
+        {"kind": "tilt", "angle": 0.4, "crossing": "up", "terminate": 2, "name": "leans"},
+    ]
     d = copy.deepcopy(TOP)
     d["events"] = events
     d["run"] = {"solver": "DOP853", "t1": 1.0, "target_error": 1e-8, "n_save": 101}
@@ -141,4 +154,7 @@ def test_flip_marks_on_the_figures():
         marks = [ln for ln in ax.get_lines() if ln.get_linestyle() == "--"]
         assert [float(ln.get_xdata()[0]) for ln in marks] == [t_flip]
     fig = plot.euler_angles(sol, events={"flip": [t_flip], "other": [3.0]})
-    assert [ln.get_label() for ln in fig.axes[0].get_lines() if ln.get_label() in ("flip", "other")] == ["flip", "other"]
+    assert [ln.get_label() for ln in fig.axes[0].get_lines() if ln.get_label() in ("flip", "other")] == [
+        "flip",
+        "other",
+    ]

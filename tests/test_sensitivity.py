@@ -46,8 +46,9 @@ def test_an_inertia_entry_is_read_through_the_symmetric_tensor():
 
     J = {}
     for solver, dt in ((lierk.Strang(), 0.05), (lierk.RKMK4(), 0.01)):
-        J[solver.name] = np.asarray(lierk.sensitivity(body(I), solver, 2.0, dt=dt, wrt="inertia",
-                                                      estimate_error=False).jacobian_R)
+        J[solver.name] = np.asarray(
+            lierk.sensitivity(body(I), solver, 2.0, dt=dt, wrt="inertia", estimate_error=False).jacobian_R
+        )
         np.testing.assert_allclose(J[solver.name][..., 0, 1], J[solver.name][..., 1, 0], rtol=1e-12, atol=1e-14)
     scale = np.abs(J["RKMK4"]).max()
     assert np.abs(J["Strang"] - J["RKMK4"]).max() < 1e-4 * scale
@@ -80,9 +81,13 @@ def test_jacobian_matches_the_exact_flow(inertia, omega0, solver, options, tol):
     err = np.linalg.norm(np.asarray(s.jacobian_R) - J) / np.linalg.norm(J)
     assert err < tol
     # The algebra form is R^T dR, and R(t1) is the solve's own.
-    np.testing.assert_allclose(np.asarray(s.R), lierk.solve(lierk.FreeRigidBody(inertia, omega0), solver, 5.0, **options).R[-1])
     np.testing.assert_allclose(
-        np.asarray(s.jacobian), np.einsum("ji,jkl->ikl", np.asarray(s.R), J)[[2, 0, 1], [1, 2, 0]], atol=10 * tol * np.abs(J).max()
+        np.asarray(s.R), lierk.solve(lierk.FreeRigidBody(inertia, omega0), solver, 5.0, **options).R[-1]
+    )
+    np.testing.assert_allclose(
+        np.asarray(s.jacobian),
+        np.einsum("ji,jkl->ikl", np.asarray(s.R), J)[[2, 0, 1], [1, 2, 0]],
+        atol=10 * tol * np.abs(J).max(),
     )
     # Each form's error bar is its error, within the bounds the module promises.
     true = np.linalg.norm(np.asarray(s.jacobian_R) - J)
@@ -91,7 +96,9 @@ def test_jacobian_matches_the_exact_flow(inertia, omega0, solver, options, tol):
     J_alg = np.einsum("ji,jkl->ikl", np.asarray(R), J)[[2, 0, 1], [1, 2, 0]]
     true = np.linalg.norm(np.asarray(s.jacobian) - J_alg)
     assert true / 10 <= float(s.jacobian_error) <= 100 * true
-    J_m = np.asarray(lierk.FreeRigidBody(inertia, omega0).inertia) @ np.asarray(jax.jacfwd(lambda w: lierk.exact.free_rigid_body(inertia, w, 5.0)[1])(jnp.asarray(omega0)))
+    J_m = np.asarray(lierk.FreeRigidBody(inertia, omega0).inertia) @ np.asarray(
+        jax.jacfwd(lambda w: lierk.exact.free_rigid_body(inertia, w, 5.0)[1])(jnp.asarray(omega0))
+    )
     true = np.linalg.norm(np.asarray(s.jacobian_y) - J_m)
     assert true / 10 <= float(s.jacobian_y_error) <= 100 * true
 
@@ -110,7 +117,9 @@ def test_error_estimate_is_calibrated_on_a_near_axis_batch():
     whose error is above 1e-12, and never below 1/100 of it."""
     omegas = near_axis(np.diag(TEE), 24)
     body = lierk.FreeRigidBody(TEE, omegas[0])
-    J_exact = jax.vmap(lambda w: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(TEE, v, 10.0)[0])(w))(jnp.asarray(omegas))
+    J_exact = jax.vmap(lambda w: jax.jacfwd(lambda v: lierk.exact.free_rigid_body(TEE, v, 10.0)[0])(w))(
+        jnp.asarray(omegas)
+    )
     for solver, options in [(lierk.RKMK4(), dict(dt=0.02)), (lierk.DP54(), dict(rtol=1e-8, atol=1e-8))]:
         s = jax.vmap(lambda w: lierk.sensitivity(body.with_omega0(w), solver, 10.0, **options))(jnp.asarray(omegas))
         true = np.sqrt(np.sum((np.asarray(s.jacobian_R) - np.asarray(J_exact)) ** 2, axis=(1, 2, 3)))
@@ -146,15 +155,21 @@ def test_other_inputs_against_finite_differences():
     def R_of(problem):
         return np.asarray(lierk.solve(problem, lierk.RKMK4(), 2.0, dt=0.01).R[-1])
 
-    s = lierk.sensitivity(lierk.FreeRigidBody(BOX, w0), lierk.RKMK4(), 2.0, dt=0.01, wrt="inertia", estimate_error=False)
+    s = lierk.sensitivity(
+        lierk.FreeRigidBody(BOX, w0), lierk.RKMK4(), 2.0, dt=0.01, wrt="inertia", estimate_error=False
+    )
     dI = np.array([[0.1, 0.02, 0.0], [0.02, -0.05, 0.03], [0.0, 0.03, 0.07]])
     e = 1e-6
-    fd = (R_of(lierk.FreeRigidBody(np.diag(BOX) + e * dI, w0)) - R_of(lierk.FreeRigidBody(np.diag(BOX) - e * dI, w0))) / (2 * e)
+    fd = (
+        R_of(lierk.FreeRigidBody(np.diag(BOX) + e * dI, w0)) - R_of(lierk.FreeRigidBody(np.diag(BOX) - e * dI, w0))
+    ) / (2 * e)
     np.testing.assert_allclose(np.einsum("ijkl,kl->ij", np.asarray(s.jacobian_R), dI), fd, atol=1e-8)
 
     def top(mass):
         return lierk.RigidBodyWithEffects(
-            BOX, [0.0, 0.5, 3.0], lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
+            BOX,
+            [0.0, 0.5, 3.0],
+            lierk.so3.exp(jnp.array([0.3, 0.0, 0.0])),
             effects=(lierk.Gravity([0.0, 0.1, 0.5], mass, 9.81),),
         )
 
@@ -212,8 +227,11 @@ def _steady_spin_transition(moments, omega, T):
     return expm(A * T)[:, 3:] @ np.diag(moments)  # a change of omega0 moves m0 by I d omega0
 
 
-@pytest.mark.parametrize("moments, axis, rate, times", [(np.diag(TEE), 0, 1.0, (20.0, 40.0)), (BOX, 1, 1.5, (10.0, 20.0))],
-                         ids=["tee", "box"])
+@pytest.mark.parametrize(
+    "moments, axis, rate, times",
+    [(np.diag(TEE), 0, 1.0, (20.0, 40.0)), (BOX, 1, 1.5, (10.0, 20.0))],
+    ids=["tee", "box"],
+)
 def test_ftle_about_the_intermediate_axis_tends_to_the_linear_growth_rate(moments, axis, rate, times):
     """An exact spin about the intermediate axis: each Jacobian, and each
     error bar, against the exact linearisation; the FTLE is that of the
@@ -231,8 +249,11 @@ def test_ftle_about_the_intermediate_axis_tends_to_the_linear_growth_rate(moment
         phi = _steady_spin_transition(moments, omega, T)
         J, J_m = phi[:3], phi[3:]
         R = lierk.so3.exp(T * omega)
-        for got, want, bar in ((s.jacobian, J, s.jacobian_error), (s.jacobian_y, J_m, s.jacobian_y_error),
-                               (s.jacobian_R, np.einsum("ij,kjl->ilk", R, np.asarray(lierk.so3.hat(J.T))), s.jacobian_R_error)):
+        for got, want, bar in (
+            (s.jacobian, J, s.jacobian_error),
+            (s.jacobian_y, J_m, s.jacobian_y_error),
+            (s.jacobian_R, np.einsum("ij,kjl->ilk", R, np.asarray(lierk.so3.hat(J.T))), s.jacobian_R_error),
+        ):
             err = np.linalg.norm(np.asarray(got) - want)
             assert err < 1e-9 * np.linalg.norm(want) and err / 10 <= float(bar) <= 10 * err, (T, err, float(bar))
         state = np.vstack([rate * J, J_m / moments[:, None]])
@@ -255,8 +276,12 @@ def test_ftle_is_the_same_for_every_formulation_and_method():
     var = lierk.sensitivity(lierk.FreeRigidBody(BOX, w0), lierk.DOP853(), 8.0, method="variational", **options)
     for other in (spatial, var):
         np.testing.assert_allclose(float(other.ftle), float(ref.ftle), rtol=1e-7)
-    top = lierk.RigidBodyWithEffects([0.6, 0.8, 0.3], [1.0, -0.5, 10.0], lierk.so3.exp(jnp.asarray([0.3, 0.0, 0.0])),
-                                     effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),))
+    top = lierk.RigidBodyWithEffects(
+        [0.6, 0.8, 0.3],
+        [1.0, -0.5, 10.0],
+        lierk.so3.exp(jnp.asarray([0.3, 0.0, 0.0])),
+        effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),),
+    )
     fine = lierk.sensitivity(top, lierk.RKMK(lierk.tableaux.DOP853), 2.0, dt=0.002, estimate_error=False)
     adaptive = lierk.sensitivity(top, lierk.DOP853(), 2.0, method="variational", **options)
     np.testing.assert_allclose(float(adaptive.ftle), float(fine.ftle), rtol=1e-7)
@@ -322,12 +347,18 @@ def test_derivatives_about_a_steady_spin_resolve_the_nutation(solver):
     omega = jnp.asarray([w for _, w in STEADY_SPINS])
 
     def jac(I, w):
-        return jax.jacfwd(lambda v: lierk.solve(lierk.FreeRigidBody(I, v), solver, T, rtol=tol, atol=tol,
-                                                max_steps=20000).R[-1])(w)
+        return jax.jacfwd(
+            lambda v: lierk.solve(lierk.FreeRigidBody(I, v), solver, T, rtol=tol, atol=tol, max_steps=20000).R[-1]
+        )(w)
 
     J = np.asarray(jax.jit(jax.vmap(jac))(inertia, omega))
-    s = jax.jit(jax.vmap(lambda I, w: lierk.sensitivity(lierk.FreeRigidBody(I, w), solver, T, rtol=tol, atol=tol,
-                                                        max_steps=20000, throw=False)))(inertia, omega)
+    s = jax.jit(
+        jax.vmap(
+            lambda I, w: lierk.sensitivity(
+                lierk.FreeRigidBody(I, w), solver, T, rtol=tol, atol=tol, max_steps=20000, throw=False
+            )
+        )
+    )(inertia, omega)
     assert np.all(np.asarray(s.result) == 0)
     for k, (I, w) in enumerate(STEADY_SPINS):
         J_exact = exact_jacobian(np.diag(I), w, T)
@@ -367,7 +398,9 @@ def test_derivatives_at_rest_under_a_torque_resolve_its_modes():
 
     def sensitivity(case):
         chi = jnp.stack([jnp.zeros(()), jnp.zeros(()), case[0]])
-        top = lierk.RigidBodyWithEffects(moments, jnp.zeros(3), effects=(lierk.Gravity(chi, M, g), lierk.Damping(case[1])))
+        top = lierk.RigidBodyWithEffects(
+            moments, jnp.zeros(3), effects=(lierk.Gravity(chi, M, g), lierk.Damping(case[1]))
+        )
         return lierk.sensitivity(top, lierk.DOP853(), T, rtol=tol, atol=tol, max_steps=20000)
 
     s = jax.jit(jax.vmap(sensitivity))(jnp.asarray(cases))
@@ -392,7 +425,9 @@ def test_derivatives_at_rest_in_a_turning_field_resolve_its_turn():
     # (A nearly symmetric satellite at rest under the gravity gradient was
     # 2.7% off the same way; the same rate resolves it.)
     bodies = {
-        "bdot": lierk.RigidBodyWithEffects([1.0, 1.5, 2.0], np.zeros(3), effects=(lierk.MagneticTorque(field, bdot_gain=0.01),)),
+        "bdot": lierk.RigidBodyWithEffects(
+            [1.0, 1.5, 2.0], np.zeros(3), effects=(lierk.MagneticTorque(field, bdot_gain=0.01),)
+        ),
     }
     for name, body in bodies.items():
         s = lierk.sensitivity(body, lierk.DOP853(), T, rtol=tol, atol=tol, max_steps=20000)
@@ -428,8 +463,7 @@ def test_mode_frequency_counts_the_effects_modes():
     # Effects that do not act add nothing: a free body's nutation is unchanged.
     spin = lierk.RigidBodyWithEffects(I, [0.0, 0.0, 2.0], effects=(lierk.Damping(0.0),))
     free = lierk.FreeRigidBody(I, [0.0, 0.0, 2.0])
-    np.testing.assert_allclose(float(_mode_frequency(spin)),
-                               float(_mode_frequency(free)), rtol=1e-12)
+    np.testing.assert_allclose(float(_mode_frequency(spin)), float(_mode_frequency(free)), rtol=1e-12)
 
 
 def test_the_free_bodys_mode_frequency_is_sqrt_c2_and_the_nutation_at_a_steady_spin():
@@ -457,7 +491,9 @@ def test_the_free_bodys_mode_frequency_is_sqrt_c2_and_the_nutation_at_a_steady_s
     for k in range(3):
         i, j = [x for x in range(3) if x != k]
         nutation = 2.0 * np.sqrt(abs((moments[k] - moments[i]) * (moments[k] - moments[j])) / (moments[i] * moments[j]))
-        np.testing.assert_allclose(float(_mode_frequency(lierk.FreeRigidBody(moments, 2.0 * np.eye(3)[k]))), nutation, rtol=1e-13)
+        np.testing.assert_allclose(
+            float(_mode_frequency(lierk.FreeRigidBody(moments, 2.0 * np.eye(3)[k]))), nutation, rtol=1e-13
+        )
     assert float(_mode_frequency(lierk.FreeRigidBody([2.0, 2.0, 2.0], [0.3, -1.0, 7.0]))) == 0.0
 
 
@@ -473,24 +509,43 @@ def test_effects_linearisation_is_the_torques_derivative(which):
         effects = (lierk.Gravity([0.1, -0.2, 0.5], 1.0, 9.81),)
     else:
         field = lierk.dipole_field(0.0011, tilt=1.2)
-        effects = (lierk.GravityGradient(I, mean_motion=0.0011), lierk.MagneticTorque(field, dipole=[0.3, -0.1, 0.2]),
-                   lierk.Rotor([0.0, 0.5, 0.1]))
+        effects = (
+            lierk.GravityGradient(I, mean_motion=0.0011),
+            lierk.MagneticTorque(field, dipole=[0.3, -0.1, 0.2]),
+            lierk.Rotor([0.0, 0.5, 0.1]),
+        )
     R = np.asarray(lierk.so3.exp(np.array([0.4, -1.1, 0.7])))
     body = lierk.RigidBodyWithEffects(I, [0.3, -0.2, 0.9], R, effects=effects)
     t, m = 7.0, np.asarray(body.y0)
     IK_u, K_m, _ = eqx.filter_jit(lambda b: b._effects_linearisation(t, b.R0, b.y0))(body)
     field = jax.jit(lambda R, m: body.field(t, R, m)[1] - lierk.so3.cross(m, body.inertia_inv @ m))
     eps = 1e-6
-    du = np.stack([(np.asarray(field(R @ np.asarray(lierk.so3.exp(eps * e)), m))
-                    - np.asarray(field(R @ np.asarray(lierk.so3.exp(-eps * e)), m))) / (2 * eps) for e in np.eye(3)], -1)
-    dm = np.stack([(np.asarray(field(R, m + eps * e)) - np.asarray(field(R, m - eps * e))) / (2 * eps) for e in np.eye(3)], -1)
+    du = np.stack(
+        [
+            (
+                np.asarray(field(R @ np.asarray(lierk.so3.exp(eps * e)), m))
+                - np.asarray(field(R @ np.asarray(lierk.so3.exp(-eps * e)), m))
+            )
+            / (2 * eps)
+            for e in np.eye(3)
+        ],
+        -1,
+    )
+    dm = np.stack(
+        [(np.asarray(field(R, m + eps * e)) - np.asarray(field(R, m - eps * e))) / (2 * eps) for e in np.eye(3)], -1
+    )
     # A central difference of a field that is a difference of O(|m| |omega|)
     # terms carries their rounding divided by eps (about 1e-10 here): where a
     # derivative is 0 (the top's K_m), that and not |dm| sets the tolerance.
-    rounding = 100 * np.finfo(float).eps * (np.abs(m).max() * np.abs(body.inertia_inv @ m).max()
-                                            + np.abs(field(R, m)).max()) / eps
-    np.testing.assert_allclose(np.asarray(IK_u), np.linalg.inv(np.diag(I)) @ du, rtol=1e-6,
-                               atol=max(1e-5 * np.abs(du).max(), rounding))
+    rounding = (
+        100
+        * np.finfo(float).eps
+        * (np.abs(m).max() * np.abs(body.inertia_inv @ m).max() + np.abs(field(R, m)).max())
+        / eps
+    )
+    np.testing.assert_allclose(
+        np.asarray(IK_u), np.linalg.inv(np.diag(I)) @ du, rtol=1e-6, atol=max(1e-5 * np.abs(du).max(), rounding)
+    )
     np.testing.assert_allclose(np.asarray(K_m), dm, rtol=1e-6, atol=max(1e-5 * np.abs(dm).max(), rounding))
     assert np.abs(du).max() > 0
 
@@ -526,7 +581,9 @@ def test_variational_jacobian_has_the_solvers_order():
     w0, T = [1.0, 0.05, 0.3], 5.0
     J = exact_jacobian(TEE, w0, T)
     run = jax.jit(
-        lambda dt: lierk.sensitivity(lierk.FreeRigidBody(TEE, w0), lierk.RKMK4(), T, dt=dt, max_steps=500, method="variational")
+        lambda dt: lierk.sensitivity(
+            lierk.FreeRigidBody(TEE, w0), lierk.RKMK4(), T, dt=dt, max_steps=500, method="variational"
+        )
     )
     dts = [0.04, 0.02, 0.01]
     errs, ests = [], []
@@ -549,7 +606,9 @@ def test_variational_agrees_with_the_derivative_on_a_heavy_top(wrt):
     steps), the momentum's Jacobian too; adaptive DOP853 with the variational
     equations under error control lands within its tolerance and says so."""
     R0 = lierk.so3.exp(jnp.asarray([0.3, 0.0, 0.0]))
-    top = lierk.RigidBodyWithEffects([0.6, 0.8, 0.3], [1.0, -0.5, 40.0], R0, effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),))
+    top = lierk.RigidBodyWithEffects(
+        [0.6, 0.8, 0.3], [1.0, -0.5, 40.0], R0, effects=(lierk.Gravity([0.02, 0.01, 0.5], 1.0, 9.81),)
+    )
     dop = lierk.RKMK(lierk.tableaux.DOP853)
     ref = lierk.sensitivity(top, dop, 0.5, wrt=wrt, dt=0.0025, estimate_error=False)
     var = lierk.sensitivity(top, dop, 0.5, wrt=wrt, dt=0.0025, method="variational", estimate_error=False)
@@ -561,7 +620,10 @@ def test_variational_agrees_with_the_derivative_on_a_heavy_top(wrt):
     err = np.linalg.norm(np.asarray(s.jacobian_R) - np.asarray(ref.jacobian_R))
     assert err < 1e-8 * scale, err / scale
     assert err / 10 <= float(s.jacobian_R_error) <= 10 * err + 1e-12 * scale, (err, float(s.jacobian_R_error))
-    for got, want, bar in ((s.jacobian, ref.jacobian, s.jacobian_error), (s.jacobian_y, ref.jacobian_y, s.jacobian_y_error)):
+    for got, want, bar in (
+        (s.jacobian, ref.jacobian, s.jacobian_error),
+        (s.jacobian_y, ref.jacobian_y, s.jacobian_y_error),
+    ):
         err = np.linalg.norm(np.asarray(got) - np.asarray(want))
         assert err / 10 <= float(bar) <= 10 * err + 1e-12 * np.linalg.norm(np.asarray(want)), (err, float(bar))
 
@@ -575,20 +637,29 @@ def test_variational_error_control_resolves_steady_spins_and_rest():
     T, tol = 10.0, 1e-9
     inertia = jnp.asarray([np.diag(i) for i, _ in STEADY_SPINS])
     omega = jnp.asarray([w for _, w in STEADY_SPINS])
-    s = jax.jit(jax.vmap(lambda I, w: lierk.sensitivity(lierk.FreeRigidBody(I, w), lierk.DOP853(), T, rtol=tol, atol=tol,
-                                                        max_steps=20000, method="variational")))(inertia, omega)
+    s = jax.jit(
+        jax.vmap(
+            lambda I, w: lierk.sensitivity(
+                lierk.FreeRigidBody(I, w), lierk.DOP853(), T, rtol=tol, atol=tol, max_steps=20000, method="variational"
+            )
+        )
+    )(inertia, omega)
     for k, (I, w) in enumerate(STEADY_SPINS):
         J_exact = exact_jacobian(np.diag(I), w, T)
         err = np.linalg.norm(np.asarray(s.jacobian_R[k]) - J_exact)
         assert err < 1e-8 * np.linalg.norm(J_exact), (I, w, err)
         assert float(s.jacobian_R_error[k]) >= err / 100, (I, w, float(s.jacobian_R_error[k]), err)
     # At rest a small perturbation turns the body steadily: J = T I exactly.
-    rest = lierk.sensitivity(lierk.FreeRigidBody(BOX, [0.0, 0.0, 0.0]), lierk.RKMK4(), 2.0, dt=0.05, method="variational")
+    rest = lierk.sensitivity(
+        lierk.FreeRigidBody(BOX, [0.0, 0.0, 0.0]), lierk.RKMK4(), 2.0, dt=0.05, method="variational"
+    )
     np.testing.assert_allclose(np.asarray(rest.jacobian), 2.0 * np.eye(3), atol=1e-12)
     # A heavy top at rest, hanging, upright and damped: damped oscillators per axis.
     M, g, moments = 1.0, 9.81, np.array([2.0, 3.0, 1.5])
     for chi_z, c in [(-0.5, 0.0), (0.5, 0.0), (-0.5, 0.4)]:
-        top = lierk.RigidBodyWithEffects(moments, np.zeros(3), effects=(lierk.Gravity([0.0, 0.0, chi_z], M, g), lierk.Damping(c)))
+        top = lierk.RigidBodyWithEffects(
+            moments, np.zeros(3), effects=(lierk.Gravity([0.0, 0.0, chi_z], M, g), lierk.Damping(c))
+        )
         st = lierk.sensitivity(top, lierk.DOP853(), 5.0, rtol=tol, atol=tol, max_steps=20000, method="variational")
         stiffness = -M * g * chi_z * np.array([1.0, 1.0, 0.0])
         J_exact = np.diag([_impulse_response(moments[i], stiffness[i], c, 5.0) for i in range(3)])
@@ -598,7 +669,9 @@ def test_variational_error_control_resolves_steady_spins_and_rest():
 
 def test_variational_in_float32():
     w0 = np.array([0.3, 1.0, 0.2], np.float32)
-    s = lierk.sensitivity(lierk.FreeRigidBody(BOX.astype(np.float32), w0), lierk.RKMK4(), 2.0, dt=0.02, method="variational")
+    s = lierk.sensitivity(
+        lierk.FreeRigidBody(BOX.astype(np.float32), w0), lierk.RKMK4(), 2.0, dt=0.02, method="variational"
+    )
     assert s.jacobian.dtype == jnp.float32 and s.jacobian_y.dtype == jnp.float32
     J = exact_jacobian(BOX, w0.astype(float), 2.0)
     assert np.linalg.norm(np.asarray(s.jacobian_R, float) - J) < 1e-4 * np.linalg.norm(J)
@@ -616,14 +689,19 @@ def test_variational_refuses_what_it_does_not_cover():
     with pytest.raises(ValueError, match="leave mode='forward'"):
         lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, mode="reverse", method="variational")
     with pytest.raises(ValueError, match="got SpatialFreeRigidBody"):
-        lierk.sensitivity(lierk.SpatialFreeRigidBody(BOX, [0.3, 1.0, 0.2]), lierk.RKMK4(), 1.0, dt=0.1, method="variational")
+        lierk.sensitivity(
+            lierk.SpatialFreeRigidBody(BOX, [0.3, 1.0, 0.2]), lierk.RKMK4(), 1.0, dt=0.1, method="variational"
+        )
 
 
 def test_auto_takes_the_variational_equations_where_they_apply():
     body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
     assert lierk.sensitivity_method(body, lierk.RKMK4()) == "variational"
-    for solver, wrt, mode in ((lierk.Strang(), "omega0", "forward"), (lierk.RKMK4(), "inertia", "forward"),
-                              (lierk.RKMK4(), "omega0", "reverse")):
+    for solver, wrt, mode in (
+        (lierk.Strang(), "omega0", "forward"),
+        (lierk.RKMK4(), "inertia", "forward"),
+        (lierk.RKMK4(), "omega0", "reverse"),
+    ):
         assert lierk.sensitivity_method(body, solver, wrt, mode) == "derivative"
     assert lierk.sensitivity_method(body, lierk.Strang(), method="derivative") == "derivative"
     auto = lierk.sensitivity(body, lierk.RKMK4(), 1.0, dt=0.1, method="auto", estimate_error=False)
@@ -634,10 +712,14 @@ def test_auto_takes_the_variational_equations_where_they_apply():
     assert np.max(np.abs(np.asarray(var.jacobian) - np.asarray(der.jacobian))) > 1e-9
     split = lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, method="auto", estimate_error=False)
     np.testing.assert_array_equal(
-        np.asarray(split.jacobian), np.asarray(lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, estimate_error=False).jacobian))
+        np.asarray(split.jacobian),
+        np.asarray(lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, estimate_error=False).jacobian),
+    )
 
 
-@pytest.mark.parametrize("method, mode", [("derivative", "forward"), ("derivative", "reverse"), ("variational", "forward")])
+@pytest.mark.parametrize(
+    "method, mode", [("derivative", "forward"), ("derivative", "reverse"), ("variational", "forward")]
+)
 def test_a_derivative_of_the_jacobian_is_that_of_the_function(method, mode):
     """jacfwd of a sensitivity's Jacobian (a loss on the sensitivity, say)
     against finite differences of the same function.  The derivative method
@@ -647,7 +729,9 @@ def test_a_derivative_of_the_jacobian_is_that_of_the_function(method, mode):
     body = lierk.FreeRigidBody(BOX, [0.3, 1.0, 0.2])
 
     def f(w):
-        s = lierk.sensitivity(body.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.05, method=method, mode=mode, estimate_error=False)
+        s = lierk.sensitivity(
+            body.with_omega0(w), lierk.RKMK4(), 1.0, dt=0.05, method=method, mode=mode, estimate_error=False
+        )
         return jnp.concatenate([s.jacobian_R.ravel(), s.jacobian.ravel()])
 
     w0 = np.asarray(body.omega0)
@@ -661,7 +745,9 @@ def test_variational_resolves_a_sleeping_top():
     mode bounds leave its derivative's nutation unresolved (the derivative of
     DOP853's solve: 8.6e-7 relative at rtol 1e-9).  The variational
     equations are under the error control themselves."""
-    top = lierk.RigidBodyWithEffects([1.0, 1.0, 1.0], [0.0, 0.0, 100.0], effects=(lierk.Gravity([0.0, 0.0, 1.0], 1.0, 9.81),))
+    top = lierk.RigidBodyWithEffects(
+        [1.0, 1.0, 1.0], [0.0, 0.0, 100.0], effects=(lierk.Gravity([0.0, 0.0, 1.0], 1.0, 9.81),)
+    )
     ref = lierk.sensitivity(top, lierk.RKMK(lierk.tableaux.DOP853), 1.0, dt=1.0 / 4000, estimate_error=False)
     s = lierk.sensitivity(top, lierk.DOP853(), 1.0, rtol=1e-9, atol=1e-9, max_steps=20000, method="variational")
     scale = np.linalg.norm(np.asarray(ref.jacobian_R))
@@ -685,7 +771,9 @@ def test_the_mode_bounds_of_a_differentiated_solve_can_be_turned_off():
 
     R_plain, steps_plain = jax.jit(run)(w)
     off = lierk.ForwardSensitivity(resolve_modes=False)
-    (R_off, steps_off), (dR_off, _) = jax.jit(lambda v: jax.jvp(lambda u: run(u, off), (v,), (np.array([0.0, 1.0, 0.0]),)))(w)
+    (R_off, steps_off), (dR_off, _) = jax.jit(
+        lambda v: jax.jvp(lambda u: run(u, off), (v,), (np.array([0.0, 1.0, 0.0]),))
+    )(w)
     (R_on, steps_on), _ = jax.jit(lambda v: jax.jvp(run, (v,), (np.array([0.0, 1.0, 0.0]),)))(w)
     np.testing.assert_array_equal(np.asarray(R_off), np.asarray(R_plain))
     assert int(steps_off) == int(steps_plain) < int(steps_on)

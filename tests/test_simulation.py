@@ -19,8 +19,16 @@ RUN = {"solver": "RKMK4", "t1": 0.5, "dt": 0.01, "save_every": 5}
 
 
 def _scene(effects=(), omega=(1.0, 0.05, 0.3), **run):
-    return S.from_dict({"name": "tee |L| test", "description": "a T-handle", "body": {"kind": "tee_handle"},
-                        "initial": {"omega": list(omega)}, "effects": list(effects), "run": {**RUN, **run}})
+    return S.from_dict(
+        {
+            "name": "tee |L| test",
+            "description": "a T-handle",
+            "body": {"kind": "tee_handle"},
+            "initial": {"omega": list(omega)},
+            "effects": list(effects),
+            "run": {**RUN, **run},
+        }
+    )
 
 
 def test_record_holds_the_solve_and_its_diagnostics():
@@ -32,15 +40,31 @@ def test_record_holds_the_solve_and_its_diagnostics():
     plain = scene.solve()
     np.testing.assert_array_equal(np.asarray(sol.R), np.asarray(plain.R))
     record = sim.record()
-    assert set(record) == {"ts", "R", "quaternion", "omega", "L", "inertia", "omega0", "R0", "t1", "solver", "scene", "y",
-                           "invariant_energy", "invariant_abs_L", "event_flip"}
+    assert set(record) == {
+        "ts",
+        "R",
+        "quaternion",
+        "omega",
+        "L",
+        "inertia",
+        "omega0",
+        "R0",
+        "t1",
+        "solver",
+        "scene",
+        "y",
+        "invariant_energy",
+        "invariant_abs_L",
+        "event_flip",
+    }
     # The flip event of an asymmetric body (none in 0.5 s).
     assert [name for name, _ in sim.scene.events] == ["flip"] and record["event_flip"].shape == (0,)
     # The quaternions are those of R (against SciPy, w >= 0).
     from scipy.spatial.transform import Rotation
 
-    np.testing.assert_allclose(record["quaternion"], Rotation.from_matrix(record["R"]).as_quat(canonical=True, scalar_first=True),
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        record["quaternion"], Rotation.from_matrix(record["R"]).as_quat(canonical=True, scalar_first=True), atol=1e-14
+    )
     np.testing.assert_array_equal(record["ts"], np.asarray(sol.ts))
     np.testing.assert_array_equal(record["R"], np.asarray(sol.R))
     np.testing.assert_array_equal(record["y"], np.asarray(sol.y))
@@ -62,11 +86,16 @@ def test_summary_reports_steps_drifts_and_the_flip_interval():
     # 4 stages a step, and for the flip event each step's interpolant: the
     # field and its rate at the step's end (2, the field serving the next
     # step's first stage), and at t0: 50 (4 + 2 - 1) + 2.
-    assert re.fullmatch(r"RKMK4, dt = 0\.01 s, t1 = 0\.5 s: 50 steps, 252 field evaluations, [\d.]+ s wall "
-                        r"\(incl\. compilation\)", lines[1]), lines[1]
+    assert re.fullmatch(
+        r"RKMK4, dt = 0\.01 s, t1 = 0\.5 s: 50 steps, 252 field evaluations, [\d.]+ s wall "
+        r"\(incl\. compilation\)",
+        lines[1],
+    ), lines[1]
     d = sim.diagnostics
-    assert lines[2:4] == [f"  max relative change of energy: {d.drift['energy']:.2e}",
-                          f"  max relative change of |L|: {d.drift['|L|']:.2e}"]
+    assert lines[2:4] == [
+        f"  max relative change of energy: {d.drift['energy']:.2e}",
+        f"  max relative change of |L|: {d.drift['|L|']:.2e}",
+    ]
     assert lines[4] == f"  max ||R^T R - I||: {d.orthogonality:.2e}"
     tau = float(lierk.exact.flip_interval(sim.scene.problem.inertia, [1.0, 0.05, 0.3]))
     assert sim.flip_interval == tau and lines[5] == f"  intermediate-axis flip interval (exact): {tau:.3f} s"
@@ -75,7 +104,8 @@ def test_summary_reports_steps_drifts_and_the_flip_interval():
     stable = simulate(_scene(omega=(0.05, 0.0, 1.0)))
     assert stable.flip_interval == np.inf
     assert stable.summary().splitlines()[-2] == (
-        "  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)")
+        "  no flip of the intermediate axis (exact solution: lierk.exact.flip_interval is inf)"
+    )
     # Long enough to flip (the report's case a): the flip event's times.
     flips = simulate(_scene(omega=(1.0, 0.05, 0.0), t1=40.0, save_every=100))
     times = flips.event_times["flip"]
@@ -87,7 +117,9 @@ def test_summary_with_effects_and_with_a_target_error():
     damped = simulate(_scene(effects=[{"kind": "damping", "c": 1e-5}]))
     assert damped.flip_interval is None
     lines = damped.summary().splitlines()
-    assert lines[2].startswith("  max relative change of energy: ") and lines[2].endswith("  (not conserved by this scene)")
+    assert lines[2].startswith("  max relative change of energy: ") and lines[2].endswith(
+        "  (not conserved by this scene)"
+    )
     # No exact flip interval for a body with effects; the flip event's line.
     assert lines[-2].startswith("  max ||R^T R - I||: ") and lines[-1] == "  event flip: none"
     scene = _scene().with_target_error(1e-6)
@@ -98,10 +130,12 @@ def test_summary_with_effects_and_with_a_target_error():
     lines = sim.summary().splitlines()
     assert lines[1].startswith(f"RKMK4, target_error = 1e-06 (chose {sim.solution.chosen_setting()}), t1 = 0.5 s: ")
     # The flip is among its events: found by one more solve at the chosen setting.
-    assert lines[2] == (f"  target_error 1e-06: chose {sim.solution.chosen_setting()} after "
-                        f"{sim.solution.stats['num_solves']} solves (steps above: the last, finest solve, "
-                        "events found by one more solve at that setting); "
-                        f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}")
+    assert lines[2] == (
+        f"  target_error 1e-06: chose {sim.solution.chosen_setting()} after "
+        f"{sim.solution.stats['num_solves']} solves (steps above: the last, finest solve, "
+        "events found by one more solve at that setting); "
+        f"estimated error at t1 {est[-1]:.2e}, max over saved times {est.max():.2e}"
+    )
     assert est.max() <= 1e-6 and lines[-1] == "  event flip: none"
 
 
@@ -155,8 +189,14 @@ def test_flips_are_tracked_where_the_solver_can_locate_events(solver, tracked):
 
 
 def test_events_the_scene_asks_for_still_need_a_solver_that_locates_them():
-    scene = S.from_dict({"body": {"kind": "tee_handle"}, "initial": {"omega": [1.0, 0.05, 0.3]},
-                         "events": [{"kind": "tilt", "angle": 0.5}], "run": {**RUN, "solver": "ExplicitEuler"}})
+    scene = S.from_dict(
+        {
+            "body": {"kind": "tee_handle"},
+            "initial": {"omega": [1.0, 0.05, 0.3]},
+            "events": [{"kind": "tilt", "angle": 0.5}],
+            "run": {**RUN, "solver": "ExplicitEuler"},
+        }
+    )
     with pytest.raises(ValueError, match="dense output and events need a Lie-group solver"):
         simulate(scene)
 
@@ -166,8 +206,9 @@ def test_an_impossible_body_warns_once_from_loading_to_the_report():
     the tensor check, the problem and the report's exact flip interval."""
     with warnings.catch_warnings(record=True) as shown:
         warnings.simplefilter("always")
-        scene = S.from_dict({"body": {"kind": "tensor", "inertia": [0.5, 0.6, 1.5]},
-                             "initial": {"omega": [1.0, 0.05, 0.3]}, "run": RUN})
+        scene = S.from_dict(
+            {"body": {"kind": "tensor", "inertia": [0.5, 0.6, 1.5]}, "initial": {"omega": [1.0, 0.05, 0.3]}, "run": RUN}
+        )
         sim = simulate(scene)
         sim.summary()
     assert [str(w.message).split(" breaks")[0] for w in shown] == ["body.inertia [0.5, 0.6, 1.5]"]

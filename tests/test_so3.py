@@ -4,7 +4,6 @@ Euler angles at and near the gimbal lock (against SciPy), and input checks."""
 
 from __future__ import annotations
 
-import functools
 import re
 
 import jax
@@ -14,7 +13,6 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 import lierk
-
 from lierk import so3 as _so3
 
 
@@ -134,7 +132,10 @@ def test_matrix_conversions_refuse_known_non_rotations(name):
     (1.32, 0, 0, 0) for it), a reflection (det -1), and a rotation scaled by
     1 + 1e-5 in float64 or off by 1e-3 in float32."""
     f = getattr(_so3, name)
-    with pytest.raises(ValueError, match=rf"{name} expects rotation.* R has \|\|R\^T R - I\|\| = 5\.2 and det R = 8: \[\[2\., 0\., 0\.\]"):
+    with pytest.raises(
+        ValueError,
+        match=rf"{name} expects rotation.* R has \|\|R\^T R - I\|\| = 5\.2 and det R = 8: \[\[2\., 0\., 0\.\]",
+    ):
         f(2 * np.eye(3))
     good = Rotation.random(3, random_state=6).as_matrix()
     flipped = good.copy()
@@ -161,7 +162,9 @@ def test_rotation_check_passes_rounded_rotations_nan_and_traced_values():
         R32 = R32 @ Q
     assert 1e-6 < float(np.asarray(so3.orthogonality_error(R32))) < 1e-4
     q = np.asarray(_so3.to_quaternion(np.stack([R32, np.full((3, 3), np.nan, np.float32)])))
-    np.testing.assert_allclose(q[0], Rotation.from_matrix(R32.astype(np.float64)).as_quat(canonical=True, scalar_first=True), atol=1e-5)
+    np.testing.assert_allclose(
+        q[0], Rotation.from_matrix(R32.astype(np.float64)).as_quat(canonical=True, scalar_first=True), atol=1e-5
+    )
     assert np.all(np.isnan(q[1]))
     so3.to_quaternion(2 * np.eye(3))
 
@@ -197,13 +200,17 @@ def test_exp_at_zero_is_exact_in_value_and_both_derivative_modes(dtype):
         assert J.dtype == dtype
         np.testing.assert_array_equal(J, generators.astype(dtype))
     # A batch of zeros, through vmap of the gradient of a scalar, stays finite and exact.
-    g = jax.jit(jax.vmap(jax.grad(lambda w: jnp.sum(so3.exp(w) * so3.hat(jnp.ones(3, dtype))))))(np.zeros((4, 3), dtype))
+    g = jax.jit(jax.vmap(jax.grad(lambda w: jnp.sum(so3.exp(w) * so3.hat(jnp.ones(3, dtype))))))(
+        np.zeros((4, 3), dtype)
+    )
     np.testing.assert_array_equal(g, np.full((4, 3), 2.0, dtype))
 
 
 def test_exp_matches_scipy_over_many_turns():
     """Angles up to 20 rad (over three full turns) in one call, against SciPy's rotvec."""
-    norms = np.concatenate([[1e-9, 1e-4, 0.05, 0.3, 1.0, np.pi - 1e-9, np.pi, 4.0], np.linspace(2 * np.pi - 0.5, 20.0, 12)])
+    norms = np.concatenate(
+        [[1e-9, 1e-4, 0.05, 0.3, 1.0, np.pi - 1e-9, np.pi, 4.0], np.linspace(2 * np.pi - 0.5, 20.0, 12)]
+    )
     w = _vectors_with_norms(norms)
     np.testing.assert_allclose(so3.exp(w), Rotation.from_rotvec(w).as_matrix(), rtol=0, atol=1e-14)
     # Exactly 2 pi k about any axis is the identity.
@@ -288,10 +295,15 @@ def test_exp_coefficients_exact_to_rounding_at_every_angle():
         pytest.skip("no extended precision long double on this platform")
     rng = np.random.default_rng(3)
     edges = np.arange(1, 80) * np.pi / 2
-    theta = np.concatenate([
-        np.geomspace(1e-9, 3e9, 3000), rng.uniform(0, 40, 3000),
-        edges, edges * (1 + 1e-9), edges * (1 - 1e-9),
-    ])
+    theta = np.concatenate(
+        [
+            np.geomspace(1e-9, 3e9, 3000),
+            rng.uniform(0, 40, 3000),
+            edges,
+            edges * (1 + 1e-9),
+            edges * (1 - 1e-9),
+        ]
+    )
     for dtype, limit, tol in [(np.float64, 3e9, 4e-16), (np.float32, 2.6e4, 4e-7)]:
         th = theta[theta <= limit].astype(dtype)
         A, B, D = (np.asarray(c, np.float64) for c in jax.jit(_so3.exp_coefficients)(th.astype(dtype) ** 2))
@@ -381,7 +393,13 @@ def test_axis_turn_refuses_anything_but_a_coordinate_index(k):
 
 
 def test_log_inverts_exp_below_pi():
-    norms = np.concatenate([[0.0, 1e-300, 1e-12, 1e-8, 1e-5, 0.01, 0.099, 0.1, 0.101], RNG.uniform(0, np.pi, 30), [3.0, np.pi - 1e-4, np.pi - 1e-7]])
+    norms = np.concatenate(
+        [
+            [0.0, 1e-300, 1e-12, 1e-8, 1e-5, 0.01, 0.099, 0.1, 0.101],
+            RNG.uniform(0, np.pi, 30),
+            [3.0, np.pi - 1e-4, np.pi - 1e-7],
+        ]
+    )
     w = _vectors_with_norms(norms)
     back = np.asarray(so3.log(so3.exp(w)))
     # Relative to |w| for small angles (no absolute 1e-16 floor that hides a 100% error).
@@ -456,7 +474,14 @@ def test_log_jacobian_matches_finite_differences():
     """The derivative of log along the group, x -> log(R0 exp(x)) at x = 0, and with
     respect to the matrix entries of R (a smooth function of R near R0).  log jumps
     at |w| = pi, so the difference step stays below pi - theta."""
-    cases = [(0.0, 1e-6, 1e-8), (1e-9, 1e-6, 1e-8), (0.1, 1e-6, 1e-8), (1.0, 1e-6, 1e-8), (np.pi - 1e-3, 1e-6, 1e-8), (np.pi - 1e-5, 1e-7, 1e-7)]
+    cases = [
+        (0.0, 1e-6, 1e-8),
+        (1e-9, 1e-6, 1e-8),
+        (0.1, 1e-6, 1e-8),
+        (1.0, 1e-6, 1e-8),
+        (np.pi - 1e-3, 1e-6, 1e-8),
+        (np.pi - 1e-5, 1e-7, 1e-7),
+    ]
     for theta, eps, atol in cases:
         R0 = np.asarray(so3.exp(theta * np.array([0.6, -0.48, 0.64])))
         _check_jacobians("log_along_group", np.zeros(3), eps, atol, R0)
@@ -749,8 +774,12 @@ def test_euler_float32_round_trip_at_rounding_level(convention):
     """In float32, random rotations and the lock cases above come back through
     from_euler(to_euler(R)) to a few float32 roundings (arcsin lost 1e-4 near the lock)."""
     angles, _ = _near_lock_angles(convention)
-    R = np.concatenate([Rotation.from_euler(_SCIPY_SEQ[convention], angles).as_matrix(),
-                        Rotation.random(200, random_state=5).as_matrix()]).astype(np.float32)
+    R = np.concatenate(
+        [
+            Rotation.from_euler(_SCIPY_SEQ[convention], angles).as_matrix(),
+            Rotation.random(200, random_state=5).as_matrix(),
+        ]
+    ).astype(np.float32)
     err, got = _euler_round_trip_error(R, convention)
     assert got.dtype == np.float32
     assert err.max() < 8 * np.finfo(np.float32).eps, err.max()
@@ -801,14 +830,16 @@ def test_euler_derivatives_invert_those_of_from_euler(convention):
 # Generic rotations, the identity, tiny ones, half turns about an axis and a
 # generic axis, and angles just below and above pi.
 _HALF = np.pi * np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0.6, 0.0, 0.8]])
-MRP_VECTORS = np.concatenate([
-    Rotation.random(24, random_state=7).as_rotvec(),
-    np.zeros((1, 3)),
-    1e-7 * np.array([[1.0, -2.0, 0.5]]),
-    _HALF,
-    (1 - 1e-9) * _HALF[3:],
-    np.array([[0.0, 0.0, np.pi + 1e-6]]),
-])
+MRP_VECTORS = np.concatenate(
+    [
+        Rotation.random(24, random_state=7).as_rotvec(),
+        np.zeros((1, 3)),
+        1e-7 * np.array([[1.0, -2.0, 0.5]]),
+        _HALF,
+        (1 - 1e-9) * _HALF[3:],
+        np.array([[0.0, 0.0, np.pi + 1e-6]]),
+    ]
+)
 
 
 def test_mrp_matches_scipy_and_stays_in_the_unit_ball():
@@ -827,8 +858,9 @@ def test_from_mrp_matches_scipy_for_either_set():
     s = Rotation.from_rotvec(MRP_VECTORS).as_mrp()
     shadow = -s / np.maximum(np.sum(s * s, axis=-1, keepdims=True), 1e-300)
     for sig in (s, shadow[np.linalg.norm(s, axis=-1) > 1e-3]):
-        np.testing.assert_allclose(np.asarray(so3.from_mrp(jnp.asarray(sig))), Rotation.from_mrp(sig).as_matrix(),
-                                   atol=1e-14)
+        np.testing.assert_allclose(
+            np.asarray(so3.from_mrp(jnp.asarray(sig))), Rotation.from_mrp(sig).as_matrix(), atol=1e-14
+        )
     assert float(jnp.max(so3.orthogonality_error(so3.from_mrp(jnp.asarray(shadow[:24]))))) < 1e-14
 
 
@@ -845,8 +877,9 @@ def test_from_mrp_of_huge_shadow_sets_is_the_turn_near_the_identity(dtype):
         shadow = -unit / (m * np.sum(unit**2))  # -sigma/|sigma|^2, without overflow
         R = np.asarray(so3.from_mrp(sigma))
         assert R.dtype == dtype and np.all(np.isfinite(R))
-        np.testing.assert_allclose(R, Rotation.from_mrp(shadow).as_matrix(), rtol=0,
-                                   atol=4 * float(np.finfo(dtype).eps))
+        np.testing.assert_allclose(
+            R, Rotation.from_mrp(shadow).as_matrix(), rtol=0, atol=4 * float(np.finfo(dtype).eps)
+        )
         if float(np.linalg.norm(shadow)) < 1e-3:
             # I + 4 hat(shadow) to first order: the tiny turn is kept, not rounded away.
             np.testing.assert_allclose(R - np.eye(3), 4 * np.asarray(so3.hat(shadow)), rtol=1e-6)
@@ -854,8 +887,11 @@ def test_from_mrp_of_huge_shadow_sets_is_the_turn_near_the_identity(dtype):
             assert np.all(np.isfinite(np.asarray(jac(sigma))))
 
 
-@pytest.mark.parametrize("w", [np.zeros(3), 1e-9 * np.ones(3), _HALF[0], _HALF[3], (1 - 1e-4) * _HALF[3]],
-                         ids=["zero", "tiny", "pi-x", "pi-generic", "below-pi"])
+@pytest.mark.parametrize(
+    "w",
+    [np.zeros(3), 1e-9 * np.ones(3), _HALF[0], _HALF[3], (1 - 1e-4) * _HALF[3]],
+    ids=["zero", "tiny", "pi-x", "pi-generic", "below-pi"],
+)
 def test_mrp_derivatives_are_finite_and_right(w):
     w = jnp.asarray(w)
     f = lambda v: so3.to_mrp(so3.exp(v))  # noqa: E731
@@ -868,8 +904,9 @@ def test_mrp_derivatives_are_finite_and_right(w):
         # sigma = tan(phi/4) n: d sigma/dw = I/4 at the identity, and
         # from_mrp's Jacobian there is four times the generators.
         np.testing.assert_allclose(jax.jacfwd(f)(w), np.eye(3) / 4, atol=1e-9)
-        np.testing.assert_allclose(jax.jacfwd(so3.from_mrp)(jnp.zeros(3)),
-                                   4 * np.asarray(so3.hat(jnp.eye(3))).transpose(1, 2, 0), atol=0)
+        np.testing.assert_allclose(
+            jax.jacfwd(so3.from_mrp)(jnp.zeros(3)), 4 * np.asarray(so3.hat(jnp.eye(3))).transpose(1, 2, 0), atol=0
+        )
     else:
         # Off the switching surface, against central differences.
         h = 1e-6

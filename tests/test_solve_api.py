@@ -49,7 +49,9 @@ def test_saveat_all_steps(all_steps):
         np.testing.assert_allclose(all_steps.R[k], reference_R(TEE, OMEGA_GENERIC, 0.1 * k), atol=1e-6)
 
 
-@pytest.mark.parametrize("k, t1_flag, expected_steps", [(3, False, [3, 6, 9, 12]), (5, False, [5, 10]), (5, True, [5, 10, 12])])
+@pytest.mark.parametrize(
+    "k, t1_flag, expected_steps", [(3, False, [3, 6, 9, 12]), (5, False, [5, 10]), (5, True, [5, 10, 12])]
+)
 def test_saveat_every_kth_step_matches_all_steps(all_steps, k, t1_flag, expected_steps):
     sol = lierk.solve(_tee(), lierk.RKMK4(), 1.2, dt=0.1, saveat=lierk.SaveAt(steps=k, t1=t1_flag))
     n = len(expected_steps)
@@ -62,7 +64,9 @@ def test_t1_not_a_multiple_of_dt_ends_exactly_at_t1():
     """The last step is shortened: 1.0 = 3 x 0.3 + 0.1.  On a sphere the Lie solvers are
     exact, so any error would be a wrong end time."""
     omega0 = np.array([0.7, -1.3, 2.1])
-    sol = lierk.solve(lierk.FreeRigidBody(np.eye(3), omega0), lierk.RKMK4(), 1.0, dt=0.3, saveat=lierk.SaveAt(steps=True))
+    sol = lierk.solve(
+        lierk.FreeRigidBody(np.eye(3), omega0), lierk.RKMK4(), 1.0, dt=0.3, saveat=lierk.SaveAt(steps=True)
+    )
     np.testing.assert_allclose(sol.ts, [0.3, 0.6, 0.9, 1.0], rtol=1e-15)
     assert float(sol.ts[-1]) == 1.0
     assert int(sol.stats["num_steps"]) == 4
@@ -167,7 +171,9 @@ def _counted_body():
         jax.debug.callback(bump)
         return jnp.zeros(3) * t
 
-    return lierk.RigidBodyWithEffects(np.diag([1.0, 2.0, 3.0]), [0.1, 1.0, 0.05], effects=(lierk.TimedTorque(torque),)), calls
+    return lierk.RigidBodyWithEffects(
+        np.diag([1.0, 2.0, 3.0]), [0.1, 1.0, 0.05], effects=(lierk.TimedTorque(torque),)
+    ), calls
 
 
 def test_stats_count_every_field_evaluation():
@@ -308,7 +314,10 @@ def test_jacobians_wrt_omega0_and_inertia_match_finite_differences():
     fd_d = _fd_jacobian(lambda d: _final_R_jit(np.diag(d), OMEGA_GENERIC, t1, dt), np.diag(TEE).copy(), eps_I)
     S = np.array([[0.0, 1.0, 0.3], [1.0, 0.0, -0.5], [0.3, -0.5, 0.2]]) * 1e-5  # 10% of TEE
     eps_S = 1e-3
-    fd_S = (np.asarray(_final_R_jit(TEE + eps_S * S, OMEGA_GENERIC, t1, dt)) - np.asarray(_final_R_jit(TEE - eps_S * S, OMEGA_GENERIC, t1, dt))) / (2 * eps_S)
+    fd_S = (
+        np.asarray(_final_R_jit(TEE + eps_S * S, OMEGA_GENERIC, t1, dt))
+        - np.asarray(_final_R_jit(TEE - eps_S * S, OMEGA_GENERIC, t1, dt))
+    ) / (2 * eps_S)
     for fd in (fd_w, fd_d, fd_S):
         assert np.linalg.norm(fd) > 1e-2  # R really depends on each of them here
     for jac in (_jacfwd, _jacrev):
@@ -415,7 +424,9 @@ def test_fixed_steps_at_save_times_differentiate_and_estimate_their_error():
     fd = np.stack([(final(w + 1e-6 * e) - final(w - 1e-6 * e)) / 2e-6 for e in np.eye(3)], axis=-1)
     np.testing.assert_allclose(fwd, fd, atol=1e-7)
     np.testing.assert_allclose(rev, fwd, atol=1e-12)
-    sol = lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 1.5, dt=0.05, saveat=lierk.SaveAt(ts=ts), estimate_error=True)
+    sol = lierk.solve(
+        lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 1.5, dt=0.05, saveat=lierk.SaveAt(ts=ts), estimate_error=True
+    )
     err = np.linalg.norm(np.asarray(sol.R) - np.asarray(lierk.exact.free_rigid_body(TEE, w, ts)[0]), axis=(-2, -1))
     est = np.asarray(sol.error_estimate)
     np.testing.assert_allclose(est[1:], err[1:], rtol=0.1)

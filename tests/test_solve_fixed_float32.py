@@ -5,10 +5,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import OMEGA_GENERIC, TEE
 
 import lierk
-
-from helpers import OMEGA_GENERIC, TEE
 
 
 @pytest.mark.parametrize("n", [20, 30])
@@ -33,7 +32,9 @@ def test_float32_fixed_steps_far_from_t0_are_as_accurate_as_from_zero():
     ref = np.asarray(lierk.exact.free_rigid_body(_BOX32.astype(float), _W32.astype(float), 10.0)[0])
     errs = []
     for t0 in (0.0, 3e4, 1e5):
-        sol = lierk.solve(lierk.FreeRigidBody(_BOX32, _W32), lierk.RKMK4(), np.float32(t0 + 10.0), t0=np.float32(t0), dt=2.0**-6)
+        sol = lierk.solve(
+            lierk.FreeRigidBody(_BOX32, _W32), lierk.RKMK4(), np.float32(t0 + 10.0), t0=np.float32(t0), dt=2.0**-6
+        )
         assert int(sol.stats["num_steps"]) == 640
         assert float(sol.ts[-1]) == np.float32(t0 + 10.0)
         errs.append(np.linalg.norm(np.asarray(sol.R[-1], float) - ref))
@@ -43,7 +44,9 @@ def test_float32_fixed_steps_far_from_t0_are_as_accurate_as_from_zero():
 
 def test_float32_step_below_the_resolution_of_time_is_refused():
     with pytest.raises(ValueError, match="below the resolution of float32 times"):
-        lierk.solve(lierk.FreeRigidBody(_BOX32, _W32), lierk.RKMK4(), np.float32(1e5 + 1.0), t0=np.float32(1e5), dt=1e-3)
+        lierk.solve(
+            lierk.FreeRigidBody(_BOX32, _W32), lierk.RKMK4(), np.float32(1e5 + 1.0), t0=np.float32(1e5), dt=1e-3
+        )
 
 
 def test_steps_add_up_to_the_interval_when_t1_is_not_a_multiple_of_dt():

@@ -88,7 +88,9 @@ ORDER_CASES = [
 
 
 @pytest.mark.parametrize(
-    "solver, order, Ns", ORDER_CASES, ids=[f"{s.name}-{getattr(s, 'tableau', None) and s.tableau.name}" for s, _, _ in ORDER_CASES]
+    "solver, order, Ns",
+    ORDER_CASES,
+    ids=[f"{s.name}-{getattr(s, 'tableau', None) and s.tableau.name}" for s, _, _ in ORDER_CASES],
 )
 def test_empirical_order_on_non_commuting_problem(solver, order, Ns, tee_reference):
     assert solver.order == order
@@ -139,7 +141,9 @@ def test_adaptive_error_follows_tolerance_and_sphere_is_exact(solver, tee_refere
     rtols = np.array([1e-5, 1e-7, 1e-9])
     run = jax.jit(
         jax.vmap(
-            lambda inertia, omega0, rtol: lierk.solve(lierk.FreeRigidBody(inertia, omega0), solver, T1, rtol=rtol).R[-1],
+            lambda inertia, omega0, rtol: lierk.solve(lierk.FreeRigidBody(inertia, omega0), solver, T1, rtol=rtol).R[
+                -1
+            ],
             in_axes=(None, None, 0),
         )
     )

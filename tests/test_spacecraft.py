@@ -14,10 +14,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from helpers import final_attitudes, order_fit
 from scipy.integrate import solve_ivp
 
 import lierk
-from helpers import final_attitudes, order_fit
 
 N_ORBIT = 0.0011  # rad/s, a low Earth orbit
 I_SAT = np.diag([10.0, 14.0, 6.0])  # kg m^2, I_y > I_x > I_z: gravity-gradient stable
@@ -74,14 +74,36 @@ def wheel_np(t):
 
 CASES = {
     # name: (effect, numpy torque(t, R, m, omega), omega0, t1)
-    "gravity_gradient": (lambda: lierk.GravityGradient(I_SAT, mean_motion=N_ORBIT), gg_torque, [0.001, -0.002, 0.003], 3000.0),
-    "magnetic_dipole": (lambda: lierk.MagneticTorque(FIELD, dipole=DIPOLE),
-                        lambda t, R, m, w: np.cross(DIPOLE, R.T @ field_np(t)), [0.01, 0.02, -0.015], 600.0),
-    "bdot": (lambda: lierk.MagneticTorque(FIELD, bdot_gain=BDOT),
-             lambda t, R, m, w: BDOT * np.cross(np.cross(w, R.T @ field_np(t)), R.T @ field_np(t)), [0.05, 0.02, -0.03], 600.0),
-    "rotor": (lambda: lierk.Rotor([0.0, 0.5, 0.1]), lambda t, R, m, w: np.cross([0.0, 0.5, 0.1], w), [0.02, 0.05, -0.01], 300.0),
-    "driven_wheels": (lambda: lierk.Rotor([0.3, -0.2], axes=WHEELS, torque=W_TORQUES, times=W_TIMES),
-                      lambda t, R, m, w: np.cross(wheel_np(t)[0], w) - wheel_np(t)[1], [0.02, 0.05, -0.01], 80.0),
+    "gravity_gradient": (
+        lambda: lierk.GravityGradient(I_SAT, mean_motion=N_ORBIT),
+        gg_torque,
+        [0.001, -0.002, 0.003],
+        3000.0,
+    ),
+    "magnetic_dipole": (
+        lambda: lierk.MagneticTorque(FIELD, dipole=DIPOLE),
+        lambda t, R, m, w: np.cross(DIPOLE, R.T @ field_np(t)),
+        [0.01, 0.02, -0.015],
+        600.0,
+    ),
+    "bdot": (
+        lambda: lierk.MagneticTorque(FIELD, bdot_gain=BDOT),
+        lambda t, R, m, w: BDOT * np.cross(np.cross(w, R.T @ field_np(t)), R.T @ field_np(t)),
+        [0.05, 0.02, -0.03],
+        600.0,
+    ),
+    "rotor": (
+        lambda: lierk.Rotor([0.0, 0.5, 0.1]),
+        lambda t, R, m, w: np.cross([0.0, 0.5, 0.1], w),
+        [0.02, 0.05, -0.01],
+        300.0,
+    ),
+    "driven_wheels": (
+        lambda: lierk.Rotor([0.3, -0.2], axes=WHEELS, torque=W_TORQUES, times=W_TIMES),
+        lambda t, R, m, w: np.cross(wheel_np(t)[0], w) - wheel_np(t)[1],
+        [0.02, 0.05, -0.01],
+        80.0,
+    ),
 }
 R0 = np.asarray(lierk.so3.exp(jnp.asarray([0.3, -0.2, 0.5])))
 
@@ -104,7 +126,9 @@ def pitch_period(inertia, n, amplitude=0.01):
     R_lvlh = np.array([[0.0, 0.0, -1.0], [1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
     R0 = R_lvlh @ np.asarray(lierk.so3.exp(jnp.asarray([0.0, amplitude, 0.0])))
     # The frame turns with the orbit: -n about body y.
-    body = lierk.RigidBodyWithEffects(inertia, [0.0, -n, 0.0], R0, effects=(lierk.GravityGradient(inertia, mean_motion=n),))
+    body = lierk.RigidBodyWithEffects(
+        inertia, [0.0, -n, 0.0], R0, effects=(lierk.GravityGradient(inertia, mean_motion=n),)
+    )
     T = 3.5 * 2 * np.pi / n
     sol = lierk.solve(body, lierk.RKMK4(), T, dt=T / 7000, saveat=lierk.SaveAt(t0=True, steps=1))
     ts, R = np.asarray(sol.ts), np.asarray(sol.R)
@@ -143,7 +167,9 @@ def test_a_rotor_along_the_intermediate_axis_stops_the_flip():
 
 
 def test_bdot_detumbles():
-    body = lierk.RigidBodyWithEffects(I_SAT, [0.05, -0.04, 0.06], effects=(lierk.MagneticTorque(FIELD, bdot_gain=BDOT),))
+    body = lierk.RigidBodyWithEffects(
+        I_SAT, [0.05, -0.04, 0.06], effects=(lierk.MagneticTorque(FIELD, bdot_gain=BDOT),)
+    )
     t1 = 2 * np.pi / N_ORBIT
     sol = lierk.solve(body, lierk.RKMK4(), t1, dt=1.0, saveat=lierk.SaveAt(t0=True, steps=100))
     E = np.asarray(sol.invariants(body)["energy"])
@@ -152,14 +178,22 @@ def test_bdot_detumbles():
 
 
 def mixed_body():
-    effects = (lierk.GravityGradient(I_SAT, mean_motion=N_ORBIT), lierk.MagneticTorque(FIELD, dipole=DIPOLE), lierk.Rotor([0.0, 0.5, 0.1]))
+    effects = (
+        lierk.GravityGradient(I_SAT, mean_motion=N_ORBIT),
+        lierk.MagneticTorque(FIELD, dipole=DIPOLE),
+        lierk.Rotor([0.0, 0.5, 0.1]),
+    )
     return lierk.RigidBodyWithEffects(I_SAT, [0.01, 0.05, -0.02], R0, effects=effects)
 
 
 @pytest.mark.parametrize(
     "solver, dts",
-    [(lierk.RKMK4(), [1.0, 0.5, 0.25]), (lierk.Strang(), [4.0, 2.0, 1.0]), (lierk.BlanesMoan4(), [4.0, 2.0, 1.0]),
-     (lierk.RKMK(lierk.tableaux.DOP853), [8.0, 4.0, 2.0])],
+    [
+        (lierk.RKMK4(), [1.0, 0.5, 0.25]),
+        (lierk.Strang(), [4.0, 2.0, 1.0]),
+        (lierk.BlanesMoan4(), [4.0, 2.0, 1.0]),
+        (lierk.RKMK(lierk.tableaux.DOP853), [8.0, 4.0, 2.0]),
+    ],
     ids=["RKMK4", "Strang", "BlanesMoan4", "RKMK(DOP853)"],
 )
 def test_orders_hold_with_the_effects(solver, dts):
@@ -198,7 +232,10 @@ def test_rotor_and_bdot_kicks_are_exact_flows():
     R = np.asarray(R0)
     m = np.array([0.3, -0.1, 0.2])
     Iinv = np.linalg.inv(I_SAT)
-    for e in (lierk.MagneticTorque(FIELD, bdot_gain=BDOT), lierk.Rotor([0.3, -0.2], axes=WHEELS, torque=W_TORQUES, times=W_TIMES)):
+    for e in (
+        lierk.MagneticTorque(FIELD, bdot_gain=BDOT),
+        lierk.Rotor([0.3, -0.2], axes=WHEELS, torque=W_TORQUES, times=W_TIMES),
+    ):
         t, h = 30.0, 7.0
 
         def rhs(s, x, e=e):
@@ -216,9 +253,17 @@ def test_constant_rotor_conserves_energy_and_total_momentum():
     accuracy for an RKMK solve)."""
     body = lierk.RigidBodyWithEffects(I_SAT, [0.02, 0.05, -0.01], effects=(lierk.Rotor([0.0, 0.5, 0.1]),))
     assert set(body.conserved()) == {"energy", "|m + h|"}
-    for solver, kw, tol in ((lierk.Strang(), dict(dt=0.5), (1e-12, 1e-5)), (lierk.DOP853(), dict(rtol=1e-12), (1e-11, 1e-11))):
-        sol = lierk.solve(body, solver, 500.0, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 500.0, 51)) if "rtol" in kw
-                          else lierk.SaveAt(t0=True, steps=10), **kw)
+    for solver, kw, tol in (
+        (lierk.Strang(), dict(dt=0.5), (1e-12, 1e-5)),
+        (lierk.DOP853(), dict(rtol=1e-12), (1e-11, 1e-11)),
+    ):
+        sol = lierk.solve(
+            body,
+            solver,
+            500.0,
+            saveat=lierk.SaveAt(ts=jnp.linspace(0.0, 500.0, 51)) if "rtol" in kw else lierk.SaveAt(t0=True, steps=10),
+            **kw,
+        )
         q = sol.invariants(body)
         for k, bound in zip(("energy", "|m + h|"), tol):
             v = np.asarray(q[k])
@@ -237,7 +282,10 @@ def test_constant_rotor_conserves_energy_and_total_momentum():
         (lambda: lierk.dipole_field(-1.0), "mean_motion"),
         (lambda: lierk.dipole_field(radius=-7e6), "radius"),
         (lambda: lierk.dipole_field(tilt=1.0), "mean_motion= .rad/s., radius= .m., or both"),
-        (lambda: lierk.Rotor([0.1], axes=[[1.0, 0, 0]], torque=[[0.0], [1.0]], times=[1.0, 0.5]), "strictly increasing"),
+        (
+            lambda: lierk.Rotor([0.1], axes=[[1.0, 0, 0]], torque=[[0.0], [1.0]], times=[1.0, 0.5]),
+            "strictly increasing",
+        ),
     ],
 )
 def test_bad_input_is_refused_by_name(make, match):
@@ -333,11 +381,18 @@ bdot_gain = 1e7
     I = np.asarray(lierk.inertia.box(50.0, 0.6, 0.5, 0.8))
     R0 = np.asarray(lierk.so3.from_mrp(jnp.asarray([0.1, -0.2, 0.05])))
     np.testing.assert_allclose(scene.problem.R0, R0, atol=1e-15)
-    direct = lierk.RigidBodyWithEffects(I, [0.05, -0.03, 0.04], R0, effects=(
-        lierk.GravityGradient(I, mean_motion=0.0011),
-        lierk.Rotor([0.2, 0.0], axes=[[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], torque=[[0.0, 0.0], [0.0, 0.01]], times=[0.0, 10.0]),
-        lierk.MagneticTorque(FIELD, bdot_gain=1e7),
-    ))
+    direct = lierk.RigidBodyWithEffects(
+        I,
+        [0.05, -0.03, 0.04],
+        R0,
+        effects=(
+            lierk.GravityGradient(I, mean_motion=0.0011),
+            lierk.Rotor(
+                [0.2, 0.0], axes=[[0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], torque=[[0.0, 0.0], [0.0, 0.01]], times=[0.0, 10.0]
+            ),
+            lierk.MagneticTorque(FIELD, bdot_gain=1e7),
+        ),
+    )
     a = lierk.solve(scene.problem, lierk.RKMK4(), 20.0, dt=1.0).R[-1]
     b = lierk.solve(direct, lierk.RKMK4(), 20.0, dt=1.0).R[-1]
     np.testing.assert_allclose(a, b, atol=1e-14)
@@ -361,7 +416,9 @@ def test_bad_scene_effects_are_refused_by_name(effects, match):
 
 def test_the_example_satellite_detumbles():
     scene = lierk.app.scene.load(Path(__file__).resolve().parent.parent / "examples" / "satellite.toml")
-    sol = lierk.solve(scene.problem, lierk.DOP853(), scene.t1, rtol=1e-6, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, scene.t1, 7)))
+    sol = lierk.solve(
+        scene.problem, lierk.DOP853(), scene.t1, rtol=1e-6, saveat=lierk.SaveAt(ts=jnp.linspace(0.0, scene.t1, 7))
+    )
     E = np.asarray(sol.invariants(scene.problem)["energy"])
     assert E[-1] < 1e-2 * E[0]
 
@@ -395,6 +452,7 @@ def test_a_diagonal_inertia_gives_gravity_gradient_its_spread_from_the_diagonal(
     assert diagonal.diagonal and not rotated.diagonal
     assert float(diagonal.energy_scale()) == 1.5 * n**2 * 8.0
     np.testing.assert_allclose(float(rotated.energy_scale()), 1.5 * n**2 * 8.0, rtol=1e-9)
+
     def traced(I):
         effect = lierk.GravityGradient(I, mean_motion=n)
         return effect.energy_scale(), effect.diagonal

@@ -20,7 +20,6 @@ from helpers import (
     TORQUE_SAMPLES,
     TORQUE_TIMES,
     derivatives_and_differences,
-    fd_jacobian,
     final_attitudes,
     order_fit,
     write,
@@ -41,7 +40,9 @@ TOPS = {
 
 def top(name, **kw):
     t = TOPS[name]
-    return lierk.RigidBodyWithEffects(t["inertia"], t["omega0"], TILT, effects=(lierk.Gravity(t["chi"], 1.0, 9.81),), **kw)
+    return lierk.RigidBodyWithEffects(
+        t["inertia"], t["omega0"], TILT, effects=(lierk.Gravity(t["chi"], 1.0, 9.81),), **kw
+    )
 
 
 _REFS = {}
@@ -60,7 +61,10 @@ def reference(name):
 # 0.1 to 0.025): one halving finer.
 # BlanesMoanRKN6 is near the reference's error at 0.025 there (2.8e-13), and
 # pre-asymptotic at 0.2 (slope 6.5): 20, 25 and 40 steps.
-STEPS: dict = {"BlanesMoanRKN4": [0.05, 0.025, 0.0125], "BlanesMoanRKN6": [0.1, 0.08, 0.05]}  # the others: 0.1, 0.05, 0.025
+STEPS: dict = {
+    "BlanesMoanRKN4": [0.05, 0.025, 0.0125],
+    "BlanesMoanRKN6": [0.1, 0.08, 0.05],
+}  # the others: 0.1, 0.05, 0.025
 
 
 @pytest.mark.parametrize("name", TOPS)
@@ -107,8 +111,7 @@ def test_drift_momentum_takes_every_derivative_of_the_closed_form():
 
     @jax.jit
     def derivatives(x):
-        return [(f(x), jax.grad(f)(x), jax.grad(lambda x: jax.jvp(f, (x,), (v,))[0])(x))
-                for f in (drift, closed)]
+        return [(f(x), jax.grad(f)(x), jax.grad(lambda x: jax.jvp(f, (x,), (v,))[0])(x)) for f in (drift, closed)]
 
     (a, b) = derivatives(jnp.array([0.4, -1.0, 2.0, 0.7]))
     for p, q in zip(a, b):
@@ -149,7 +152,9 @@ def test_damped_sphere_is_exact(solver):
 def test_nystrom_splittings_refuse_torques_that_read_the_momentum(solver):
     # Their order rests on kicks that do not read m ([K, [K, [K, D]]] = 0);
     # with damping they would silently lose it.
-    body = lierk.RigidBodyWithEffects([2.0, 2.0, 1.0], [0.3, -1.0, 2.0], effects=(lierk.Gravity([0, 0, 1.0], 1.0), lierk.Damping(0.5)))
+    body = lierk.RigidBodyWithEffects(
+        [2.0, 2.0, 1.0], [0.3, -1.0, 2.0], effects=(lierk.Gravity([0, 0, 1.0], 1.0), lierk.Damping(0.5))
+    )
     with pytest.raises(ValueError, match="Runge-Kutta-Nystrom.*Damping"):
         lierk.solve(body, solver, 1.0, dt=0.1)
 
@@ -220,10 +225,13 @@ def energy_error(problem, sol):
     return np.abs(E / E[0] - 1.0)
 
 
-@pytest.mark.parametrize("name,solver,dt,bound", [
-    ("diffman", lierk.Strang(), 0.02, 2e-3),
-    ("asymmetric", lierk.BlanesMoan4(), 0.05, 1e-6),
-])
+@pytest.mark.parametrize(
+    "name,solver,dt,bound",
+    [
+        ("diffman", lierk.Strang(), 0.02, 2e-3),
+        ("asymmetric", lierk.BlanesMoan4(), 0.05, 1e-6),
+    ],
+)
 def test_energy_error_stays_bounded(name, solver, dt, bound):
     """2e4 and 4e3 steps over 400 s and 200 s: no secular growth (the last
     tenth's largest error at most 2x the first tenth's), below ``bound``.
@@ -249,11 +257,14 @@ def test_rkmk4_energy_drifts_where_splitting_does_not():
     assert err[-k:].max() > 2 * err[1 : k + 1].max()
 
 
-@pytest.mark.parametrize("inertia,omega0", [
-    ([1.0, 2.0, 3.0], [0.3, 1.0, 0.2]),  # tumbling near the separatrix: the elliptic-function drift
-    ([1.0, 2.0, 2.9], [1.0, -0.4, 2.0]),  # the elliptic drift, about the largest axis
-    ([1.0, 1.0, 1.8], [1.0, 0.3, 0.1]),  # symmetric: the drift is two rotations
-])
+@pytest.mark.parametrize(
+    "inertia,omega0",
+    [
+        ([1.0, 2.0, 3.0], [0.3, 1.0, 0.2]),  # tumbling near the separatrix: the elliptic-function drift
+        ([1.0, 2.0, 2.9], [1.0, -0.4, 2.0]),  # the elliptic drift, about the largest axis
+        ([1.0, 1.0, 1.8], [1.0, 0.3, 0.1]),  # symmetric: the drift is two rotations
+    ],
+)
 def test_energy_rounding_is_a_random_walk_not_a_drift(inertia, omega0):
     """Brouwer's law for a free body: each Strang step is the exact flow, so
     the energy error is rounding alone, and it must not have a sign.  Over
@@ -346,11 +357,14 @@ def test_effect_reading_momentum_without_a_kick_is_refused():
 TIMES, SAMPLES, IMPULSE = TORQUE_TIMES, TORQUE_SAMPLES, TORQUE_IMPULSE
 
 
-@pytest.mark.parametrize("solver,kw,tol", [
-    (lierk.RKMK4(), dict(dt=0.05), 1e-12),
-    (lierk.Strang(), dict(dt=0.05), 1e-12),
-    (lierk.BlanesMoan4(), dict(dt=0.05), 1e-12),
-])
+@pytest.mark.parametrize(
+    "solver,kw,tol",
+    [
+        (lierk.RKMK4(), dict(dt=0.05), 1e-12),
+        (lierk.Strang(), dict(dt=0.05), 1e-12),
+        (lierk.BlanesMoan4(), dict(dt=0.05), 1e-12),
+    ],
+)
 def test_sampled_body_torque_about_a_principal_axis(solver, kw, tol):
     """Spin about body z with a torque along body z: m3 grows by the impulse
     (the other components stay 0).  Fixed steps with the sample times on their
@@ -363,16 +377,21 @@ def test_sampled_body_torque_about_a_principal_axis(solver, kw, tol):
     assert np.abs(m[:2]).max() < 1e-14
 
 
-@pytest.mark.parametrize("solver,kw,tol", [
-    (lierk.DOP853(), dict(rtol=1e-12, atol=1e-12), 1e-10),
-    (lierk.Yoshida6(), dict(dt=0.02), 1e-10),
-])
+@pytest.mark.parametrize(
+    "solver,kw,tol",
+    [
+        (lierk.DOP853(), dict(rtol=1e-12, atol=1e-12), 1e-10),
+        (lierk.Yoshida6(), dict(dt=0.02), 1e-10),
+    ],
+)
 def test_space_torque_function_changes_L_by_its_integral(solver, kw, tol):
     """Any body: dL/dt = tau_space(t), so L(T) = L0 + int_0^T tau."""
     tau = lambda t: jnp.stack([0.2 * jnp.sin(3.0 * t), 0.1 * t, jnp.cos(t)])  # noqa: E731
     t1 = 2.0
     integral = np.array([0.2 * (1 - np.cos(3.0 * t1)) / 3.0, 0.05 * t1**2, np.sin(t1)])
-    body = lierk.RigidBodyWithEffects([1.0, 2.0, 2.5], [0.4, 2.0, -0.3], TILT, effects=lierk.TimedTorque(tau, frame="space"))
+    body = lierk.RigidBodyWithEffects(
+        [1.0, 2.0, 2.5], [0.4, 2.0, -0.3], TILT, effects=lierk.TimedTorque(tau, frame="space")
+    )
     sol = lierk.solve(body, solver, t1, **kw)
     L = np.asarray(sol.R[-1] @ sol.y[-1])
     assert np.abs(L - (np.asarray(body.L) + integral)).max() < tol
@@ -394,7 +413,9 @@ def test_sweeping_samples_does_not_recompile_and_differentiates():
     @jax.jit
     def final_m3(values):
         traces.append(1)
-        body = lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.0, 0.0, 0.7], effects=lierk.TimedTorque(values, times=TIMES))
+        body = lierk.RigidBodyWithEffects(
+            [1.0, 2.0, 3.0], [0.0, 0.0, 0.7], effects=lierk.TimedTorque(values, times=TIMES)
+        )
         return lierk.solve(body, lierk.RKMK4(), 2.5, dt=0.05).y[-1, 2]
 
     v = jnp.asarray(SAMPLES)
@@ -408,15 +429,18 @@ def test_sweeping_samples_does_not_recompile_and_differentiates():
     assert np.abs(g[:, :2]).max() < 1e-12
 
 
-@pytest.mark.parametrize("args,kw,match", [
-    (([[0, 0, 1.0]],), {}, "need their times"),
-    (([[0, 0, 1.0], [0, 0, 2.0]],), dict(times=[1.0, 1.0]), "strictly increasing"),
-    (([[0, 0, 1.0], [0, 0, 2.0]],), dict(times=[0.0, 1.0, 2.0]), r"shape \(3, 3\)"),
-    (([[0, 0, float("nan")]],), dict(times=[0.0]), "finite"),
-    ((lambda t: jnp.ones(2),), {}, r"shape \(3,\)"),
-    ((lambda t: jnp.ones(3),), dict(times=[0.0]), "times apply"),
-    (([[0, 0, 1.0]],), dict(times=[0.0], frame="world"), "frame"),
-])
+@pytest.mark.parametrize(
+    "args,kw,match",
+    [
+        (([[0, 0, 1.0]],), {}, "need their times"),
+        (([[0, 0, 1.0], [0, 0, 2.0]],), dict(times=[1.0, 1.0]), "strictly increasing"),
+        (([[0, 0, 1.0], [0, 0, 2.0]],), dict(times=[0.0, 1.0, 2.0]), r"shape \(3, 3\)"),
+        (([[0, 0, float("nan")]],), dict(times=[0.0]), "finite"),
+        ((lambda t: jnp.ones(2),), {}, r"shape \(3,\)"),
+        ((lambda t: jnp.ones(3),), dict(times=[0.0]), "times apply"),
+        (([[0, 0, 1.0]],), dict(times=[0.0], frame="world"), "frame"),
+    ],
+)
 def test_bad_timed_torques_raise(args, kw, match):
     with pytest.raises(ValueError, match=match):
         lierk.TimedTorque(*args, **kw)
@@ -452,13 +476,18 @@ def test_scene_timed_torque(tmp_path):
     sol = scene.solve()
     I3 = float(scene.problem.inertia[2, 2])
     assert abs(float(sol.y[-1, 2]) - (I3 * 0.7 + IMPULSE)) < 1e-12
-    bad = SCENE.replace("[0, 0, 0]]", "]").replace("torque = [[0, 0, 0], [0, 0, 0.4], [0, 0, 0.4], ]", "torque = [[0, 0, 0]]")
+    bad = SCENE.replace("[0, 0, 0]]", "]").replace(
+        "torque = [[0, 0, 0], [0, 0, 0.4], [0, 0, 0.4], ]", "torque = [[0, 0, 0]]"
+    )
     with pytest.raises(ValueError, match="one \\[x, y, z\\] per time"):
         lierk.app.scene.load(write(tmp_path, bad, "bad.toml"))
 
 
 def test_scene_gravity_mass_must_match_the_body(tmp_path):
-    text = SCENE.split("[[effects]]")[0] + '[[effects]]\nkind = "gravity"\npivot = [0, 0, -0.05]\nmass = 3.0\n[run]\nsolver = "RKMK4"\nt1 = 1.0\ndt = 0.01\n'
+    text = (
+        SCENE.split("[[effects]]")[0]
+        + '[[effects]]\nkind = "gravity"\npivot = [0, 0, -0.05]\nmass = 3.0\n[run]\nsolver = "RKMK4"\nt1 = 1.0\ndt = 0.01\n'
+    )
     with pytest.raises(ValueError, match=r"effects\[0\].mass = 3 kg differs from the body's mass 2 kg"):
         lierk.app.scene.load(write(tmp_path, text))
     same = text.replace("mass = 3.0\n[run]", "mass = 2.0\n[run]")
@@ -528,10 +557,13 @@ def test_heavy_top_released_at_rest_gradient():
     effects = (lierk.Gravity([0.0, 0.0, 0.5], 1.0, 9.81),)
 
     def final(w):
-        sol = lierk.solve(lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], w, R0, effects=effects), lierk.Strang(), 1.0, dt=0.05)
+        sol = lierk.solve(
+            lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], w, R0, effects=effects), lierk.Strang(), 1.0, dt=0.05
+        )
         return jnp.concatenate([sol.R[-1].ravel(), sol.y[-1]])
 
     weights = np.linspace(-1.0, 1.0, 12)
+
     # (The gradient as jacrev of the weighted sum: one program with jacfwd
     # and the finite differences.)
     def with_loss(w):

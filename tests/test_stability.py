@@ -36,7 +36,12 @@ def test_explicit_euler_leaves_so3():
     """The baseline drifts off the group: 10^4 steps of 0.01 s (measured: 0.46 after
     2500 steps, 3.1 after 10^4)."""
     sol = lierk.solve(
-        lierk.FreeRigidBody(TEE, OMEGA_GENERIC), lierk.ExplicitEuler(), 100.0, dt=0.01, saveat=lierk.SaveAt(steps=2_500), throw=False
+        lierk.FreeRigidBody(TEE, OMEGA_GENERIC),
+        lierk.ExplicitEuler(),
+        100.0,
+        dt=0.01,
+        saveat=lierk.SaveAt(steps=2_500),
+        throw=False,
     )
     err = np.asarray(sol.orthogonality_error)
     print(f"ExplicitEuler: ||R^T R - I|| every 2500 steps = {err}")
@@ -83,7 +88,12 @@ def test_tiny_rate():
     t1 = 3.0
     expected = t1 * np.asarray(so3.hat(w))
     off = ~np.eye(3, dtype=bool)
-    for solver, kw in [(lierk.RKMK4(), dict(dt=0.5)), (lierk.CF4(), dict(dt=0.5)), (lierk.LieEuler(), dict(dt=0.5)), (lierk.DP54(), dict(rtol=1e-8))]:
+    for solver, kw in [
+        (lierk.RKMK4(), dict(dt=0.5)),
+        (lierk.CF4(), dict(dt=0.5)),
+        (lierk.LieEuler(), dict(dt=0.5)),
+        (lierk.DP54(), dict(rtol=1e-8)),
+    ]:
         R = np.asarray(lierk.solve(lierk.FreeRigidBody(TEE, w), solver, t1, **kw).R[-1])
         np.testing.assert_allclose(R[off], expected[off], rtol=1e-9, err_msg=solver.name)
         assert so3.orthogonality_error(R) < 1e-15
@@ -181,5 +191,9 @@ def test_float32_adaptive():
 def test_vmapped_long_run_stays_on_so3():
     """A batch of omega0 under jit(vmap), 10^4 steps each: every member stays on SO(3)."""
     omegas = OMEGA_GENERIC + np.random.default_rng(10).standard_normal((3, 3))
-    run = jax.jit(jax.vmap(lambda w: lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 100.0, dt=0.01, max_steps=10_000).R[-1]))
+    run = jax.jit(
+        jax.vmap(
+            lambda w: lierk.solve(lierk.FreeRigidBody(TEE, w), lierk.RKMK4(), 100.0, dt=0.01, max_steps=10_000).R[-1]
+        )
+    )
     assert np.asarray(so3.orthogonality_error(run(omegas))).max() < 1e-13

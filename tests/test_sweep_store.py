@@ -8,7 +8,6 @@ import json
 
 import numpy as np
 import pytest
-
 from helpers import run_inprocess, write
 
 from lierk.app import store as S
@@ -90,9 +89,14 @@ def test_a_killed_write_leaves_no_chunk_and_no_temporary_file(tmp_path, monkeypa
     assert sorted(p.name for p in tmp_path.iterdir()) == [S.MANIFEST]
 
 
-@pytest.mark.parametrize("key, n, match", [({"grid": "xyz", "chunk_size": 4}, 3, "different grid"),
-                                           ({"grid": "abc", "chunk_size": 8}, 3, "different chunk_size"),
-                                           (KEY, 5, "different chunk count")])
+@pytest.mark.parametrize(
+    "key, n, match",
+    [
+        ({"grid": "xyz", "chunk_size": 4}, 3, "different grid"),
+        ({"grid": "abc", "chunk_size": 8}, 3, "different chunk_size"),
+        (KEY, 5, "different chunk count"),
+    ],
+)
 def test_another_run_is_refused(tmp_path, key, n, match):
     S.ChunkStore.open(tmp_path, key=KEY, n_chunks=3).write(0, chunk(0))
     with pytest.raises(ValueError, match=f"{match}.*refusing to mix"):
@@ -152,11 +156,14 @@ def test_sweep_resumes_bit_for_bit_and_refuses_another_run(tmp_path, capsys, mon
     assert sorted(p.name for p in (tmp_path / "cut").iterdir()) == ["tee_sweep.npz", "tee_sweep.png"]
 
 
-@pytest.mark.parametrize("extra, status, message", [
-    (["--chunk-size", "0"], 2, "--chunk-size must be a positive integer, got '0'"),
-    (["--chunk-size", "-3"], 2, "--chunk-size must be a positive integer"),
-    (["--num-processes", "2", "--process-id", "5", "--coordinator-address", "localhost:1"], 2, "process_id"),
-])
+@pytest.mark.parametrize(
+    "extra, status, message",
+    [
+        (["--chunk-size", "0"], 2, "--chunk-size must be a positive integer, got '0'"),
+        (["--chunk-size", "-3"], 2, "--chunk-size must be a positive integer"),
+        (["--num-processes", "2", "--process-id", "5", "--coordinator-address", "localhost:1"], 2, "process_id"),
+    ],
+)
 def test_sweep_bad_settings_are_one_line(tmp_path, capsys, extra, status, message):
     code, out, err = run_inprocess(["sweep", write(tmp_path, SCENE), "--out", tmp_path / "o", *ARGS, *extra], capsys)
     assert code == status and err.count("\n") == 1 and message in err, err

@@ -19,10 +19,10 @@ import re
 from pathlib import Path
 
 import jax.numpy as jnp
+import lagrange as lg
 import numpy as np
 import pytest
 
-import lagrange as lg
 import lierk
 
 EXAMPLE = Path(__file__).resolve().parent.parent / "examples" / "heavy_top.toml"
@@ -45,8 +45,14 @@ TOPS = {
     # Simo and Wong (1991): J = diag(5, 5, 1) about the pivot, M g l = 20, spin
     # 50, tilted 0.3 rad: a fast top (m3^2/(4 I1 M g l) = 6), nutation 0.027 rad.
     "simo_wong": dict(
-        inertia=np.diag([5.0, 5.0, 1.0]), chi=np.array([0.0, 0.0, 1.0]), mass=20.0 / 9.81, g=9.81,
-        R0=_ry(0.3), omega0=np.array([0.0, 0.0, 50.0]), t1=2.1, periods=3,
+        inertia=np.diag([5.0, 5.0, 1.0]),
+        chi=np.array([0.0, 0.0, 1.0]),
+        mass=20.0 / 9.81,
+        g=9.81,
+        R0=_ry(0.3),
+        omega0=np.array([0.0, 0.0, 50.0]),
+        t1=2.1,
+        periods=3,
     ),
     # DiffMan's dmex9 (Engo, Marthinsen, Munthe-Kaas): INERTIA = diag(7, 7, 2)/8,
     # MASS = 1, LENGTH = sqrt(3)/2, GRAVITY = 9.81, COG_VECTOR = e3, and the
@@ -59,8 +65,14 @@ TOPS = {
     # axis: 1/8 + 3/4 = 7/8.  Spin 1 rad/s: a slow top that swings from
     # tilt pi/16 to 3.05 rad, nearly hanging.
     "diffman": dict(
-        inertia=np.diag([7.0, 7.0, 2.0]) / 8, chi=np.array([0.0, 0.0, math.sqrt(3) / 2]), mass=1.0, g=9.81,
-        R0=_rx(-math.pi / 16), omega0=np.array([0.0, 0.0, 1.0]), t1=5.0, periods=2,
+        inertia=np.diag([7.0, 7.0, 2.0]) / 8,
+        chi=np.array([0.0, 0.0, math.sqrt(3) / 2]),
+        mass=1.0,
+        g=9.81,
+        R0=_rx(-math.pi / 16),
+        omega0=np.array([0.0, 0.0, 1.0]),
+        t1=5.0,
+        periods=2,
     ),
     # Bruls, Cardona and Arnold (2012, Mech. Mach. Theory 48): m = 15,
     # J_cm = diag(0.234375, 0.46875, 0.234375), centre of mass 1 m along body y,
@@ -72,8 +84,13 @@ TOPS = {
     # from horizontal to within 7e-7 rad of hanging straight down.
     "bca": dict(
         inertia=np.asarray(lierk.inertia.parallel_axis(np.diag([0.234375, 0.46875, 0.234375]), 15.0, [0.0, 1.0, 0.0])),
-        chi=np.array([0.0, 1.0, 0.0]), mass=15.0, g=9.81,
-        R0=np.eye(3), omega0=np.array([0.0, 150.0, -4.61538]), t1=2.0, periods=2,
+        chi=np.array([0.0, 1.0, 0.0]),
+        mass=15.0,
+        g=9.81,
+        R0=np.eye(3),
+        omega0=np.array([0.0, 150.0, -4.61538]),
+        t1=2.0,
+        periods=2,
     ),
 }
 N_GRID = 801  # saved times per solve: the same for every top, so each solver compiles once
@@ -291,8 +308,11 @@ def test_example_heavy_top_comments_are_exact():
     p = scene.problem
     (gravity,) = p.effects
     q = lg.lagrange_top(
-        np.asarray(p.inertia), np.asarray(gravity.pivot_to_com), float(gravity.mass * gravity.g),
-        np.asarray(p.R0), np.asarray(p.omega0),
+        np.asarray(p.inertia),
+        np.asarray(gravity.pivot_to_com),
+        float(gravity.mass * gravity.g),
+        np.asarray(p.R0),
+        np.asarray(p.omega0),
     )
     exact = dict(
         rate=q.mean_precession_rate, lo=q.theta_min, hi=q.theta_max, freq=q.nutation_frequency, period=q.period
@@ -314,11 +334,21 @@ def test_heavy_top_builds_what_a_scenes_pivot_builds(pivot):
     d = tomllib.loads(EXAMPLE.read_text())
     d["effects"][0]["pivot"] = pivot
     scene = lierk.app.scene.from_dict(copy.deepcopy(d))
-    parts = [lierk.inertia.Part(p["mass"], lierk.inertia.solid_cylinder(p["mass"], p["radius"], p["length"], p["axis"]),
-                                p["offset"]) for p in d["body"]["parts"]]
+    parts = [
+        lierk.inertia.Part(
+            p["mass"], lierk.inertia.solid_cylinder(p["mass"], p["radius"], p["length"], p["axis"]), p["offset"]
+        )
+        for p in d["body"]["parts"]
+    ]
     body = lierk.inertia.composite(parts)
-    top = lierk.heavy_top(body.inertia, body.mass, np.asarray(body.center_of_mass) - pivot, [0.0, 0.0, 150.0],
-                          lierk.so3.from_euler(0.0, 0.3, 0.0), g=9.81)
+    top = lierk.heavy_top(
+        body.inertia,
+        body.mass,
+        np.asarray(body.center_of_mass) - pivot,
+        [0.0, 0.0, 150.0],
+        lierk.so3.from_euler(0.0, 0.3, 0.0),
+        g=9.81,
+    )
     p = scene.problem
     np.testing.assert_allclose(np.asarray(top.inertia), np.asarray(p.inertia), rtol=1e-14, atol=1e-18)
     np.testing.assert_allclose(np.asarray(top.y0), np.asarray(p.y0), rtol=1e-14, atol=1e-18)

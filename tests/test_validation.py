@@ -42,8 +42,11 @@ def test_a_state_that_does_not_fit_the_dtype_is_refused(inertia, omega0, match):
 def test_the_range_is_the_working_dtypes():
     I, w = np.array([1e10, 2e10, 2.5e10]), np.array([1e10, 0.5e10, 0.4e10])
     lierk.FreeRigidBody(I, w)
-    with pytest.raises(ValueError, match=r"\|L\|\^2 = \|I omega\|\^2 = 3e\+40 overflows float32, whose normal numbers "
-                                         r"lie between 1.2e-38 and 3.4e\+38"):
+    with pytest.raises(
+        ValueError,
+        match=r"\|L\|\^2 = \|I omega\|\^2 = 3e\+40 overflows float32, whose normal numbers "
+        r"lie between 1.2e-38 and 3.4e\+38",
+    ):
         lierk.FreeRigidBody(I.astype(np.float32), w.astype(np.float32))
     assert validation.state_range_error(I, w, np.float64) is None
 
@@ -89,7 +92,9 @@ def test_a_traced_state_out_of_range_fails_at_run_time():
     np.testing.assert_array_equal(np.asarray(code), [0, lierk.RESULTS.invalid_problem])
     assert np.isfinite(np.asarray(R[0])).all() and np.isnan(np.asarray(R[1])).all()
     with pytest.raises(Exception, match="outside float64's range"):
-        jax.block_until_ready(jax.vmap(raising)(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W])))
+        jax.block_until_ready(
+            jax.vmap(raising)(jnp.array([[1.0, 2.0, 3.0], [1e-300, 1e-300, 1e-300]]), jnp.stack([W, W]))
+        )
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -114,7 +119,9 @@ def test_the_traced_range_check_decides_as_the_host_check(dtype):
         omegas.append(w.astype(dtype))
     with np.errstate(all="ignore"):
         host = np.array([validation.state_range_error(I, w, dtype) is None for I, w in zip(inertias, omegas)])
-    traced = np.asarray(jax.jit(jax.vmap(validation._in_range))(jnp.asarray(np.stack(inertias)), jnp.asarray(np.stack(omegas))))
+    traced = np.asarray(
+        jax.jit(jax.vmap(validation._in_range))(jnp.asarray(np.stack(inertias)), jnp.asarray(np.stack(omegas)))
+    )
     assert 100 < host.sum() < 500, host.sum()
     np.testing.assert_array_equal(traced, host)
 
@@ -166,9 +173,14 @@ def test_values_put_on_the_device_together_keep_their_dtype_and_bits():
         with jax.enable_x64(x64):
             values = (0.1, -0.0, np.array([1.0, 2.0]), 3, jnp.asarray(0.5))
             for dtype in (None, np.float32):
-                for a, b in zip(validation.as_jax_each(*values, dtype=dtype), (validation.as_jax(v, dtype) for v in values)):
+                for a, b in zip(
+                    validation.as_jax_each(*values, dtype=dtype), (validation.as_jax(v, dtype) for v in values)
+                ):
                     assert isinstance(a, jax.Array) and a.dtype == b.dtype and a.shape == b.shape
                     assert np.asarray(a).tobytes() == np.asarray(b).tobytes()
             c = lierk.Controller(1e-7, 1e-9)
-            assert (float(c.rtol), float(c.atol)) == (np.float64(1e-7).astype(c.rtol.dtype), np.float64(1e-9).astype(c.rtol.dtype))
+            assert (float(c.rtol), float(c.atol)) == (
+                np.float64(1e-7).astype(c.rtol.dtype),
+                np.float64(1e-9).astype(c.rtol.dtype),
+            )
             assert c.rtol.dtype == (np.float64 if x64 else np.float32)

@@ -26,9 +26,16 @@ JS, W0, U, I1, SPIN = 0.159, 100 * 2 * np.pi / 60, 0.2, 2.0, 0.35
 
 
 def despin(torque=U, dtype=np.float64, **wheel):
-    wheels = lierk.ReactionWheels(np.array([[0.0, 0.0, 1.0]], dtype), np.array([JS], dtype), np.array([W0], dtype),
-                                  torque=np.array([torque], dtype), **wheel)
-    return lierk.RigidBodyWithEffects(np.array([I1, I1, I1 + JS], dtype), np.array([0.0, 0.0, SPIN], dtype), effects=(wheels,))
+    wheels = lierk.ReactionWheels(
+        np.array([[0.0, 0.0, 1.0]], dtype),
+        np.array([JS], dtype),
+        np.array([W0], dtype),
+        torque=np.array([torque], dtype),
+        **wheel,
+    )
+    return lierk.RigidBodyWithEffects(
+        np.array([I1, I1, I1 + JS], dtype), np.array([0.0, 0.0, SPIN], dtype), effects=(wheels,)
+    )
 
 
 def despin_exact(t):
@@ -51,7 +58,9 @@ def u_smooth(t, xp=jnp):
 
 
 T_SAMPLES = np.array([0.0, 5.0, 10.0, 20.0])
-U_SAMPLES = np.array([[0.0, 0.0, 0.0, 0.0], [0.02, -0.01, 0.005, 0.0], [0.0, 0.01, -0.02, 0.01], [0.0, 0.0, 0.0, -0.01]])
+U_SAMPLES = np.array(
+    [[0.0, 0.0, 0.0, 0.0], [0.02, -0.01, 0.005, 0.0], [0.0, 0.01, -0.02, 0.01], [0.0, 0.0, 0.0, -0.01]]
+)
 
 
 def u_sampled(t):
@@ -101,8 +110,14 @@ def omega_and_speeds(body, sol):
 
 @pytest.mark.parametrize(
     "solver, kw",
-    [(lierk.RKMK4(), dict(dt=0.05)), (lierk.CF4(), dict(dt=0.05)), (lierk.LieEuler(), dict(dt=0.05)),
-     (lierk.RKF45(), dict(rtol=1e-8)), (lierk.DP54(), dict(rtol=1e-8)), (lierk.DOP853(), dict(rtol=1e-8))],
+    [
+        (lierk.RKMK4(), dict(dt=0.05)),
+        (lierk.CF4(), dict(dt=0.05)),
+        (lierk.LieEuler(), dict(dt=0.05)),
+        (lierk.RKF45(), dict(rtol=1e-8)),
+        (lierk.DP54(), dict(rtol=1e-8)),
+        (lierk.DOP853(), dict(rtol=1e-8)),
+    ],
     ids=lambda x: getattr(x, "name", ""),
 )
 def test_despin_follows_basilisks_closed_form(solver, kw):
@@ -190,10 +205,13 @@ def test_against_scipy_sampled_torques_and_gravity_gradient():
     # program), which is not what this test is about.
     part = body
     for t0, t1 in zip([0.0, 5.0, 10.0, 20.0], [5.0, 10.0, 20.0, 30.0]):
-        sol = lierk.solve(part, lierk.DOP853(), jnp.asarray(t1), t0=jnp.asarray(t0), rtol=1e-12, atol=1e-12, max_steps=20000)
+        sol = lierk.solve(
+            part, lierk.DOP853(), jnp.asarray(t1), t0=jnp.asarray(t0), rtol=1e-12, atol=1e-12, max_steps=20000
+        )
         part = body.restart(sol.R[-1], jax.tree_util.tree_map(lambda x: x[-1], sol.y))
-    R_ref, w_ref, Om_ref = scipy_final(basilisk_rhs(I_BODY, AXES_UNIT, JS4, u_sampled, gg_torque), OMEGA0, SPEEDS4, 30.0,
-                                       T_SAMPLES)
+    R_ref, w_ref, Om_ref = scipy_final(
+        basilisk_rhs(I_BODY, AXES_UNIT, JS4, u_sampled, gg_torque), OMEGA0, SPEEDS4, 30.0, T_SAMPLES
+    )
     w, Om = omega_and_speeds(body, sol)
     assert np.linalg.norm(np.asarray(sol.R[-1]) - R_ref) < 1e-9
     assert np.linalg.norm(w[-1] - w_ref) < 1e-9 * np.linalg.norm(w_ref)
@@ -206,8 +224,9 @@ def test_against_scipy_a_torque_function_and_damping_with_every_kind_of_solver()
     c = 0.3
     body = pyramid(lambda t: u_smooth(t), effects=(lierk.Damping(c),))
     t1 = 10.0
-    R_ref, w_ref, Om_ref = scipy_final(basilisk_rhs(I_BODY, AXES_UNIT, JS4, lambda t: u_smooth(t, np), lambda t, R, w: -c * w),
-                                       OMEGA0, SPEEDS4, t1)
+    R_ref, w_ref, Om_ref = scipy_final(
+        basilisk_rhs(I_BODY, AXES_UNIT, JS4, lambda t: u_smooth(t, np), lambda t, R, w: -c * w), OMEGA0, SPEEDS4, t1
+    )
     sol = lierk.solve(body, lierk.DOP853(), t1, rtol=1e-12, atol=1e-12)
     w, Om = omega_and_speeds(body, sol)
     assert np.linalg.norm(np.asarray(sol.R[-1]) - R_ref) < 1e-10
@@ -295,7 +314,9 @@ def test_sensitivity_both_methods_against_finite_differences():
     # Central differences of the fixed-step solve whose derivative is taken
     # below (its error against the exact flow, ~1e-10 here, is below the
     # bound; a tight DOP853 solve took three times as long to compile).
-    solve = jax.jit(lambda w: (lambda s: (s.R[-1], s.y[1][-1]))(lierk.solve(body.with_omega0(w), lierk.RKMK4(), t1, dt=0.01)))
+    solve = jax.jit(
+        lambda w: (lambda s: (s.R[-1], s.y[1][-1]))(lierk.solve(body.with_omega0(w), lierk.RKMK4(), t1, dt=0.01))
+    )
     R = np.asarray(solve(OMEGA0)[0])
     J, J_speeds = np.zeros((3, 3)), np.zeros((4, 3))
     for j in range(3):
@@ -303,10 +324,15 @@ def test_sensitivity_both_methods_against_finite_differences():
         (Rp, Op), (Rm, Om) = solve(OMEGA0 + e), solve(OMEGA0 - e)
         J[:, j] = np.asarray(lierk.so3.vee(jnp.asarray(R.T @ (np.asarray(Rp) - np.asarray(Rm)) / (2 * eps))))
         J_speeds[:, j] = (np.asarray(Op) - np.asarray(Om)) / (2 * eps)
-    for solver, method, kw in ((lierk.DP54(), "variational", dict(rtol=1e-10)), (lierk.RKMK4(), "derivative", dict(dt=0.01))):
+    for solver, method, kw in (
+        (lierk.DP54(), "variational", dict(rtol=1e-10)),
+        (lierk.RKMK4(), "derivative", dict(dt=0.01)),
+    ):
         s = lierk.sensitivity(body, solver, t1, method=method, estimate_error=False, **kw)
         np.testing.assert_allclose(np.asarray(s.jacobian), J, atol=1e-6 * np.abs(J).max(), err_msg=method)
-        np.testing.assert_allclose(np.asarray(s.jacobian_y[1]), J_speeds, atol=1e-6 * np.abs(J_speeds).max(), err_msg=method)
+        np.testing.assert_allclose(
+            np.asarray(s.jacobian_y[1]), J_speeds, atol=1e-6 * np.abs(J_speeds).max(), err_msg=method
+        )
 
 
 def test_modes_bound_the_gyrostat_nutation():
@@ -336,15 +362,22 @@ def test_splittings_refuse_the_wheels_when_traced():
             lierk.solve(body, solver, 1.0, dt=0.1)
     with pytest.raises(ValueError, match="splitting"):
         lierk.sensitivity(body, lierk.Strang(), 1.0, dt=0.1, method="derivative")
-    assert body.splitting_refusal is not None and lierk.FreeRigidBody([1.0, 2.0, 3.0], [1.0, 0.0, 0.0]).splitting_refusal is None
+    assert (
+        body.splitting_refusal is not None
+        and lierk.FreeRigidBody([1.0, 2.0, 3.0], [1.0, 0.0, 0.0]).splitting_refusal is None
+    )
 
 
 def test_the_wheels_are_traced_only_where_a_body_has_them():
     def scopes(p):
-        text = jax.make_jaxpr(lambda p, R, y: lierk.RKMK4().step(p, 0.0, 0.01, R, y))(p, p.R0, p.y0).pretty_print(name_stack=True)
+        text = jax.make_jaxpr(lambda p, R, y: lierk.RKMK4().step(p, 0.0, 0.01, R, y))(p, p.R0, p.y0).pretty_print(
+            name_stack=True
+        )
         return "lierk_effect_ReactionWheels" in text
 
-    top = lierk.RigidBodyWithEffects([5.0, 5.0, 1.0], [0.0, 0.3, 50.0], effects=(lierk.Gravity([0.0, 0.0, 1.0], 1.0, 20.0),))
+    top = lierk.RigidBodyWithEffects(
+        [5.0, 5.0, 1.0], [0.0, 0.3, 50.0], effects=(lierk.Gravity([0.0, 0.0, 1.0], 1.0, 20.0),)
+    )
     assert not scopes(lierk.FreeRigidBody(I_BODY, OMEGA0)) and not scopes(top)
     assert scopes(pyramid())
     # Free wheels add no motor torque: fewer operations than driven ones.
@@ -377,13 +410,22 @@ def one_wheel(**kw):
         (lambda: one_wheel(torque=lambda t: jnp.zeros(2)), r"return shape \(1,\)"),
         (lambda: one_wheel(torque=[np.inf]), "torque must be finite"),
         # Js = 1.5 about x leaves I - G with -0.5 there: I is the whole spacecraft's.
-        (lambda: lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], effects=(
-            lierk.Damping(0.1), lierk.ReactionWheels([[1.0, 0.0, 0.0]], [1.5], [0.0]))),
-         r"effects\[1\].spin_inertia: .* I - G positive definite"),
-        (lambda: lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], effects=(one_wheel(), one_wheel())),
-         r"effects\[1\]: a body takes one ReactionWheels"),
-        (lambda: lierk._problems.Variational(pyramid(), np.zeros((3, 3)), (np.zeros((3, 3)), np.zeros((3, 2)))),
-         r"dOmega0 must have shape \(3, 4\)"),
+        (
+            lambda: lierk.RigidBodyWithEffects(
+                [1.0, 2.0, 3.0],
+                [0.0, 0.0, 0.0],
+                effects=(lierk.Damping(0.1), lierk.ReactionWheels([[1.0, 0.0, 0.0]], [1.5], [0.0])),
+            ),
+            r"effects\[1\].spin_inertia: .* I - G positive definite",
+        ),
+        (
+            lambda: lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.0, 0.0, 0.0], effects=(one_wheel(), one_wheel())),
+            r"effects\[1\]: a body takes one ReactionWheels",
+        ),
+        (
+            lambda: lierk._problems.Variational(pyramid(), np.zeros((3, 3)), (np.zeros((3, 3)), np.zeros((3, 2)))),
+            r"dOmega0 must have shape \(3, 4\)",
+        ),
     ],
 )
 def test_bad_input_is_refused_by_name(make, match):
@@ -398,8 +440,9 @@ def test_a_traced_spin_inertia_is_checked_when_the_program_runs():
     import equinox as eqx
 
     def body(js):
-        return lierk.RigidBodyWithEffects([1.0, 2.0, 3.0], [0.1, 0.0, 0.0],
-                                          effects=(lierk.ReactionWheels([[1.0, 0.0, 0.0]], js, [0.0]),))
+        return lierk.RigidBodyWithEffects(
+            [1.0, 2.0, 3.0], [0.1, 0.0, 0.0], effects=(lierk.ReactionWheels([[1.0, 0.0, 0.0]], js, [0.0]),)
+        )
 
     inertia = eqx.filter_jit(lambda js: body(js).inertia)
     assert float(inertia(jnp.array([0.5]))[0, 0]) == 1.0
@@ -408,7 +451,9 @@ def test_a_traced_spin_inertia_is_checked_when_the_program_runs():
     assert int(result(jnp.array([0.5]))) == 0
     assert int(result(jnp.array([1.5]))) == lierk.RESULTS.invalid_problem
     with pytest.raises(Exception, match="positive-definite spin inertias"):
-        jax.block_until_ready(eqx.filter_jit(lambda js: lierk.solve(body(js), lierk.RKMK4(), 0.1, dt=0.05).R)(jnp.array([1.5])))
+        jax.block_until_ready(
+            eqx.filter_jit(lambda js: lierk.solve(body(js), lierk.RKMK4(), 0.1, dt=0.05).R)(jnp.array([1.5]))
+        )
 
 
 def test_the_wheels_add_no_torque_of_their_own():
@@ -445,8 +490,11 @@ torque = [[0.0, 0.0, 0.0, 0.0], [0.02, -0.01, 0.005, 0.0], [0.0, 0.01, -0.02, 0.
 
 def test_scene_reaction_wheels_are_the_library_effect():
     scene = lierk.app.scene.from_dict(tomllib.loads(SCENE.format(wheels=WHEELS)), "sat")
-    direct = lierk.RigidBodyWithEffects(I_BODY, OMEGA0, effects=(lierk.Damping(0.3), lierk.ReactionWheels(
-        AXES, JS4, SPEEDS4, torque=U_SAMPLES, times=T_SAMPLES)))
+    direct = lierk.RigidBodyWithEffects(
+        I_BODY,
+        OMEGA0,
+        effects=(lierk.Damping(0.3), lierk.ReactionWheels(AXES, JS4, SPEEDS4, torque=U_SAMPLES, times=T_SAMPLES)),
+    )
     a, b = scene.solve(), lierk.solve(direct, lierk.DP54(), 5.0, rtol=1e-9, saveat=scene.saveat())
     np.testing.assert_allclose(np.asarray(a.y[1]), np.asarray(b.y[1]), rtol=1e-14)
     np.testing.assert_allclose(np.asarray(a.R), np.asarray(b.R), atol=1e-14)
@@ -467,8 +515,9 @@ def test_simulate_saves_the_wheel_speeds_and_the_whole_spacecrafts_momentum():
     np.testing.assert_array_equal(rec["wheel_speeds"], speeds[: len(rec["ts"])])
     np.testing.assert_array_equal(rec["y"], m[: len(rec["ts"])])
     H = m + (JS4 * speeds) @ AXES_UNIT
-    np.testing.assert_allclose(rec["L"], np.einsum("nij,nj->ni", np.asarray(sim.solution.R), H)[: len(rec["ts"])],
-                               rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(
+        rec["L"], np.einsum("nij,nj->ni", np.asarray(sim.solution.R), H)[: len(rec["ts"])], rtol=1e-12, atol=1e-12
+    )
 
 
 Z = "axes = [[0.0, 0.0, 1.0]]\nspin_inertia = [0.1]\n"  # one wheel about body z
@@ -504,7 +553,10 @@ def test_restart_refuses_a_state_unlike_the_wheels_by_name():
         "the speeds' trajectory": ((m, np.stack([speeds] * 5)), r"y0\[1\] has shape \(5, 4\).*a saved trajectory"),
         "one array": (np.concatenate([m, speeds]), "y0 must have the structure of the problem's state, " + pair),
         "a list": ([m, speeds], "y0 must have the structure .*, got \\[float64\\[3\\], float64\\[4\\]\\]"),
-        "three speeds for four wheels": ((m, speeds[:3]), r"y0\[1\] has shape \(3,\), where the problem's state " + pair),
+        "three speeds for four wheels": (
+            (m, speeds[:3]),
+            r"y0\[1\] has shape \(3,\), where the problem's state " + pair,
+        ),
         "float32": ((m, speeds.astype(np.float32)), r"y0\[1\] is float32"),
     }
     for name, (y, match) in cases.items():

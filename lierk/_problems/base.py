@@ -32,7 +32,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import exact, so3, _validation as validation
+from .. import _validation as validation
+from .. import exact, so3
 from .effects import affine_flow
 from .kinematics import kinetic_energy
 
@@ -234,9 +235,11 @@ class AbstractRigidBody(AbstractProblem):
         # exactly: w = a m entry by entry).
         m0, m1, m2 = m[..., 0], m[..., 1], m[..., 2]
         w0, w1, w2 = w[..., 0], w[..., 1], w[..., 2]
-        X = [[m1 * A[..., 2, j] - m2 * A[..., 1, j] for j in range(3)],
-             [m2 * A[..., 0, j] - m0 * A[..., 2, j] for j in range(3)],
-             [m0 * A[..., 1, j] - m1 * A[..., 0, j] for j in range(3)]]
+        X = [
+            [m1 * A[..., 2, j] - m2 * A[..., 1, j] for j in range(3)],
+            [m2 * A[..., 0, j] - m0 * A[..., 2, j] for j in range(3)],
+            [m0 * A[..., 1, j] - m1 * A[..., 0, j] for j in range(3)],
+        ]
         W = [[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]]
         J = [[X[i][j] - W[i][j] for j in range(3)] for i in range(3)]
         c2 = validation._principal_minors(J)

@@ -37,7 +37,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import so3, _validation as validation
+from .. import _validation as validation
+from .. import so3
 
 __all__ = [
     "AbstractEffect",
@@ -339,7 +340,9 @@ class TimedTorque(AbstractEffect):
                 raise ValueError("times apply to sampled torques; a torque function takes the time itself")
             out = jax.eval_shape(torque, jax.ShapeDtypeStruct((), jnp.result_type(float)))
             if getattr(out, "shape", None) != (3,):
-                raise ValueError(f"a torque function must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}")
+                raise ValueError(
+                    f"a torque function must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}"
+                )
             self.fn, self.times, self.values = torque, None, None
             return
         if times is None:

@@ -31,7 +31,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import exact, so3, _validation as validation
+from .. import _validation as validation
+from .. import exact, so3
 from ..inertia import parallel_axis
 from .base import AbstractRigidBody
 from .effects import AbstractEffect, Gravity
@@ -131,8 +132,11 @@ class RigidBodyWithEffects(AbstractRigidBody):
             # Traced, the check rides on the values it guards (a discarded
             # check would be dropped from the program).
             self.inertia, axes, spin_inertia = checked
-            self.effects = eqx.tree_at(lambda es: (es[self.wheel_index].axes, es[self.wheel_index].spin_inertia),
-                                       self.effects, (axes, spin_inertia))
+            self.effects = eqx.tree_at(
+                lambda es: (es[self.wheel_index].axes, es[self.wheel_index].spin_inertia),
+                self.effects,
+                (axes, spin_inertia),
+            )
             self.y0 = (m0, w.speeds)
         # From the argument as given: the checked copy may be traced (its checks
         # join the traced R0's) even when the inertia itself is a constant.
@@ -219,7 +223,9 @@ class RigidBodyWithEffects(AbstractRigidBody):
         # Constants stay NumPy: every stage asks for them, and jax.numpy would
         # trace the same constant operations again each time.
         xp = np if all(isinstance(v, np.ndarray) for v in vs) else jnp
-        return xp.concatenate([xp.asarray(v, self.R0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.R0.dtype)])
+        return xp.concatenate(
+            [xp.asarray(v, self.R0.dtype).reshape(-1, 3) for v in vs] + [xp.zeros((0, 3), self.R0.dtype)]
+        )
 
     # Stages never need the whole attitude when every effect reads it only
     # through the body images R^T s of a few space-fixed vectors s (gravity's
@@ -559,8 +565,13 @@ def _solve3(M: Array, r: Array) -> Array:
     c0, c1, c2 = M[0], M[1], M[2]
     a, b, c = so3.cross(c1, c2), so3.cross(c2, c0), so3.cross(c0, c1)
     det = c0[0] * a[0] + c0[1] * a[1] + c0[2] * a[2]
-    x = jnp.stack([a[0] * r[0] + a[1] * r[1] + a[2] * r[2], b[0] * r[0] + b[1] * r[1] + b[2] * r[2],
-                   c[0] * r[0] + c[1] * r[1] + c[2] * r[2]])
+    x = jnp.stack(
+        [
+            a[0] * r[0] + a[1] * r[1] + a[2] * r[2],
+            b[0] * r[0] + b[1] * r[1] + b[2] * r[2],
+            c[0] * r[0] + c[1] * r[1] + c[2] * r[2],
+        ]
+    )
     return x / det
 
 
@@ -580,8 +591,11 @@ def _check_wheels(inertia: Array, axes: Array, spin_inertia: Array, path: str) -
             # Sylvester's leading minors, as `validation.check_inertia`.
             A = x[0] - _spin_matrix(x[2], x[1])
             minor2 = A[0, 0] * A[1, 1] - A[0, 1] * A[1, 0]
-            det = (A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1]) - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
-                   + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0]))
+            det = (
+                A[0, 0] * (A[1, 1] * A[2, 2] - A[1, 2] * A[2, 1])
+                - A[0, 1] * (A[1, 0] * A[2, 2] - A[1, 2] * A[2, 0])
+                + A[0, 2] * (A[1, 0] * A[2, 1] - A[1, 1] * A[2, 0])
+            )
             return (A[0, 0] > 0) & (minor2 > 0) & (det > 0)
 
         return validation.check((inertia, axes, spin_inertia), positive_definite, message + "; got {value}")
@@ -664,5 +678,6 @@ def heavy_top(
         effects = (effects,)
     gravity = Gravity(pivot_to_com, mass, g)
     inertia = validation.check_inertia(inertia_cm)
-    return RigidBodyWithEffects(parallel_axis(inertia, gravity.mass, gravity.pivot_to_com), omega0, R0,
-                                (gravity, *tuple(effects)))
+    return RigidBodyWithEffects(
+        parallel_axis(inertia, gravity.mass, gravity.pivot_to_com), omega0, R0, (gravity, *tuple(effects))
+    )

@@ -44,7 +44,8 @@ import numpy as np
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import so3, _validation as validation
+from .. import _validation as validation
+from .. import so3
 from .effects import AbstractEffect, affine_flow
 
 __all__ = [
@@ -137,7 +138,9 @@ class GravityGradient(AbstractEffect):
         self.phase = validation.check_scalar(phase, "phase")
         if position is not None:
             if radius is not None or mean_motion is not None:
-                raise ValueError("give the orbit as position= or as a circular orbit (radius= or mean_motion=), not both")
+                raise ValueError(
+                    "give the orbit as position= or as a circular orbit (radius= or mean_motion=), not both"
+                )
             out = jax.eval_shape(position, jax.ShapeDtypeStruct((), jnp.result_type(float)))
             if getattr(out, "shape", None) != (3,):
                 raise ValueError(f"position must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}")
@@ -222,7 +225,13 @@ def dipole_field(
     """
     if mean_motion is None and radius is None:
         raise ValueError("give the orbit as mean_motion= (rad/s), radius= (m), or both")
-    for name, value in (("mean_motion", mean_motion), ("radius", radius), ("mu", mu), ("B0", B0), ("planet_radius", planet_radius)):
+    for name, value in (
+        ("mean_motion", mean_motion),
+        ("radius", radius),
+        ("mu", mu),
+        ("B0", B0),
+        ("planet_radius", planet_radius),
+    ):
         _positive(value, name)
     if not np.isfinite(tilt):
         raise ValueError(f"tilt must be finite (rad), got {tilt!r}")
@@ -230,8 +239,12 @@ def dipole_field(
     a = (float(mu) / n**2) ** (1.0 / 3.0) if radius is None else float(radius)
     strength = float(B0) * (float(planet_radius) / a) ** 3
     d = -np.array([np.sin(tilt), 0.0, np.cos(tilt)])
-    return _DipoleField(*(validation.asarray(x, name=name) for x, name in (
-        (n, "mean_motion"), (phase, "phase"), (strength, "B0"), (d, "tilt"))))
+    return _DipoleField(
+        *(
+            validation.asarray(x, name=name)
+            for x, name in ((n, "mean_motion"), (phase, "phase"), (strength, "B0"), (d, "tilt"))
+        )
+    )
 
 
 class _DipoleField(eqx.Module):
@@ -248,8 +261,9 @@ class _DipoleField(eqx.Module):
     def __call__(self, t):
         t = jnp.asarray(t)
         dtype = t.dtype if jnp.issubdtype(t.dtype, jnp.floating) else jnp.result_type(float)
-        n, phase, strength, dd = (jnp.asarray(x, dtype) for x in (self.mean_motion, self.phase, self.strength,
-                                                                  self.direction))
+        n, phase, strength, dd = (
+            jnp.asarray(x, dtype) for x in (self.mean_motion, self.phase, self.strength, self.direction)
+        )
         u = circular_orbit(t.astype(dtype), n, phase)
         # d . u by components: jnp.dot is a reduction, a kernel of its own at
         # every stage, where the products fuse with what reads the field.
@@ -291,7 +305,9 @@ class MagneticTorque(AbstractEffect):
 
     def __init__(self, field: Callable, dipole=None, bdot_gain=None):
         if not callable(field):
-            raise ValueError(f"field must be a function t -> B(t) (T, space frame), e.g. lierk.dipole_field(...), got {field!r}")
+            raise ValueError(
+                f"field must be a function t -> B(t) (T, space frame), e.g. lierk.dipole_field(...), got {field!r}"
+            )
         out = jax.eval_shape(field, jax.ShapeDtypeStruct((), jnp.result_type(float)))
         if getattr(out, "shape", None) != (3,):
             raise ValueError(f"field must return shape (3,) for a scalar time, got {getattr(out, 'shape', out)}")
@@ -370,7 +386,9 @@ def _wheel_axes(axes) -> Array:
         norms = np.linalg.norm(np.asarray(a, float), axis=1)
         bad = np.flatnonzero(~(norms > 1e-12) | ~np.isfinite(norms))
         if bad.size:
-            raise ValueError(f"wheel axis {int(bad[0])} must be a nonzero finite vector, got {np.asarray(a)[bad[0]].tolist()}")
+            raise ValueError(
+                f"wheel axis {int(bad[0])} must be a nonzero finite vector, got {np.asarray(a)[bad[0]].tolist()}"
+            )
     return a / jnp.linalg.norm(a, axis=1, keepdims=True)
 
 
@@ -438,13 +456,17 @@ class Rotor(AbstractEffect):
                 raise ValueError("a wheel momentum function needs the wheels' axes=")
             out = jax.eval_shape(momentum, jax.ShapeDtypeStruct((), jnp.result_type(float)))
             if getattr(out, "shape", None) != (self.axes.shape[0],):
-                raise ValueError(f"momentum must return shape ({self.axes.shape[0]},), one per wheel, got {getattr(out, 'shape', out)}")
+                raise ValueError(
+                    f"momentum must return shape ({self.axes.shape[0]},), one per wheel, got {getattr(out, 'shape', out)}"
+                )
             self.profile, self.h0 = momentum, jnp.zeros((self.axes.shape[0],), self.axes.dtype)
             return
         k = 3 if self.axes is None else self.axes.shape[0]
         h0 = validation.asarray(momentum, name="momentum")
         if h0.shape != (k,):
-            raise ValueError(f"momentum must have shape ({k},) ({'body frame' if self.axes is None else 'one per wheel'}), got {h0.shape}")
+            raise ValueError(
+                f"momentum must have shape ({k},) ({'body frame' if self.axes is None else 'one per wheel'}), got {h0.shape}"
+            )
         self.h0 = validation.check(h0, lambda x: (abs(x) < float("inf")).all(), "momentum must be finite, got {value}")
         if torque is None:
             if times is not None:
@@ -455,9 +477,15 @@ class Rotor(AbstractEffect):
         times = validation.asarray(times, name="times")
         torque = validation.asarray(torque, name="torque")
         if times.ndim != 1 or times.shape[0] < 2 or torque.shape != (times.shape[0], k):
-            raise ValueError(f"torque must have shape (n, {k}) at times (n,), n >= 2, got {torque.shape} and {times.shape}")
-        self.times = validation.check(times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}")
-        self.torques = validation.check(torque, lambda x: (abs(x) < float("inf")).all(), "torque must be finite, got {value}")
+            raise ValueError(
+                f"torque must have shape (n, {k}) at times (n,), n >= 2, got {torque.shape} and {times.shape}"
+            )
+        self.times = validation.check(
+            times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
+        )
+        self.torques = validation.check(
+            torque, lambda x: (abs(x) < float("inf")).all(), "torque must be finite, got {value}"
+        )
 
     @property
     def driven(self) -> bool:
@@ -488,7 +516,9 @@ class Rotor(AbstractEffect):
         """Wheel momenta ``h0 + int_0^t u`` and torques ``u(t)`` ``(k,)`` of the
         piecewise-linear samples held outside their times: exact."""
         u = jax.vmap(lambda col: jnp.interp(t, self.times, col), in_axes=1)(self.torques)
-        return self.h0 + _torque_integral(self.times, self.torques, t) - _torque_integral(self.times, self.torques, 0.0), u
+        return self.h0 + _torque_integral(self.times, self.torques, t) - _torque_integral(
+            self.times, self.torques, 0.0
+        ), u
 
     def space_vectors(self):
         return np.zeros((0, 3), self.h0.dtype)
@@ -616,25 +646,35 @@ class ReactionWheels(AbstractEffect):
                 raise ValueError("times apply to sampled torques; a torque function takes the time itself")
             out = jax.eval_shape(torque, jax.ShapeDtypeStruct((), jnp.result_type(float)))
             if getattr(out, "shape", None) != (k,):
-                raise ValueError(f"a motor torque function must return shape ({k},), one per wheel, for a scalar time, "
-                                 f"got {getattr(out, 'shape', out)}")
+                raise ValueError(
+                    f"a motor torque function must return shape ({k},), one per wheel, for a scalar time, "
+                    f"got {getattr(out, 'shape', out)}"
+                )
             self.fn = torque
             return
         u = validation.asarray(torque, name="torque")
         if times is None:
             if u.shape != (k,):
-                raise ValueError(f"a constant motor torque must have shape ({k},), one per wheel (N m); samples "
-                                 f"(n, {k}) need times=; got shape {u.shape}")
+                raise ValueError(
+                    f"a constant motor torque must have shape ({k},), one per wheel (N m); samples "
+                    f"(n, {k}) need times=; got shape {u.shape}"
+                )
         else:
             times = validation.asarray(times, name="times")
             if times.ndim != 1 or times.shape[0] < 1 or u.shape != (times.shape[0], k):
-                raise ValueError(f"sampled motor torques must have shape (n, {k}), one row per time, at times (n,); "
-                                 f"got {u.shape} and {times.shape}")
-            times = validation.check(times, lambda v: (abs(v) < float("inf")).all(), "times must be finite, got {value}")
+                raise ValueError(
+                    f"sampled motor torques must have shape (n, {k}), one row per time, at times (n,); "
+                    f"got {u.shape} and {times.shape}"
+                )
+            times = validation.check(
+                times, lambda v: (abs(v) < float("inf")).all(), "times must be finite, got {value}"
+            )
             self.times = validation.check(
                 times, lambda v: (v[1:] > v[:-1]).all(), "times must be strictly increasing, got {value}"
             )
-        self.torques = validation.check(u, lambda x: (abs(x) < float("inf")).all(), "torque must be finite, got {value}")
+        self.torques = validation.check(
+            u, lambda x: (abs(x) < float("inf")).all(), "torque must be finite, got {value}"
+        )
 
     @property
     def driven(self) -> bool:
@@ -709,4 +749,6 @@ def _per_wheel(x, name: str, k: int, unit: str):
     a = validation.asarray(x, name=name)
     if a.shape != (k,):
         raise ValueError(f"{name} must have shape ({k},), one per wheel ({unit}), got shape {a.shape}")
-    return validation.check(a, lambda v: (abs(v) < float("inf")).all(), f"{name} must be finite ({unit}), got {{value}}")
+    return validation.check(
+        a, lambda v: (abs(v) < float("inf")).all(), f"{name} must be finite ({unit}), got {{value}}"
+    )

@@ -7,7 +7,8 @@ import jax.numpy as jnp
 from jax import Array
 from jax.typing import ArrayLike
 
-from .. import so3, _validation as validation
+from .. import _validation as validation
+from .. import so3
 from .base import AbstractRigidBody
 
 __all__ = ["SpatialFreeRigidBody"]

@@ -69,7 +69,9 @@ class Variational(AbstractProblem):
 
     def __init__(self, problem: RigidBodyWithEffects, xi0: Array, dm0: Any):
         if not isinstance(problem, RigidBodyWithEffects):
-            raise ValueError(f"Variational needs a RigidBodyWithEffects (or FreeRigidBody), got {type(problem).__name__}")
+            raise ValueError(
+                f"Variational needs a RigidBodyWithEffects (or FreeRigidBody), got {type(problem).__name__}"
+            )
         dtype = problem.R0.dtype
         wheels = problem.wheels
         dspeeds0 = None
@@ -97,7 +99,9 @@ class Variational(AbstractProblem):
         k = wheels.axes.shape[0]
         dspeeds0 = jnp.zeros((xi0.shape[0], k), dtype) if dspeeds0 is None else jnp.asarray(dspeeds0, dtype)
         if dspeeds0.shape != (xi0.shape[0], k):
-            raise ValueError(f"dOmega0 must have shape ({xi0.shape[0]}, {k}), one row per direction, got {dspeeds0.shape}")
+            raise ValueError(
+                f"dOmega0 must have shape ({xi0.shape[0]}, {k}), one row per direction, got {dspeeds0.shape}"
+            )
         self.y0 = (problem.y0, xi0, (dm0, dspeeds0))
         # The wheel speeds move with the body's rate (a free wheel keeps its
         # absolute spin), so the direction's angular velocity sizes their

@@ -15,9 +15,8 @@ tableau in R^n.  An embedded pair's error estimate is taken in the algebra
 
 from __future__ import annotations
 
-from typing import ClassVar
-
 import copy
+from typing import ClassVar
 
 import equinox as eqx
 import jax

@@ -49,7 +49,9 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from .. import _interpolation as interpolation, so3
+from .. import _interpolation as interpolation
+from .. import so3
+from .._problems.base import AbstractRigidBody
 from ..tableaux import (
     BLANES_MOAN4,
     BLANES_MOAN6,
@@ -60,7 +62,6 @@ from ..tableaux import (
     YOSHIDA6,
     SplittingScheme,
 )
-from .._problems.base import AbstractRigidBody
 from .base import AbstractSolver, Step
 
 __all__ = [

@@ -19,8 +19,23 @@ importing one part loads neither matplotlib nor the others:
 
 import importlib as _importlib
 
-_MODULES = ("accuracy", "cache", "cli", "cli_arguments", "compilations", "demo", "diagnostics",
-            "distributed", "omega_sweep", "plot", "scene", "scene_schema", "segments", "simulation", "store")
+_MODULES = (
+    "accuracy",
+    "cache",
+    "cli",
+    "cli_arguments",
+    "compilations",
+    "demo",
+    "diagnostics",
+    "distributed",
+    "omega_sweep",
+    "plot",
+    "scene",
+    "scene_schema",
+    "segments",
+    "simulation",
+    "store",
+)
 
 
 def __getattr__(name: str):

@@ -70,15 +70,34 @@ from lierk import Progress
 
 from ._device import to_device
 
-__all__ = ["Row", "AccuracyReport", "work_precision", "figure", "to_json", "DECADES", "METHODS", "default_solvers",
-           "method"]
+__all__ = [
+    "Row",
+    "AccuracyReport",
+    "work_precision",
+    "figure",
+    "to_json",
+    "DECADES",
+    "METHODS",
+    "default_solvers",
+    "method",
+]
 
 DECADES: tuple[float, ...] = tuple(10.0**-k for k in range(2, 13))
 """The error levels of `AccuracyReport.best_per_decade`: 1e-2 ... 1e-12."""
 
 METHODS: tuple[str, ...] = (
-    "RKMK4", "CF4", "RKMK(DOPRI54)", "RKMK(DOP853)", "DP54", "DOP853", "RKF45",
-    "Strang", "BlanesMoan4", "BlanesMoan6", "BlanesMoanRKN4", "BlanesMoanRKN6",
+    "RKMK4",
+    "CF4",
+    "RKMK(DOPRI54)",
+    "RKMK(DOP853)",
+    "DP54",
+    "DOP853",
+    "RKF45",
+    "Strang",
+    "BlanesMoan4",
+    "BlanesMoan6",
+    "BlanesMoanRKN4",
+    "BlanesMoanRKN6",
 )
 """Every method `default_solvers` may pick, in the order they run: the
 order-4 Lie methods and the two embedded pairs' tableaux at fixed steps, the
@@ -214,7 +233,9 @@ class AccuracyReport:
         decade: the cheapest solver, its setting, time, true error and
         estimate, or why no run is named (below `floor`, or none reached it)."""
         width = max([8, *(len(name) for name in self.solvers)])
-        lines = [f"{'error <=':>9}  {'cheapest':<{width}}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"]
+        lines = [
+            f"{'error <=':>9}  {'cheapest':<{width}}  {'setting':<18}  {'time (s)':>9}  {'error':>8}  {'estimate':>8}"
+        ]
         for decade, row in self.best_per_decade(decades).items():
             if row is not None:
                 lines.append(
@@ -231,8 +252,10 @@ class AccuracyReport:
         """The report ``lierk accuracy`` prints: what ran (with ``wall``, the
         whole run's wall time in s, and how much of it went to compiling),
         the reference and its cross-check, then `table`."""
-        head = (f"scene {self.scene}: {len(self.rows)} runs of {', '.join(self.solvers)}, T = {self.t1:g} s, "
-                f"errors max_t ||R - R_ref||_F at {len(self.ts)} equally spaced times")
+        head = (
+            f"scene {self.scene}: {len(self.rows)} runs of {', '.join(self.solvers)}, T = {self.t1:g} s, "
+            f"errors max_t ||R - R_ref||_F at {len(self.ts)} equally spaced times"
+        )
         if wall is not None and self.compile_time is not None:
             head += f", {wall:.1f} s wall ({self.compile_time:.1f} s of it compiling {self.compilations} programs)"
         elif wall is not None:
@@ -382,8 +405,7 @@ def method(name: str) -> _Method:
     Raises:
         ValueError: an unknown name; the message lists the known ones.
     """
-    from lierk import tableaux
-    from lierk import RKMK, SOLVERS, AbstractRKMK, solver_class
+    from lierk import RKMK, SOLVERS, AbstractRKMK, solver_class, tableaux
 
     fixed_pairs = {"RKMK(DOPRI54)": tableaux.DOPRI54, "RKMK(DOP853)": tableaux.DOP853}
     for label, tableau in fixed_pairs.items():
@@ -407,7 +429,11 @@ def default_solvers(problem) -> tuple[str, ...]:
     from lierk import AbstractRigidBody
 
     names = list(METHODS[:7])
-    if isinstance(problem, AbstractRigidBody) and not problem.torque_free and getattr(problem, "splitting_refusal", None) is None:
+    if (
+        isinstance(problem, AbstractRigidBody)
+        and not problem.torque_free
+        and getattr(problem, "splitting_refusal", None) is None
+    ):
         names += ["Strang", "BlanesMoan4", "BlanesMoan6"]
         if not problem.kick_reads_momentum:
             names += ["BlanesMoanRKN4", "BlanesMoanRKN6"]
@@ -417,9 +443,7 @@ def default_solvers(problem) -> tuple[str, ...]:
 def _methods_to_run(solvers, problem) -> list[_Method]:
     """`_Method`s from names (`method`) or solver instances, each checked to
     apply to ``problem``."""
-    from lierk import AbstractRigidBody
-    from lierk import AbstractSplitting
-    from lierk import AbstractSolver
+    from lierk import AbstractRigidBody, AbstractSolver, AbstractSplitting
 
     chosen = []
     for s in solvers:
@@ -505,8 +529,11 @@ class _Programs:
         threads as there are cores."""
         import concurrent.futures
 
-        todo = {k: self._jitted(k).lower(*self._arguments(k, {"dt": 1.0} if k[1] == "fixed" else {"rtol": 1.0}))
-                for k in dict.fromkeys(keys) if k not in self._compiled}
+        todo = {
+            k: self._jitted(k).lower(*self._arguments(k, {"dt": 1.0} if k[1] == "fixed" else {"rtol": 1.0}))
+            for k in dict.fromkeys(keys)
+            if k not in self._compiled
+        }
         if not todo:
             return
         with concurrent.futures.ThreadPoolExecutor(max(1, min(len(todo), os.cpu_count() or 1))) as pool:
@@ -561,8 +588,16 @@ class _Programs:
         else:
 
             def run(problem, t0, t1, ts, controller):
-                return solve(problem, m.solver, t1, t0=t0, controller=controller, saveat=SaveAt(ts=ts),
-                             max_steps=steps, throw=False)
+                return solve(
+                    problem,
+                    m.solver,
+                    t1,
+                    t0=t0,
+                    controller=controller,
+                    saveat=SaveAt(ts=ts),
+                    max_steps=steps,
+                    throw=False,
+                )
 
         # One body per program: XLA's one-body settings compile it sooner.
         return eqx.filter_jit(run, compiler_options=one_body_compiler_options())
@@ -600,17 +635,20 @@ def _richardson(sol, fine, ratio: float) -> float:
 
 def _reference(programs: _Programs, rtols, numerical, tick) -> _Reference:
     """The closed form for a torque-free body, else DOP853 cross-checked by DP54."""
-    from lierk import exact
-    from lierk import RESULTS
+    from lierk import RESULTS, exact
 
     problem, t1, max_steps = programs.problem, float(programs.t1), programs.max_steps
     eps = float(np.finfo(problem.R0.dtype).eps)
     if not numerical:
-        R_ref = np.asarray(exact.free_rigid_body(problem.inertia, problem.omega0, programs.ts, problem.R0)[0], dtype=float)
+        R_ref = np.asarray(
+            exact.free_rigid_body(problem.inertia, problem.omega0, programs.ts, problem.R0)[0], dtype=float
+        )
         omega = float(np.linalg.norm(np.asarray(problem.omega0)))
         tick()
         # Its rounding grows with the angle turned: ~1e-12 after 100 periods in float64.
-        return _Reference(R_ref, "lierk.exact.free_rigid_body (closed form)", 10 * eps * max(1.0, omega * t1), None, None)
+        return _Reference(
+            R_ref, "lierk.exact.free_rigid_body (closed form)", 10 * eps * max(1.0, omega * t1), None, None
+        )
 
     rtol_ref = max(min(rtols + [1e-12]) / 100, _REFERENCE_RTOL_CAP if eps < 1e-10 else 100 * eps)
     # The rows' programs, with their max_steps first, then with more room.

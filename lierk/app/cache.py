@@ -110,11 +110,16 @@ def compilation_cache_dir(root: str | os.PathLike | None = None) -> Path | None:
     return path
 
 
-_CACHE_SETTINGS = ("jax_enable_compilation_cache", "jax_compilation_cache_dir",
-                   "jax_persistent_cache_min_compile_time_secs")
+_CACHE_SETTINGS = (
+    "jax_enable_compilation_cache",
+    "jax_compilation_cache_dir",
+    "jax_persistent_cache_min_compile_time_secs",
+)
 # JAX's warnings about one entry (a corrupted file, a full disk), by what they count as.
-_ENTRY_WARNINGS = (("unreadable", "Error reading persistent compilation cache"),
-                   ("unwritable", "Error writing persistent compilation cache"))
+_ENTRY_WARNINGS = (
+    ("unreadable", "Error reading persistent compilation cache"),
+    ("unwritable", "Error writing persistent compilation cache"),
+)
 
 
 class CacheUse:
@@ -247,5 +252,3 @@ def _cache_path(given: str | None) -> str | None:
     jax.config.update("jax_compilation_cache_dir", str(path))
     jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.0)
     return str(path)
-
-

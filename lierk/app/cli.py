@@ -83,8 +83,10 @@ def _configure(args) -> None:
                 del os.environ["XLA_FLAGS"]
             else:
                 os.environ["XLA_FLAGS"] = given_flags
-            raise CLIError(f"--devices {args.devices} must be set before JAX starts; it already runs with {found} "
-                           "CPU devices: run lierk in a fresh process")
+            raise CLIError(
+                f"--devices {args.devices} must be set before JAX starts; it already runs with {found} "
+                "CPU devices: run lierk in a fresh process"
+            )
 
 
 def _load(args):
@@ -185,8 +187,9 @@ def simulate(args) -> int:
     try:
         # The pieces, their concatenation and the derived omega, L and
         # invariants hold about 4 copies of the saved points; the .npz 2.
-        check_size(memory=4 * saved, disk=2 * saved, directory=args.out,
-                   what=f"simulating {scene.saved_count()} saved points")
+        check_size(
+            memory=4 * saved, disk=2 * saved, directory=args.out, what=f"simulating {scene.saved_count()} saved points"
+        )
     except ValueError as e:
         raise CLIError(_one_line(e)) from None
     # matplotlib's import (a noticeable part of a warm run) runs beside the solve,
@@ -228,9 +231,15 @@ def _write_simulation(sim, tmp: Path, args) -> list[str]:
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
         gif = None
         if not args.no_gif:
-            images = plot.animation_frames(sol, scene.body_parts, L=sim.diagnostics.L, frames=args.frames,
-                                           title=f"{scene.name} — {settings}", inertia=problem.inertia,
-                                           origin=scene.fixed_point)
+            images = plot.animation_frames(
+                sol,
+                scene.body_parts,
+                L=sim.diagnostics.L,
+                frames=args.frames,
+                title=f"{scene.name} — {settings}",
+                inertia=problem.inertia,
+                origin=scene.fixed_point,
+            )
             gif = pool.submit(plot.write_gif, images, tmp / f"{stem}.gif", args.fps)
         names = [f"{stem}.npz"] + _write_figures(sim, tmp, args, title)
         return names if gif is None else names + [gif.result().name]
@@ -244,8 +253,14 @@ def _write_figures(sim, tmp: Path, args, title: str) -> list[str]:
     stem, names = scene.file_stem, []
     figures = {
         "components": plot.components(sol, title, events=sim.event_times),
-        "euler": plot.euler_angles(sol, title, degrees=args.degrees, convention=scene.euler_convention,
-                                   events=sim.event_times, angles=diag.euler_angles),
+        "euler": plot.euler_angles(
+            sol,
+            title,
+            degrees=args.degrees,
+            convention=scene.euler_convention,
+            events=sim.event_times,
+            angles=diag.euler_angles,
+        ),
         "invariants": plot.invariants(sol, problem, title, quantities=diag.invariants),
     }
     for what, fig in figures.items():
@@ -262,8 +277,9 @@ def sweep(args) -> int:
     scene = _load(args)
     import numpy as np
 
-    from . import plot
     from lierk import Progress
+
+    from . import plot
     from .omega_sweep import omega_grid, open_sweep_store, sweep_omega0
 
     omega0 = np.asarray(scene.problem.omega0, dtype=float)
@@ -283,7 +299,9 @@ def sweep(args) -> int:
     n_points = int(np.prod([len(a) for a in axes]))
     bar = Progress("sweep", n_points, "members", quiet=args.quiet or store.complete)
     start = time.perf_counter()
-    res = sweep_omega0(scene, axes, chunk_size=args.chunk_size, store=store, compiling=bar.compiling, on_chunk=bar.update)
+    res = sweep_omega0(
+        scene, axes, chunk_size=args.chunk_size, store=store, compiling=bar.compiling, on_chunk=bar.update
+    )
     wall = time.perf_counter() - start
     if res is None:
         return 0
@@ -292,16 +310,23 @@ def sweep(args) -> int:
     names = [f"omega0_{'xyz'[k]}" for k in varied]
     title = f"{scene.name}: sweep of $\\omega_0$, T = {res.t1:g} s\n{settings}"
     with _staged_output(args.out) as tmp:
-        np.savez(tmp / f"{stem}_sweep.npz", **{n: res.axes[k] for n, k in zip(names, varied)},
-                 omega0=res.grid, t1=res.t1, **res.values)
+        np.savez(
+            tmp / f"{stem}_sweep.npz",
+            **{n: res.axes[k] for n, k in zip(names, varied)},
+            omega0=res.grid,
+            t1=res.t1,
+            **res.values,
+        )
         fig = plot.omega_sweep(res, omega0, title)
         fig.savefig(tmp / f"{stem}_sweep.png", dpi=100)
     # The chunks are in the .npz now; only an unfinished run's are kept (to
     # resume, and to refuse another run in their place).
     shutil.rmtree(store.directory, ignore_errors=True)
 
-    print(f"scene {scene.name}: {n_points} initial angular velocities ({' x '.join(map(str, res.shape))}), "
-          f"{settings}, T = {res.t1:g} s, {wall:.2f} s wall (incl. compilation)")
+    print(
+        f"scene {scene.name}: {n_points} initial angular velocities ({' x '.join(map(str, res.shape))}), "
+        f"{settings}, T = {res.t1:g} s, {wall:.2f} s wall (incl. compilation)"
+    )
     print(res.summary())
     _wrote([args.out / f"{stem}_sweep.npz", args.out / f"{stem}_sweep.png"])
     return 0
@@ -317,9 +342,7 @@ def accuracy(args) -> int:
 
     start = time.perf_counter()
     max_settings = args.max_settings if args.max_settings is not None else (4 if args.quick else None)
-    report = _accuracy.work_precision(
-        scene, solvers=args.solvers, progress=not args.quiet, max_settings=max_settings
-    )
+    report = _accuracy.work_precision(scene, solvers=args.solvers, progress=not args.quiet, max_settings=max_settings)
     wall = time.perf_counter() - start
 
     with _staged_output(args.out) as tmp:
@@ -353,8 +376,10 @@ def schema() -> int:
 def main(argv=None) -> int:
     args = parse(sys.argv[1:] if argv is None else list(argv))
     if args.command is None:
-        print("lierk: error: a command is required: simulate, sweep, accuracy or schema (see lierk --help)",
-              file=sys.stderr)
+        print(
+            "lierk: error: a command is required: simulate, sweep, accuracy or schema (see lierk --help)",
+            file=sys.stderr,
+        )
         return 2
     if args.command == "schema":
         return schema()

@@ -13,8 +13,10 @@ from pathlib import Path
 
 __all__ = ["build_parser", "parse", "parse_range", "version"]
 
-_OUT_HELP = ("output directory (default: out/ and the scene file's name without .toml, e.g. out/tee_handle_a; "
-             "created if missing); the files are moved into it only when all are written")
+_OUT_HELP = (
+    "output directory (default: out/ and the scene file's name without .toml, e.g. out/tee_handle_a; "
+    "created if missing); the files are moved into it only when all are written"
+)
 
 
 class _Parser(argparse.ArgumentParser):
@@ -268,7 +270,9 @@ def _add_sweep(sub, common) -> None:
         help="grid points per vmapped batch (default 256); each finished batch is written at once to "
         "DIR/<name>_sweep.chunks/, and running the same command again resumes from there",
     )
-    g = sw.add_argument_group("several processes (lierk.app.distributed.initialize; none needed under SLURM or Open MPI)")
+    g = sw.add_argument_group(
+        "several processes (lierk.app.distributed.initialize; none needed under SLURM or Open MPI)"
+    )
     g.add_argument("--coordinator-address", metavar="HOST:PORT", help="process 0's address, the same in every process")
     g.add_argument("--num-processes", type=int, metavar="N", help="how many processes take part")
     g.add_argument("--process-id", type=int, metavar="I", help="this process's id, 0 to N - 1")

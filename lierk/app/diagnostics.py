@@ -58,8 +58,7 @@ def _compute(problem, R, y, euler_convention):
     euler = None if euler_convention is None else so3.to_euler(R, euler_convention)
     # The whole body's (internal rotors included), which they do not change.
     L = so3.matvec(R, problem.total_momentum(R, y))
-    return (omega, L, problem.invariants(R, y),
-            so3.orthogonality_error(R), so3.to_quaternion(R), euler, flip)
+    return (omega, L, problem.invariants(R, y), so3.orthogonality_error(R), so3.to_quaternion(R), euler, flip)
 
 
 def diagnostics(problem, sol, *, euler_convention: str | None = None) -> Diagnostics:

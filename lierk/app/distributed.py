@@ -92,7 +92,11 @@ def initialize(
     """
     if jax.distributed.is_initialized():
         return jax.process_count() > 1
-    if isinstance(initialization_timeout, bool) or not isinstance(initialization_timeout, int) or initialization_timeout < 1:
+    if (
+        isinstance(initialization_timeout, bool)
+        or not isinstance(initialization_timeout, int)
+        or initialization_timeout < 1
+    ):
         raise ValueError(f"initialization_timeout must be a positive int (seconds), got {initialization_timeout!r}")
     if num_processes is not None and (
         isinstance(num_processes, bool) or not isinstance(num_processes, int) or num_processes < 1

@@ -74,8 +74,10 @@ class OmegaSweep:
             lines.append(f"  {int(self.failed.sum())} points failed to integrate (NaN in the outputs)")
         s = v["sensitivity"]
         how = "variational equations" if self.method == "variational" else "derivative of the solve"
-        lines.append(f"  ||dR(T)/d omega0|| ({how}): {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
-                     f"(estimated error of it: up to {np.nanmax(v['sensitivity_error'] / s):.1g} relative)")
+        lines.append(
+            f"  ||dR(T)/d omega0|| ({how}): {np.nanmin(s):.3g} .. {np.nanmax(s):.3g} s "
+            f"(estimated error of it: up to {np.nanmax(v['sensitivity_error'] / s):.1g} relative)"
+        )
         lam = v["lyapunov"]
         lines.append(f"  finite-time Lyapunov exponent: {np.nanmin(lam):.3g} .. {np.nanmax(lam):.3g} 1/s")
         f = v["flip_interval"][np.isfinite(v["flip_interval"])] if "flip_interval" in v else ()
@@ -109,7 +111,9 @@ def omega_grid(
     if not span > 0:
         raise ValueError("the scene's omega0 is zero: give a span or ranges of omega0 to sweep")
     varied = sorted(np.argsort(np.abs(omega0), kind="stable")[:2])
-    return [np.linspace(omega0[k] - span, omega0[k] + span, n) if k in varied else np.array([omega0[k]]) for k in range(3)]
+    return [
+        np.linspace(omega0[k] - span, omega0[k] + span, n) if k in varied else np.array([omega0[k]]) for k in range(3)
+    ]
 
 
 def _grid(axes) -> np.ndarray:
@@ -148,8 +152,9 @@ def sweep_method(scene) -> str:
     return sensitivity_method(scene.problem, scene.solver, "omega0", "forward", "auto")
 
 
-def open_sweep_store(scene, axes: Sequence[np.ndarray], directory: str | os.PathLike, *, chunk_size: int = 256,
-                     key: dict | None = None):
+def open_sweep_store(
+    scene, axes: Sequence[np.ndarray], directory: str | os.PathLike, *, chunk_size: int = 256, key: dict | None = None
+):
     """The `lierk.app.store.ChunkStore` that keeps a sweep's chunks in ``directory``,
     so that a run stopped part-way resumes (`sweep_omega0` with ``store=``).
 
@@ -184,9 +189,12 @@ def open_sweep_store(scene, axes: Sequence[np.ndarray], directory: str | os.Path
     }
     # Per member: R(T) and its three tangents (jacfwd), a few copies each,
     # for the solve and the finer one of the error estimate.
-    check_size(memory=chunk_size * 2 * 4 * 4 * scene.bytes_per_saved(),
-               disk=2 * len(grid) * _VALUES_PER_POINT * np.dtype(dtype).itemsize,
-               directory=directory, what=f"a sweep of {len(grid)} points")
+    check_size(
+        memory=chunk_size * 2 * 4 * 4 * scene.bytes_per_saved(),
+        disk=2 * len(grid) * _VALUES_PER_POINT * np.dtype(dtype).itemsize,
+        directory=directory,
+        what=f"a sweep of {len(grid)} points",
+    )
     return ChunkStore.open(directory, key=full_key, n_chunks=-(-len(grid) // chunk_size))
 
 
@@ -225,10 +233,9 @@ def sweep_omega0(
     import jax
     import jax.numpy as jnp
 
-    from lierk import so3
-    from lierk import sweep_chunks
+    from lierk import sensitivity, so3, sweep_chunks
+
     from ..exact import flip_interval
-    from lierk import sensitivity
 
     axes, varied, grid, kw = _checked(scene, axes)
     problem, solver, t1 = scene.problem, scene.solver, float(scene.t1)
@@ -253,7 +260,9 @@ def sweep_omega0(
     writer = jax.process_index() == 0
     done = min(len(skip) * chunk_size, len(grid))
     results = {}
-    chunks = sweep_chunks(point, np.asarray(grid, problem.R0.dtype), chunk_size=chunk_size, skip=skip, compiling=compiling)
+    chunks = sweep_chunks(
+        point, np.asarray(grid, problem.R0.dtype), chunk_size=chunk_size, skip=skip, compiling=compiling
+    )
     for k, a, b, out in chunks:
         if store is not None and writer:
             store.write(k, out)

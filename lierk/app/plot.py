@@ -23,10 +23,20 @@ from matplotlib.colors import to_rgb
 from matplotlib.figure import Figure
 
 from lierk import so3
+
 from ..inertia import Part, composite
 
-__all__ = ["components", "euler_angles", "invariants", "omega_sweep", "animate", "animation_frames", "write_gif", "GIF_DPI",
-           "GIF_SIZE"]
+__all__ = [
+    "components",
+    "euler_angles",
+    "invariants",
+    "omega_sweep",
+    "animate",
+    "animation_frames",
+    "write_gif",
+    "GIF_DPI",
+    "GIF_SIZE",
+]
 
 # Size of the animation in inches and its dpi: GIF frames are GIF_SIZE * GIF_DPI pixels.
 GIF_SIZE = (5.0, 5.0)
@@ -79,7 +89,9 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None,
     marked with vertical lines; ``flips``: times of flips, the same as
     ``events={"flip": flips}``."""
     ts, R, _ = sol.trajectory()
-    fig = _figure(figsize, title, dict(left=0.09, right=0.98, bottom=0.08, top=0.88 if title else 0.94, wspace=0.1, hspace=0.3))
+    fig = _figure(
+        figsize, title, dict(left=0.09, right=0.98, bottom=0.08, top=0.88 if title else 0.94, wspace=0.1, hspace=0.3)
+    )
     axs = fig.subplots(3, 3, sharex=True, sharey=True)
     colours = ["tab:red", "tab:blue", "tab:green"]
     for i in range(3):
@@ -102,7 +114,13 @@ def components(sol, title: str | None = None, *, figsize=(9.0, 7.0), flips=None,
 
 
 def euler_angles(
-    sol, title: str | None = None, *, degrees: bool = False, convention: str = "zyx", figsize=(8.0, 6.5), events=None,
+    sol,
+    title: str | None = None,
+    *,
+    degrees: bool = False,
+    convention: str = "zyx",
+    figsize=(8.0, 6.5),
+    events=None,
     angles=None,
 ) -> Figure:
     """Euler angles (`lierk.so3.to_euler`) against time, one panel each.
@@ -162,9 +180,17 @@ def invariants(sol, problem, title: str | None = None, *, figsize=(10.0, 4.5), q
     other = {k: v for k, v in quantities.items() if k not in conserved}
     eps = float(np.finfo(R.dtype).eps)
     tall = bool(kept and other)
-    fig = _figure(figsize if not tall else (figsize[0], figsize[1] * 1.5), title,
-                  dict(left=0.13, right=0.66, bottom=0.12 if not tall else 0.08, top=(0.86 if not tall else 0.9) if title else 0.95,
-                       hspace=0.1))
+    fig = _figure(
+        figsize if not tall else (figsize[0], figsize[1] * 1.5),
+        title,
+        dict(
+            left=0.13,
+            right=0.66,
+            bottom=0.12 if not tall else 0.08,
+            top=(0.86 if not tall else 0.9) if title else 0.95,
+            hspace=0.1,
+        ),
+    )
     if not quantities:
         ax = fig.subplots()
         ax.text(0.5, 0.5, "this problem declares no invariants", ha="center", va="center", transform=ax.transAxes)
@@ -273,15 +299,30 @@ def omega_sweep(sweep, omega0, title: str | None = None) -> Figure:
         norm = LogNorm(lo, hi) if log and finite.size and lo < hi else None
         masked = np.ma.masked_invalid(np.where(v > 0, v, np.nan) if log else v)
         cmap = "viridis" if key != "sensitivity" else "magma"
-        im = ax.pcolormesh(x, y, masked.T, shading="nearest", norm=norm, cmap=cmap,
-                           **({} if log or lo is None or not lo < hi else dict(vmin=lo, vmax=hi)))
+        im = ax.pcolormesh(
+            x,
+            y,
+            masked.T,
+            shading="nearest",
+            norm=norm,
+            cmap=cmap,
+            **({} if log or lo is None or not lo < hi else dict(vmin=lo, vmax=hi)),
+        )
         im.cmap = im.cmap.with_extremes(bad="0.75")
         if lo is not None and lo < hi:
             clipped = np.isfinite(v) & ((v > hi) | (v < lo))
             if clipped.any():
                 xx, yy = np.meshgrid(x, y, indexing="ij")
-                ax.plot(xx[clipped], yy[clipped], "s", ms=5, mfc="none", mec="c", mew=0.8,
-                        label=f"clipped ({int(clipped.sum())} cells)")
+                ax.plot(
+                    xx[clipped],
+                    yy[clipped],
+                    "s",
+                    ms=5,
+                    mfc="none",
+                    mec="c",
+                    mew=0.8,
+                    label=f"clipped ({int(clipped.sum())} cells)",
+                )
                 ax.legend(loc="upper right", fontsize=6)
         ax.plot([omega0[varied[0]]], [omega0[varied[1]]], "w+", ms=10, mew=2, label="scene's $\\omega_0$")
         ax.set_xlabel(labels[0])
@@ -289,8 +330,16 @@ def omega_sweep(sweep, omega0, title: str | None = None) -> Figure:
         ax.set_aspect("equal" if np.ptp(x) and 0.33 < np.ptp(y) / np.ptp(x) < 3 else "auto")
         fig.colorbar(im, ax=ax, label=label, shrink=0.85)
         if key == "flip_interval" and not np.isfinite(v).all():
-            ax.text(0.02, 0.98, "grey: no flip (lierk.exact.flip_interval)", transform=ax.transAxes,
-                    fontsize=7, va="top", color="k", bbox=dict(fc="w", alpha=0.7, lw=0))
+            ax.text(
+                0.02,
+                0.98,
+                "grey: no flip (lierk.exact.flip_interval)",
+                transform=ax.transAxes,
+                fontsize=7,
+                va="top",
+                color="k",
+                bbox=dict(fc="w", alpha=0.7, lw=0),
+            )
     axs[0].legend(loc="lower right", fontsize=7)
     return fig
 
@@ -421,8 +470,9 @@ def animate(
     return write_gif(images, path, fps)
 
 
-def animation_frames(sol, parts, L=None, *, frames: int = 120, title: str | None = None, inertia=None, origin=None,
-                     trail: bool = True) -> list[np.ndarray]:
+def animation_frames(
+    sol, parts, L=None, *, frames: int = 120, title: str | None = None, inertia=None, origin=None, trail: bool = True
+) -> list[np.ndarray]:
     """The frames of `animate`'s GIF (same arguments), RGB ``(h, w, 3)``
     uint8 each, ``GIF_SIZE * GIF_DPI`` pixels; `write_gif` writes them."""
     ts, R, _ = sol.trajectory()
@@ -588,4 +638,3 @@ def write_gif(images: list[np.ndarray], path, fps: int = 20) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     frames[0].save(path, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
     return path
-

@@ -69,10 +69,10 @@ import numpy as np
 from msgspec import UNSET
 
 from lierk import (
+    RESULTS,
     SOLVERS,
     AbstractEffect,
     AbstractProblem,
-    RESULTS,
     BodyTorque,
     Damping,
     FreeRigidBody,
@@ -89,13 +89,14 @@ from lierk import (
     dipole_field,
     solver_class,
 )
-from lierk import inertia as _inertia
-from lierk import num_steps as _num_steps
-from lierk import solve as _solve
 
 # The library's checks of a body, worded here with the scene's key paths.
 from lierk import checks as validation
+from lierk import inertia as _inertia
+from lierk import num_steps as _num_steps
+from lierk import solve as _solve
 from lierk.checks import check_attitude
+
 from . import scene_schema as schema
 from .scene_schema import MAX_NAME_BYTES, MAX_SAVED, MAX_STEPS
 
@@ -196,7 +197,10 @@ class Scene:
         hold: outside its range (1e300 would become inf, 1e-50 zero)."""
         info = np.finfo(np.float32)
         tiny, big = float(info.tiny), float(info.max)
-        values = {"t1": self.t1, **{k: v for k, v in self.solve_kwargs.items() if k in ("dt", "rtol", "atol", "target_error")}}
+        values = {
+            "t1": self.t1,
+            **{k: v for k, v in self.solve_kwargs.items() if k in ("dt", "rtol", "atol", "target_error")},
+        }
         for k, v in values.items():
             if not tiny <= v <= big:
                 raise ValueError(
@@ -282,15 +286,20 @@ class Scene:
         if n_pieces is None and not progress:
             kwargs = {"saveat": self.saveat(), **self.solve_kwargs, **self._event_kwargs(), **overrides}
             return _solve(self.problem, self.solver, self.t1, **kwargs)
-        if n_pieces is not None and not (isinstance(n_pieces, (int, np.integer)) and not isinstance(n_pieces, bool) and n_pieces >= 1):
+        if n_pieces is not None and not (
+            isinstance(n_pieces, (int, np.integer)) and not isinstance(n_pieces, bool) and n_pieces >= 1
+        ):
             raise ValueError(f"n_pieces must be a positive int, got {n_pieces!r}")
         unknown = set(overrides) - {"throw"}
         if unknown:
-            raise ValueError(f"a scene solved in pieces takes only throw= as an override, got {', '.join(sorted(unknown))}")
+            raise ValueError(
+                f"a scene solved in pieces takes only throw= as an override, got {', '.join(sorted(unknown))}"
+            )
         from .segments import N_PIECES, solve_in_pieces
 
-        return solve_in_pieces(self, N_PIECES if n_pieces is None else int(n_pieces), progress,
-                               overrides.get("throw", True))
+        return solve_in_pieces(
+            self, N_PIECES if n_pieces is None else int(n_pieces), progress, overrides.get("throw", True)
+        )
 
     def _target_error_then_events(self, n_pieces, progress, overrides) -> Solution:
         """A ``target_error`` run with events.  `lierk.solve` takes no events
@@ -311,8 +320,15 @@ class Scene:
         else:
             rtol = float(chosen.stats["rtol"])
             setting = {"rtol": rtol, "atol": rtol, "max_steps": self.solve_kwargs.get("max_steps")}
-        found = _solve(self.problem, self.solver, self.t1, saveat=SaveAt(t1=True), throw=overrides.get("throw", True),
-                       **setting, **self._event_kwargs())
+        found = _solve(
+            self.problem,
+            self.solver,
+            self.t1,
+            saveat=SaveAt(t1=True),
+            throw=overrides.get("throw", True),
+            **setting,
+            **self._event_kwargs(),
+        )
         ts = np.asarray(chosen.ts)
         keep = np.ones(ts.shape, bool)
         if int(found.result) == RESULTS.event_occurred:
@@ -325,9 +341,15 @@ class Scene:
 
         stats = {**chosen.stats, "num_solves": int(chosen.stats["num_solves"]) + 1}
         return dataclasses.replace(
-            chosen, R=cut(chosen.R), y=jax.tree_util.tree_map(cut, chosen.y), error_estimate=cut(chosen.error_estimate),
-            n_saved=jax.device_put(np.asarray(keep.sum(), np.asarray(chosen.n_saved).dtype)), result=found.result,
-            events=found.events, stats=stats)
+            chosen,
+            R=cut(chosen.R),
+            y=jax.tree_util.tree_map(cut, chosen.y),
+            error_estimate=cut(chosen.error_estimate),
+            n_saved=jax.device_put(np.asarray(keep.sum(), np.asarray(chosen.n_saved).dtype)),
+            result=found.result,
+            events=found.events,
+            stats=stats,
+        )
 
     def _event_kwargs(self) -> dict:
         return {"event": tuple(e for _, e in self.events)} if self.events else {}
@@ -396,7 +418,7 @@ def load(path: str | os.PathLike) -> Scene:
             raise ValueError(f"{path}: not valid TOML: {e}") from None
         except UnicodeDecodeError as e:
             raise ValueError(
-                f"{path}: not valid TOML: not UTF-8 text (byte {e.object[e.start:e.start + 1].hex()} at offset {e.start})"
+                f"{path}: not valid TOML: not UTF-8 text (byte {e.object[e.start : e.start + 1].hex()} at offset {e.start})"
             ) from None
     stem = os.path.splitext(os.path.basename(path))[0]
     try:
@@ -451,8 +473,13 @@ def _from_dict(d: dict, name: str, directory: str | os.PathLike = ".") -> tuple[
     # In JAX's default float type (float32 unless x64 is on), so that building
     # the problem does not ask JAX for float64 it would truncate, with a warning.
     dtype = jnp.result_type(float)
-    _check_state(inertia, omega0, dtype, "body" if pivot_to_com is None else "body about the gravity pivot",
-                 "body.inertia" if body.parts is None and pivot_to_com is None else "inertia")
+    _check_state(
+        inertia,
+        omega0,
+        dtype,
+        "body" if pivot_to_com is None else "body about the gravity pivot",
+        "body.inertia" if body.parts is None and pivot_to_com is None else "inertia",
+    )
     if "rtol" in solve_kwargs:
         # The rule lierk.solve applies, checked before anything runs.
         reason = validation.tolerances_below_rounding(solve_kwargs["rtol"], solve_kwargs["atol"], dtype)
@@ -587,8 +614,9 @@ def _body(b, directory=".") -> _Body:
             props = _inertia.from_mesh(path, b.density, b.scale)
         except ValueError as e:
             raise ValueError(f"body.file {b.file!r}: {e}") from None
-        part = _inertia.Part(props.mass, props.inertia, props.center_of_mass, None,
-                             ("mesh", props.mesh.triangles - props.center_of_mass))
+        part = _inertia.Part(
+            props.mass, props.inertia, props.center_of_mass, None, ("mesh", props.mesh.triangles - props.center_of_mass)
+        )
         return _Body(props.mass, props.center_of_mass, props.inertia, [part])
     if isinstance(b, schema.TensorBody):
         rows = [isinstance(x, list) for x in b.inertia]
@@ -661,8 +689,9 @@ def _gravity(e, p: str, body: _Body) -> np.ndarray:
 
 def _orbit(e, p: str) -> dict:
     """The circular orbit of a spacecraft effect: ``radius`` (m) or ``mean_motion`` (rad/s)."""
-    k = _exactly_one(e, ("radius", "mean_motion"), p,
-                     "give the orbit as exactly one of 'radius' (m) or 'mean_motion' (rad/s)")
+    k = _exactly_one(
+        e, ("radius", "mean_motion"), p, "give the orbit as exactly one of 'radius' (m) or 'mean_motion' (rad/s)"
+    )
     return {k: getattr(e, k)}
 
 
@@ -672,8 +701,12 @@ def _gravity_gradient(e, p: str, body: _Body):
 
 def _magnetic(e, p: str, body: _Body):
     field = dipole_field(**_orbit(e, p), tilt=e.tilt, B0=e.B0, phase=e.phase)
-    if _exactly_one(e, ("dipole", "bdot_gain"), p,
-                    "magnetic needs exactly one of 'dipole' (A m^2, body frame) or 'bdot_gain'") == "dipole":
+    if (
+        _exactly_one(
+            e, ("dipole", "bdot_gain"), p, "magnetic needs exactly one of 'dipole' (A m^2, body frame) or 'bdot_gain'"
+        )
+        == "dipole"
+    ):
         return MagneticTorque(field, dipole=np.array(e.dipole))
     return MagneticTorque(field, bdot_gain=e.bdot_gain)
 
@@ -714,7 +747,9 @@ def _reaction_wheels(e, p: str, body: _Body):
         if torque is None:
             raise ValueError(f"{p}: times need torque = [[u1, ...], ...], one row of {k} motor torques (N m) per time")
         if len(torque) != len(times) or not all(rows):
-            raise ValueError(f"{p}.torque must list one row of {k} motor torques (N m) per time ({len(times)}), got {torque!r}")
+            raise ValueError(
+                f"{p}.torque must list one row of {k} motor torques (N m) per time ({len(times)}), got {torque!r}"
+            )
         torque = np.stack([_sized(u, k, f"{p}.torque[{j}]") for j, u in enumerate(torque)])
     elif any(rows):
         raise ValueError(f"{p}.torque: rows of motor torques need times = [...] (s), one per row")
@@ -789,7 +824,9 @@ def _run(r):
         return solver, r.t1, {"dt": r.dt}, every, None
     if modes == ["target_error"]:
         if _given(r, "atol") is not None:
-            raise ValueError("run.atol applies to rtol runs; with run.target_error the solver chooses its tolerances itself")
+            raise ValueError(
+                "run.atol applies to rtol runs; with run.target_error the solver chooses its tolerances itself"
+            )
         if _given(r, "save_every") is not None:
             raise ValueError(
                 "run.save_every applies to fixed-step runs (dt=); runs with run.target_error save at run.n_save times"
@@ -827,7 +864,9 @@ def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key:
         m = inertia @ omega0
         energy = 0.5 * float(omega0 @ m)
     if not finite:
-        raise ValueError(f"{what}: the inertia is not finite (too large, or a mass or size too small): {validation.show(inertia)}")
+        raise ValueError(
+            f"{what}: the inertia is not finite (too large, or a mass or size too small): {validation.show(inertia)}"
+        )
     if not np.isfinite(inv).all():
         raise ValueError(f"{what}: the inertia {validation.show(inertia)} kg m^2 is singular or too small to invert")
     if not np.isfinite(m).all():
@@ -843,7 +882,9 @@ def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key:
     reason = validation.state_range_error(inertia, omega0, dtype)
     if reason is not None:
         shown = np.diagonal(inertia) if not np.any(inertia - np.diag(np.diagonal(inertia))) else inertia
-        raise ValueError(f"{what}: {key} = {validation.show(shown)} kg m^2 with initial.omega = {validation.show(omega0)} rad/s: {reason}")
+        raise ValueError(
+            f"{what}: {key} = {validation.show(shown)} kg m^2 with initial.omega = {validation.show(omega0)} rad/s: {reason}"
+        )
 
 
 def _quaternion_matrix(q: np.ndarray) -> np.ndarray:

@@ -40,17 +40,64 @@ from lierk import SOLVERS, GravityGradient, dipole_field
 from lierk import inertia as _inertia
 
 __all__ = [
-    "SceneFile", "Initial", "Run",
-    "TeeHandleBody", "BoxBody", "CylinderBody", "SphereBody", "CompositeBody", "TensorBody", "MeshBody",
-    "BoxPart", "CylinderPart", "SpherePart",
-    "GravityEffect", "BodyTorqueEffect", "SpaceTorqueEffect", "TimedTorqueEffect", "DampingEffect",
-    "GravityGradientEffect", "MagneticEffect", "RotorEffect", "ReactionWheelsEffect",
-    "EventKeys", "FlipEvent", "TiltEvent", "TiltExtremumEvent", "PointingEvent", "EnergyEvent", "MomentumEvent",
-    "Body", "Part", "Effect", "Event", "parse", "json_schema", "MAX_STEPS", "MAX_SAVED",
+    "SceneFile",
+    "Initial",
+    "Run",
+    "TeeHandleBody",
+    "BoxBody",
+    "CylinderBody",
+    "SphereBody",
+    "CompositeBody",
+    "TensorBody",
+    "MeshBody",
+    "BoxPart",
+    "CylinderPart",
+    "SpherePart",
+    "GravityEffect",
+    "BodyTorqueEffect",
+    "SpaceTorqueEffect",
+    "TimedTorqueEffect",
+    "DampingEffect",
+    "GravityGradientEffect",
+    "MagneticEffect",
+    "RotorEffect",
+    "ReactionWheelsEffect",
+    "EventKeys",
+    "FlipEvent",
+    "TiltEvent",
+    "TiltExtremumEvent",
+    "PointingEvent",
+    "EnergyEvent",
+    "MomentumEvent",
+    "Body",
+    "Part",
+    "Effect",
+    "Event",
+    "parse",
+    "json_schema",
+    "MAX_STEPS",
+    "MAX_SAVED",
     "MAX_NAME_BYTES",
     # The types of values.
-    "Positive", "NonNegative", "Count", "SaveCount", "Angle", "Vec3", "Vec4", "Matrix3", "Vectors", "Axes", "Numbers",
-    "PositiveNumbers", "Rows", "NumbersOrRows", "Times", "Inertia", "Terminate", "Crossing", "SolverName",
+    "Positive",
+    "NonNegative",
+    "Count",
+    "SaveCount",
+    "Angle",
+    "Vec3",
+    "Vec4",
+    "Matrix3",
+    "Vectors",
+    "Axes",
+    "Numbers",
+    "PositiveNumbers",
+    "Rows",
+    "NumbersOrRows",
+    "Times",
+    "Inertia",
+    "Terminate",
+    "Crossing",
+    "SolverName",
 ]
 
 MAX_STEPS = 2**31 - 1
@@ -107,11 +154,14 @@ NumbersOrRows = Annotated[list[float | Numbers], Meta(min_length=1)]
 """`Numbers`, or `Rows` (one row per time)."""
 Times = Annotated[list[float], Meta(min_length=1, extra={"expects": "a non-empty list of times (s)"})]
 """A list of one or more times."""
-Inertia = Annotated[list[float | Vec3], Meta(min_length=3, max_length=3, extra={
-    "expects": "a list of 3 numbers (the principal moments) or a 3x3 matrix"})]
+Inertia = Annotated[
+    list[float | Vec3],
+    Meta(min_length=3, max_length=3, extra={"expects": "a list of 3 numbers (the principal moments) or a 3x3 matrix"}),
+]
 """A list of 3 numbers, or a `Matrix3`."""
-Terminate = Annotated[bool | Annotated[int, Meta(ge=1)], Meta(extra={
-    "expects": "true, false or a positive integer (end at the n-th)"})]
+Terminate = Annotated[
+    bool | Annotated[int, Meta(ge=1)], Meta(extra={"expects": "true, false or a positive integer (end at the n-th)"})
+]
 """true, false, or an integer >= 1."""
 Crossing = Literal["both", "up", "down"]
 """Which way an angle passes its value."""
@@ -121,8 +171,14 @@ def _any_case(name: str) -> str:
     return "".join(f"[{c.upper()}{c.lower()}]" if c.isalpha() else re.escape(c) for c in name)
 
 
-SolverName = Annotated[str, Meta(pattern=f"^(?:{'|'.join(map(_any_case, SOLVERS))})$", examples=list(SOLVERS),
-                                 extra={"choices": ", ".join(SOLVERS)})]
+SolverName = Annotated[
+    str,
+    Meta(
+        pattern=f"^(?:{'|'.join(map(_any_case, SOLVERS))})$",
+        examples=list(SOLVERS),
+        extra={"choices": ", ".join(SOLVERS)},
+    ),
+]
 """A name in `lierk.SOLVERS`, in any letter case."""
 
 
@@ -476,8 +532,17 @@ class ReactionWheelsEffect(_Effect, tag="reaction_wheels"):
     times: Times | UnsetType = UNSET
 
 
-Effect = (GravityEffect | BodyTorqueEffect | SpaceTorqueEffect | TimedTorqueEffect | DampingEffect
-          | GravityGradientEffect | MagneticEffect | RotorEffect | ReactionWheelsEffect)
+Effect = (
+    GravityEffect
+    | BodyTorqueEffect
+    | SpaceTorqueEffect
+    | TimedTorqueEffect
+    | DampingEffect
+    | GravityGradientEffect
+    | MagneticEffect
+    | RotorEffect
+    | ReactionWheelsEffect
+)
 """An ``[[effects]]`` table, by its ``kind``."""
 
 # --- events ----------------------------------------------------------------------
@@ -635,8 +700,10 @@ class SceneFile(_Table, kw_only=True):
     run: Run
 
 
-_TABLES = {cls.__name__: cls for cls in (SceneFile, Initial, Run, *Body.__args__, *Part.__args__, *Effect.__args__,
-                                         *Event.__args__)}
+_TABLES = {
+    cls.__name__: cls
+    for cls in (SceneFile, Initial, Run, *Body.__args__, *Part.__args__, *Effect.__args__, *Event.__args__)
+}
 
 
 def _keys(cls) -> dict[str, str]:
@@ -645,7 +712,9 @@ def _keys(cls) -> dict[str, str]:
     for c in reversed(cls.__mro__):
         if issubclass(c, _Table):
             section = _inspect.cleandoc(c.__dict__.get("__doc__") or "").partition("\nAttributes:\n")[2]
-            keys.update((m[1], " ".join(m[2].split())) for m in re.finditer(r"^    (\w+): (.*(?:\n {8}.*)*)", section, re.M))
+            keys.update(
+                (m[1], " ".join(m[2].split())) for m in re.finditer(r"^    (\w+): (.*(?:\n {8}.*)*)", section, re.M)
+            )
     return keys
 
 
@@ -769,16 +838,20 @@ def _message(text: str, d: dict) -> str:
         table = _pick(types, value)
         if key[1] == "contains unknown":
             allowed = sorted({f.encode_name for f in table.fields} | {table.tag_field} - {None})
-            return (f"{path}: unknown key {key[2]!r} (= {value[key[2]]!r}){_did_you_mean(key[2], allowed)}; "
-                    f"allowed keys: {', '.join(allowed)}")
+            return (
+                f"{path}: unknown key {key[2]!r} (= {value[key[2]]!r}){_did_you_mean(key[2], allowed)}; "
+                f"allowed keys: {', '.join(allowed)}"
+            )
         if table is None:
             return f"{path}.{key[2]} is missing; choose one of: {', '.join(repr(t.tag) for t in types)}"
         return f"{path}: missing required key {key[2]!r}"
     tables, _ = _resolve(tokens[:-1], d)
     if len(tables) > 1 and all(isinstance(t, msgspec.inspect.StructType) for t in tables) and tokens[-1] == "kind":
         kinds = [t.tag for t in tables]
-        return (f"{path} = {value!r} is not allowed{_did_you_mean(value, kinds)}; "
-                f"choose one of: {', '.join(map(repr, kinds))}")
+        return (
+            f"{path} = {value!r} is not allowed{_did_you_mean(value, kinds)}; "
+            f"choose one of: {', '.join(map(repr, kinds))}"
+        )
     return path + _must(types, extra, value, what, path)
 
 
@@ -826,7 +899,11 @@ def _must(types: list, extra: dict, value: Any, what: str, path: str) -> str:
         if isinstance(row, msgspec.inspect.ListType):
             rows = "[x, y, z] vectors" if row.min_length == row.max_length == 3 else "rows of numbers"
             return f" must be a non-empty list of {rows}{got}"
-        return f" must be a list of {n} numbers{got}" if n == t.max_length else f" must be a non-empty list of numbers{got}"
+        return (
+            f" must be a list of {n} numbers{got}"
+            if n == t.max_length
+            else f" must be a non-empty list of numbers{got}"
+        )
     if types and all(isinstance(u, msgspec.inspect.StructType) for u in types):
         return f" must be a table{got}"
     return f": {what}"

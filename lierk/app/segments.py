@@ -9,10 +9,8 @@ import equinox as eqx
 import jax
 import numpy as np
 
-from lierk import Progress
-from lierk import EventRecord
-from lierk import RESULTS, SaveAt, Solution
-from lierk import num_steps, one_body_compiler_options, solve
+from lierk import RESULTS, EventRecord, Progress, SaveAt, Solution, num_steps, one_body_compiler_options, solve
+
 from ._device import to_device
 
 __all__ = ["N_PIECES", "solve_in_pieces"]
@@ -41,8 +39,9 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         # rather than by a run-time check in the program.
         saveat = scene.saveat()
         with bar.compiling():
-            run = _compiled(lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs),
-                            problem)
+            run = _compiled(
+                lambda problem: solve(problem, solver, t1, saveat=saveat, throw=False, **scene.solve_kwargs), problem
+            )
         sol = jax.block_until_ready(run(problem))
         code = int(sol.result)
         if throw and code == RESULTS.target_error_not_reached:
@@ -141,7 +140,9 @@ def solve_in_pieces(scene, n_pieces: int, progress: bool, throw: bool) -> Soluti
         # A piece counts its time from its own start (ta + j dt), one solve
         # from 0 (k dt): the same times up to rounding.  Saved times are
         # reported as one solve reports them, k dt and then t1.
-        ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[: len(ts)]
+        ts = np.append(np.arange(0, n_total, every).astype(dtype) * np.asarray(dt, dtype), np.asarray(t1, dtype))[
+            : len(ts)
+        ]
     y = None if scene.problem.y0 is None else jax.tree_util.tree_map(lambda *xs: np.concatenate(xs), *y_out)
     return Solution(
         ts=to_device(ts, dtype),
@@ -169,12 +170,16 @@ def _joined(event, records) -> EventRecord:
     n = event.max_count
     ts = np.concatenate([k for k, _ in kept])[:n]
     R = np.concatenate([r.R[: len(k)] for k, r in kept])[:n]
-    y = jax.tree_util.tree_map(lambda *xs: np.concatenate(xs)[:n], *[jax.tree_util.tree_map(lambda a: a[: len(k)], r.y) for k, r in kept])
+    y = jax.tree_util.tree_map(
+        lambda *xs: np.concatenate(xs)[:n], *[jax.tree_util.tree_map(lambda a: a[: len(k)], r.y) for k, r in kept]
+    )
     pad = n - len(ts)
     return EventRecord(
         ts=to_device(np.concatenate([ts, np.full(pad, np.inf, ts.dtype)])),
         R=to_device(np.concatenate([R, np.full((pad, 3, 3), np.nan, R.dtype)])),
-        y=jax.tree_util.tree_map(lambda a: to_device(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y),
+        y=jax.tree_util.tree_map(
+            lambda a: to_device(np.concatenate([a, np.full((pad,) + a.shape[1:], np.nan, a.dtype)])), y
+        ),
         count=to_device(np.int32(sum(int(r.count) for r in records))),
         stopped=to_device(np.bool_(any(bool(r.stopped) for r in records))),
     )

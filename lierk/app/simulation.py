@@ -25,8 +25,9 @@ from typing import Any
 
 import numpy as np
 
-from .diagnostics import Diagnostics
 from lierk import AbstractSplitting, Solution
+
+from .diagnostics import Diagnostics
 
 __all__ = ["Simulation", "simulate"]
 
@@ -180,5 +181,6 @@ def simulate(scene, *, n_pieces: int | None = None, progress: bool = False) -> S
     start = time.perf_counter()
     sol = tracked.solve(n_pieces=n_pieces, progress=progress)
     wall = time.perf_counter() - start
-    return Simulation(tracked, sol, diagnostics(tracked.problem, sol, euler_convention=tracked.euler_convention), wall,
-                      untracked)
+    return Simulation(
+        tracked, sol, diagnostics(tracked.problem, sol, euler_convention=tracked.euler_convention), wall, untracked
+    )

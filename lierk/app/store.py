@@ -186,7 +186,9 @@ class ChunkStore:
         """
         missing = [k for k in range(self.n_chunks) if k not in self._chunks]
         if missing:
-            raise ValueError(f"{len(missing)} of {self.n_chunks} chunks are missing (first: {missing[0]}); run again to resume")
+            raise ValueError(
+                f"{len(missing)} of {self.n_chunks} chunks are missing (first: {missing[0]}); run again to resume"
+            )
         parts = [self.read(k) for k in range(self.n_chunks)]
         return {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
 
