@@ -63,12 +63,17 @@ class AbstractAdjoint(eqx.Module):
     def checkpoints(self) -> int | None:
         return None
 
-    def run(self, loop: Callable, fixed: bool, *args, steps: int | None = None) -> Any:
+    def run(self, loop: Callable, fixed: bool, *args) -> Any:
         """``loop(adjoint, *args)``, the solve, differentiated as this adjoint
-        says.  ``fixed``: the loop takes fixed steps (a `lax.scan`);
-        ``steps``: its most steps (static), which decides the form of a
-        Jacobian's program (`lierk._programs`)."""
+        says.  ``fixed``: the loop takes fixed steps (a `lax.scan`)."""
         return loop(self, *args)
+
+    def run_steps(self, loop: Callable, fixed: bool, *args, steps: int) -> Any:
+        """`run`, told the loop's most steps ``steps`` (static): what
+        `lierk.solve` calls.  An adjoint whose derivative's program depends
+        on them overrides this (`ForwardSensitivity`: the form of a
+        Jacobian's program, `lierk._programs`); the rest define `run`."""
+        return self.run(loop, fixed, *args)
 
 
 class RecursiveCheckpointAdjoint(AbstractAdjoint):
@@ -164,7 +169,10 @@ class ForwardSensitivity(AbstractAdjoint):
                 f"got {type(self.fallback).__name__}()"
             )
 
-    def run(self, loop: Callable, fixed: bool, *args, steps: int | None = None) -> Any:
+    def run(self, loop: Callable, fixed: bool, *args) -> Any:
+        return self.run_steps(loop, fixed, *args, steps=None)
+
+    def run_steps(self, loop: Callable, fixed: bool, *args, steps: int | None) -> Any:
         limit = self.max_inputs if self.max_inputs is not None else (6 if fixed else 32)
         # The derivative's loop resolves the body's perturbation modes
         # (`Controller.resolve_modes`): about a steady spin the state's error

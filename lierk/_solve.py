@@ -254,15 +254,17 @@ def _program(problem, solver, t0, t1, dt, dt0, saveat, n, controller, adjoint, e
     if eps is not None:
         sol = global_error.solve_to_target(problem, solver, t0, t1, saveat, eps, n, adjoint)
     elif dt is not None and saveat.ts is not None:
-        sol = adjoint.run(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat, n, steps=n)
+        sol = adjoint.run_steps(_fixed_at_loop, True, problem, solver, t0, t1, dt, saveat, n, steps=n)
         if estimate_error:
             sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
     elif dt is not None:
-        sol = adjoint.run(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events, steps=n)
+        sol = adjoint.run_steps(_fixed_loop, True, problem, solver, t0, t1, dt, saveat, n, events, steps=n)
         if estimate_error:
             sol = global_error.estimate_fixed(sol, problem, solver, t0, t1, dt, saveat, n)
     else:
-        sol = adjoint.run(_adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events, steps=n)
+        sol = adjoint.run_steps(
+            _adaptive_loop, False, problem, solver, t0, t1, dt0, saveat, n, controller, events, steps=n
+        )
         if estimate_error:
             sol = global_error.estimate_adaptive(sol, problem, solver, t0, t1, saveat, n, controller, adjoint)
     # Every output batched whenever an input is: a `jax.vmap` that meets
@@ -516,12 +518,11 @@ def _invalid_code(problem, t0, t1, dt, dt0, saveat: SaveAt, controller, eps) -> 
 def _marked_invalid(sol: Solution, code) -> Solution:
     """``sol`` with the result ``code`` and NaN states where it is not 0."""
     bad = code != 0
-    nan = lambda x: jnp.where(bad, jnp.nan, x) if eqx.is_inexact_array(x) else x  # noqa: E731
     result = jnp.where(bad, code.astype(sol.result.dtype), sol.result)
     return eqx.tree_at(
         lambda s: (s.R, s.y, s.result),
         sol,
-        (nan(sol.R), jax.tree_util.tree_map(nan, sol.y), result),
+        (validation.poisoned(sol.R, ~bad), validation.poisoned(sol.y, ~bad), result),
         is_leaf=lambda x: x is None,
     )
 

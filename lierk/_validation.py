@@ -203,13 +203,23 @@ def check_together(checks: list) -> list:
     return xs
 
 
+def poisoned(x, good):
+    """``x`` where the traced bool ``good`` holds, else NaN in every floating
+    entry, in value and in every derivative: ``x`` times 1 or NaN, where a
+    ``jnp.where`` would hand a Jacobian the finite tangent of a refused value."""
+
+    def leaf(v):
+        if not jnp.issubdtype(v.dtype, jnp.inexact):
+            return v
+        return v * jnp.where(good, jnp.ones((), v.dtype), jnp.full((), jnp.nan, v.dtype))
+
+    return jax.tree_util.tree_map(leaf, x)
+
+
 def _nan_unless(x, ok: Callable):
     """``x`` as it is where ``ok(x)`` holds (all of it), else NaN in every
-    floating entry: a traced input that failed its check."""
-    good = jnp.all(ok(x))
-    return jax.tree_util.tree_map(
-        lambda v: jnp.where(good, v, jnp.nan) if jnp.issubdtype(v.dtype, jnp.inexact) else v, x
-    )
+    floating entry and its derivatives: a traced input that failed its check."""
+    return poisoned(x, jnp.all(ok(x)))
 
 
 def _nan_unless_each(xs: tuple, oks: tuple) -> tuple:
@@ -288,7 +298,8 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     """An initial attitude ``R0`` (body -> space), ``(3, 3)``, checked: finite,
     and a rotation to 1e-6 (``||R^T R - I|| < 1e-6``, ``det R > 0``).
     Returns it as a JAX array of ``dtype`` (the identity for None); raises
-    `ValueError` naming ``R0`` otherwise (at run time for a traced value)."""
+    `ValueError` naming ``R0`` otherwise.  A traced ``R0`` is checked in the
+    program: NaN where it fails (`check`)."""
     if R0 is None:
         return as_jax(np.eye(3), dtype)
     R0 = asarray(R0, dtype, "R0")
@@ -298,7 +309,7 @@ def check_attitude(R0: ArrayLike | None, dtype) -> Array:
     R0 = check(R0, lambda R: (R == R).all() & (abs(R) < float("inf")).all(), "R0 has NaN or inf entries: {value}")
     R0 = check(
         R0,
-        lambda R: (xp.linalg.norm(R.T @ R - xp.eye(3)) < tol) & (xp.linalg.det(R) > 0),
+        lambda R: (xp.linalg.norm(R.T @ R - xp.eye(3, dtype=R.dtype)) < tol) & (xp.linalg.det(R) > 0),
         f"R0 must be a rotation matrix (||R^T R - I|| < {tol:g} and det R = +1), got {{value}}",
     )
     return as_jax(R0)
@@ -440,7 +451,7 @@ def _state_in_range(inertia, omega0):
     """``omega0``, checked in the program (NaN unless it passes): finite,
     and a body state within `state_range_error`'s bounds, as one predicate
     (a NaN or infinite ``omega0`` makes its squares so)."""
-    return jnp.where(_in_range(inertia, omega0), omega0, jnp.nan)
+    return poisoned(omega0, _in_range(inertia, omega0))
 
 
 def _in_range(I, w):

@@ -132,13 +132,24 @@ def test_bad_inertia_raises_naming_the_problem(bad, word):
         lierk.FreeRigidBody(bad, [1.0, 0.0, 0.0])
 
 
-def test_bad_inertia_under_jit_raises_at_run_time():
+def test_bad_inertia_under_jit_is_checked_in_the_program():
+    # A traced inertia is checked inside the program: a bad one makes the
+    # body's values NaN, and a solve of that body fails with
+    # RESULTS.invalid_problem (raised by throw=True), never result 0.
     make = jax.jit(lambda I: lierk.FreeRigidBody(I, np.array([1.0, 0.0, 0.0])).inertia_inv)
     np.testing.assert_allclose(make(TEE), np.linalg.inv(TEE), rtol=1e-14)
-    with pytest.raises(Exception, match="positive definite"):
-        make(np.diag([1.0, -1.0, 2.0]))
-    with pytest.raises(Exception, match="NaN"):
-        make(np.diag([1.0, np.nan, 2.0]))
+    for bad in (np.diag([1.0, -1.0, 2.0]), np.diag([1.0, np.nan, 2.0])):
+        assert np.isnan(np.asarray(make(bad))).all()
+
+    def final(I, throw):
+        body = lierk.FreeRigidBody(I, np.array([1.0, 0.2, 0.0]))
+        return lierk.solve(body, lierk.RKMK4(), 0.1, dt=0.05, throw=throw)
+
+    sol = jax.jit(lambda I: final(I, False))(np.diag([1.0, -1.0, 2.0]))
+    assert int(sol.result) == lierk.RESULTS.invalid_problem
+    assert np.isnan(np.asarray(sol.R)).all()
+    with pytest.raises(Exception, match="inertia must be positive definite"):
+        jax.jit(lambda I: final(I, True))(np.diag([1.0, -1.0, 2.0]))
 
 
 @pytest.mark.parametrize(
