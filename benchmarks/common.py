@@ -13,7 +13,10 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
+
+if TYPE_CHECKING:  # the annotations only: NumPy is imported where it is used
+    import numpy as np
 
 RESULTS = Path(__file__).resolve().parent / "results"
 

@@ -191,7 +191,8 @@ def markdown(meta, rows) -> list[str]:
     lines = [
         "# Compilation time: lierk beside diffrax",
         "",
-        f"{m['cpu_count']} cores; jax {m['jax']}, diffrax {m['diffrax']}, lierk {m['lierk']}.  Each program compiled in a "
+        f"{m['cpu_count']} cores; jax {m['jax']}, diffrax {m['diffrax']}, lierk {m['lierk']}.  "
+        "Each program compiled in a "
         f"fresh process, median of {meta['repeats']}; float64, one body (jit(vmap): 64), T = {meta['T']:g} s, "
         f"{meta['fixed_steps']} fixed steps or max_steps {meta['adaptive_max_steps']}.  Trace: tracing and lowering; "
         "compile: XLA.",

@@ -156,10 +156,12 @@ def main():
         "quick": QUICK,
     }
     md = [
-        f"# Global error estimate and accuracy on request\n\nMachine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "
+        "# Global error estimate and accuracy on request\n\n"
+        f"Machine: {info['cores']} cores, {info['processor']}, CPU, jax {info['jax']}; "
         f"batch {N}, T = {T} s, float64, medians of {REPEATS}.\n",
         "## `estimate_error=True` (Richardson against a finer solve)\n",
-        "| body | solver | setting | plain (s) | with estimate (s) | cost | max error | est. within 10x | min est/err |",
+        "| body | solver | setting | plain (s) | with estimate (s) | cost | max error "
+        "| est. within 10x | min est/err |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows_est:
@@ -178,7 +180,8 @@ def main():
         setting = f"{r['cheapest_setting']:.3g}" if r["cheapest_setting"] else "none in scan"
         md.append(
             f"| {r['body']} | {r['solver']} | {r['eps']:.0e} | {100 * r['met']:.1f}% | {r['success_above_eps']} | "
-            f"{r['solves_mean']:.2f}, {r['solves_max']} | {r['time']:.3f} | {setting} | {r['cheapest_time']:.3f} | {cost} |"
+            f"{r['solves_mean']:.2f}, {r['solves_max']} | {r['time']:.3f} | {setting} | "
+            f"{r['cheapest_time']:.3f} | {cost} |"
         )
     write_results(OUT, "error_estimate", {"machine": info, "estimate": rows_est, "target": rows_target}, md)
     print("\n".join(md))

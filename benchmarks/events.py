@@ -227,7 +227,8 @@ def main():
         "| event-time error <= | lierk best (s) | diffrax best (s) | lierk / diffrax |",
         "|---|---:|---:|---:|",
         *[
-            f"| {r['level']:.0e} | {r['lierk_s']:.3g} | {r['diffrax_s']:.3g} | {r['ratio']:.2f}{' *' if r['clamped'] else ''} |"
+            f"| {r['level']:.0e} | {r['lierk_s']:.3g} | {r['diffrax_s']:.3g} | "
+            f"{r['ratio']:.2f}{' *' if r['clamped'] else ''} |"
             for r in ratios
         ],
         "",

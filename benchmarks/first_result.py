@@ -362,7 +362,8 @@ def main(argv=None):
             value = row.get("first", row.get("steady"))
             compact = "" if cell["compact"] is None else f"compact={cell['compact']}"
             print(
-                f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s} {compact:13s} {value:8.3f} s",
+                f"{cell['body']:10s} {cell['solver']:13s} {cell['work']:11s} {cell['peer']:7s} "
+                f"{compact:13s} {value:8.3f} s",
                 flush=True,
             )
         # After every comparison: a run stopped part-way (a time limit on a
@@ -412,8 +413,10 @@ def markdown(meta, rows) -> list[str]:
     lines = [
         "# Time to first result: lierk beside diffrax",
         "",
-        f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}; jax {m['jax']}, lierk {m['lierk']}, commit {meta['commit']}.  Every cell in a "
-        f"fresh process without the persistent cache, median of {meta['repeats']} (the cells of one comparison in turn); float64; {meta['steps']} fixed steps or "
+        f"{m['cpu_count']} cores ({m['cpu']}), {common.backend_text(m)}; jax {m['jax']}, lierk {m['lierk']}, "
+        f"commit {meta['commit']}.  Every cell in a "
+        f"fresh process without the persistent cache, median of {meta['repeats']} (the cells of one comparison "
+        f"in turn); float64; {meta['steps']} fixed steps or "
         f"rtol = atol = {meta['rtol']:g}.  First call = trace (and lower) + XLA compile + first run, seconds; size: "
         f"instructions of the optimized program; steady: `jit(vmap)` over {meta['batch']} bodies, median ms.  Load "
         f"average at start {tuple(round(x, 1) for x in m['load_average_at_start'])}, at end "
@@ -426,7 +429,8 @@ def markdown(meta, rows) -> list[str]:
         "",
         "## First solve and first Jacobian",
         "",
-        "| problem | solver | work | lierk (trace + compile + run) | size | diffrax | size | lierk / diffrax | target |",
+        "| problem | solver | work | lierk (trace + compile + run) | size | diffrax | size | lierk / diffrax "
+        "| target |",
         "|---|---|---|---|---:|---|---:|---:|---|",
     ]
     for body in BODIES:
@@ -493,7 +497,8 @@ def markdown(meta, rows) -> list[str]:
         "",
         "## Steady state (after compilation)",
         "",
-        "| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax | compact / diffrax |",
+        "| problem | solver | lierk (ms) | lierk `compact=True` (ms) | diffrax (ms) | lierk / diffrax "
+        "| compact / diffrax |",
         "|---|---|---:|---:|---:|---:|---:|",
     ]
     lines += _ms_rows(rows, "steady", "steady", compact=True)

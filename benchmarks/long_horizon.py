@@ -197,7 +197,8 @@ def run_free(out: Path):
         axes[0].loglog(tt, 1e-10 * (tt / FIT_FROM) ** pw, "k" + style, lw=0.8, label=f"~ t^{pw}")
     axes[0].legend(fontsize=7)
     fig.suptitle(
-        f"T-handle, omega0 = {tuple(OMEGA0.tolist())} rad/s; fixed h = {DT} s; fit of error ~ t^p over t >= {FIT_FROM:g} s"
+        f"T-handle, omega0 = {tuple(OMEGA0.tolist())} rad/s; fixed h = {DT} s; "
+        f"fit of error ~ t^p over t >= {FIT_FROM:g} s"
     )
     fig.tight_layout()
     out.mkdir(parents=True, exist_ok=True)
@@ -216,10 +217,12 @@ def run_free(out: Path):
     lines = [
         "# Long horizon on the T-handle",
         "",
-        f"omega0 = {tuple(OMEGA0.tolist())} rad/s, T = {T:g} s, fixed h = {DT} s, reference lierk.exact.free_rigid_body.  ",
+        f"omega0 = {tuple(OMEGA0.tolist())} rad/s, T = {T:g} s, fixed h = {DT} s, "
+        "reference lierk.exact.free_rigid_body.  ",
         f"Exponents: least-squares slope of log(running max of quantity) vs log(t) over t in [{FIT_FROM:g}, {T:g}] s.",
         "",
-        "| solver | steps | error at T | error exponent | note | max energy drift | energy exponent | max abs(L) drift | max orth. error |",
+        "| solver | steps | error at T | error exponent | note | max energy drift | energy exponent "
+        "| max abs(L) drift | max orth. error |",
         "|---|---:|---:|---:|---|---:|---:|---:|---:|",
     ]
     for r in rows:
@@ -436,7 +439,8 @@ def run_heavy_top(out: Path):
             ax.grid(True, which="both", alpha=0.3)
         axes[row, 0].legend(fontsize=7, loc="lower right")
     fig.suptitle(
-        f"Heavy tops, float64, {TOP_T:g} s: fixed dt = {TOP_DT:g} s ({round(TOP_T / TOP_DT):.0e} steps) unless labelled; "
+        f"Heavy tops, float64, {TOP_T:g} s: fixed dt = {TOP_DT:g} s ({round(TOP_T / TOP_DT):.0e} steps) "
+        "unless labelled; "
         f"DOP853 adaptive (dashed); dotted line: the issue's 1e-6"
     )
     fig.tight_layout()
@@ -491,8 +495,10 @@ def top_markdown(meta, results) -> list[str]:
         f"load average {load[0]:.2f} at the start and {meta['machine']['load_average_at_end'][0]:.2f} at the end "
         "(the machine is shared).  "
         f"Conservative scenes (gravity only) over {meta['T']:g} s with dt = {meta['dt']:g} s "
-        f"({round(meta['T'] / meta['dt']):.0e} steps), except BlanesMoan4 and BlanesMoanRKN4 at dt = {meta['dt_mid']:g} s and "
-        f"{meta['dt_coarse']:g} s ({round(meta['T'] / meta['dt_mid']):.2g} and {round(meta['T'] / meta['dt_coarse']):.0e} "
+        f"({round(meta['T'] / meta['dt']):.0e} steps), except BlanesMoan4 and BlanesMoanRKN4 "
+        f"at dt = {meta['dt_mid']:g} s and "
+        f"{meta['dt_coarse']:g} s ({round(meta['T'] / meta['dt_mid']):.2g} and "
+        f"{round(meta['T'] / meta['dt_coarse']):.0e} "
         "steps) and adaptive DOP853.  The issue's criterion: the "
         "relative energy error's max over the last tenth of the run is at most 2x its max over the first tenth, "
         "and its overall max is below 1e-6.  " + "  ".join(summary),
@@ -525,10 +531,12 @@ def top_markdown(meta, results) -> list[str]:
             walk = f"{r['rounding']['predicted_walk']:.1e}" if r.get("rounding") else "-"
             lines.append(
                 f"| {r['method']} | {r['steps']} | {e['first_tenth_max']:.2e} | {e['last_tenth_max']:.2e} | "
-                f"{_fmt_ratio(e['ratio'])} | {e['max']:.2e} | {e['exponent']:.2f} | {'yes' if r['meets_criterion'] else 'no'} | "
+                f"{_fmt_ratio(e['ratio'])} | {e['max']:.2e} | {e['exponent']:.2f} | "
+                f"{'yes' if r['meets_criterion'] else 'no'} | "
                 f"{lv['first_tenth_max']:.1e} / {lv['last_tenth_max']:.1e} / {lv['max']:.1e}"
                 + (f" | {r['m_chi']['max']:.1e}" if has_mchi else "")
-                + f" | {r['orthogonality_max']:.1e} | {walk} | {r['run_s']:.1f} ({r['compile_s']:.1f}) | {r['us_per_step']:.2f} |"
+                + f" | {r['orthogonality_max']:.1e} | {walk} | {r['run_s']:.1f} ({r['compile_s']:.1f}) | "
+                f"{r['us_per_step']:.2f} |"
             )
         lines.append("")
     return lines
@@ -755,13 +763,16 @@ def brouwer_markdown(meta, rows) -> list[str]:
         "Meets: the issue's bound of 3.5 on the median draw's ratio, and an RMS exponent of at most 0.75.  "
         "Figure: long_horizon_brouwer.png.",
         "",
-        "| body | solver | steps x draws | per-draw ratio: median (max) | RMS ratio | RMS exponent | end mean (std. errors) | max error | meets | run s |",
+        "| body | solver | steps x draws | per-draw ratio: median (max) | RMS ratio | RMS exponent "
+        "| end mean (std. errors) | max error | meets | run s |",
         "|---|---|---:|---:|---:|---:|---:|---:|:---:|---:|",
     ]
     for r in rows:
         lines.append(
-            f"| {r['body']} | {r['solver']} | {r['steps']:.0e} x {r['draws']} | {r['ratio_median']:.2f} ({max(r['ratio_per_draw']):.2f}) | "
-            f"{r['rms_ratio']:.2f} | {r['rms_exponent']:.2f} | {r['end_mean']:.1e} ({r['end_mean_in_standard_errors']:+.1f}) | "
+            f"| {r['body']} | {r['solver']} | {r['steps']:.0e} x {r['draws']} | "
+            f"{r['ratio_median']:.2f} ({max(r['ratio_per_draw']):.2f}) | "
+            f"{r['rms_ratio']:.2f} | {r['rms_exponent']:.2f} | "
+            f"{r['end_mean']:.1e} ({r['end_mean_in_standard_errors']:+.1f}) | "
             f"{r['max_error']:.1e} | {'yes' if brouwer_meets(r) else 'no'} | {r['seconds']:.0f} |"
         )
     lines += ["", "Bodies:", ""] + [f"- {r['body']}: {r['description']}." for r in rows]

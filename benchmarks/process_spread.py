@@ -93,7 +93,8 @@ def main() -> None:
     lines = [
         "# One program, several processes (`benchmarks/process_spread.py`)",
         "",
-        f"{os.cpu_count()} cores, {common.cpu_model()}, {common.backend_text(record['machine'])}; jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
+        f"{os.cpu_count()} cores, {common.cpu_model()}, {common.backend_text(record['machine'])}; "
+        f"jax {jax.__version__}.  {N} T-handles near the intermediate axis, "
         f"{STEPS} fixed steps of {DT} s, jit(vmap) on one device, float64.  Each cell: the median of 30 calls "
         f"in one fresh process (ms); {processes} processes per setting, taken in turn.",
         "",

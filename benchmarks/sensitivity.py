@@ -441,7 +441,10 @@ def run_family(fam) -> dict:
             t = interp_time([(r["error"], r["time_s"]) for r in jacobians if r["method"] == method], level)
             if t is not None:
                 own[method] = t[0]
-        ratio = lambda a: None if best[a] is None or best["diffrax"] is None else best[a] / best["diffrax"]  # noqa: E731
+
+        def ratio(a):
+            return None if best[a] is None or best["diffrax"] is None else best[a] / best["diffrax"]
+
         levels.append(
             dict(
                 level=level,
@@ -561,7 +564,8 @@ def markdown(p) -> list[str]:
             )
         lines += [
             "",
-            "| method | mode | setting | error | Jacobian (s) | forward solve (s) | Jacobian / forward | mean steps | devices |",
+            "| method | mode | setting | error | Jacobian (s) | forward solve (s) | Jacobian / forward "
+            "| mean steps | devices |",
             "|---|---|---|---:|---:|---:|---:|---:|---:|",
         ]
         for r in fam["records"]:

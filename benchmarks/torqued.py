@@ -714,7 +714,8 @@ def markdown(p) -> list[str]:
         "",
         "## lierk best / best peer",
         "",
-        "Target: at most 0.3 at every level on each family. Best peer: the cheapest of diffrax (Tsit5 and Dopri8 adaptive, Dopri8 at constant step), "
+        "Target: at most 0.3 at every level on each family. Best peer: the cheapest of diffrax "
+        "(Tsit5 and Dopri8 adaptive, Dopri8 at constant step), "
         "MuJoCo RK4 and SciPy DOP853 (one body x N) at that level.",
         "",
         *ratio_table(p["families"]),
@@ -727,7 +728,8 @@ def markdown(p) -> list[str]:
             "",
             "Definition: " + "; ".join(f"{k} = {v}" for k, v in d.items()) + ".",
             "",
-            f"Reference {f['reference']} ({f['reference_s']:.1f} s with compilation); |ref - diffrax Dopri8 at the same tolerance| "
+            f"Reference {f['reference']} ({f['reference_s']:.1f} s with compilation); "
+            "|ref - diffrax Dopri8 at the same tolerance| "
             f"= {f['reference_vs_diffrax_dopri8']:.1e} (batch max), |ref - SciPy DOP853 at {SCIPY_CHECK_TOL:.1e}| = "
             + ", ".join(f"{v:.1e}" for v in f["reference_vs_scipy_dop853"].values())
             + f" (members {', '.join(f['reference_vs_scipy_dop853'])}). "
@@ -736,9 +738,11 @@ def markdown(p) -> list[str]:
                 if isinstance(c, str)
                 else (
                     f"MuJoCo against lierk at dt 1e-4 over "
-                    f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, |qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
+                    f"{c['t']:g} s: |R - R_lierk| = {c['R_error']:.1e}, "
+                    f"|qvel - omega_body| = {c['qvel_minus_body_omega']:.1e}"
                     + (
-                        f"; with the motors' torque read as a space-frame torque instead: {c['R_error_if_motor_torque_were_space_frame']:.1e}"
+                        "; with the motors' torque read as a space-frame torque instead: "
+                        f"{c['R_error_if_motor_torque_were_space_frame']:.1e}"
                         if "R_error_if_motor_torque_were_space_frame" in c
                         else ""
                     )
@@ -821,7 +825,8 @@ def main():
         "seed": SEED,
         "levels": LEVELS,
         "error": "max over the batch of ||R(T) - R_ref(T)||_F (SciPy: member 0 only)",
-        "timing": f"median of at least {REPEATS} calls (up to 51, until they add up to {MIN_TIME} s) after a warm-up call; SciPy: one body x {N}",
+        "timing": f"median of at least {REPEATS} calls (up to 51, until they add up to {MIN_TIME} s) "
+        f"after a warm-up call; SciPy: one body x {N}",
         "machine": machine,
         "total_runtime_s": time.perf_counter() - t_start,
         "families": families,

@@ -455,7 +455,8 @@ def main():
             "time_s": exact_s,
             "compile_s": exact_compile_s,
             "error": max(check),
-            "error_measured_against": f"SciPy DOP853 rtol=atol={CHECK_TOL:.0e} (9-component ODE) on members {CHECK_IDS}",
+            "error_measured_against": f"SciPy DOP853 rtol=atol={CHECK_TOL:.0e} (9-component ODE) "
+            f"on members {CHECK_IDS}",
         },
         "mujoco": {
             "version": mujoco.__version__,
@@ -466,7 +467,8 @@ def main():
         },
         "error": f"max over the batch of ||R(T) - R_ref(T)||_F (scipy and NumPy: member 0 only; "
         f"lierk.exact: against SciPy on members {CHECK_IDS})",
-        "timing": f"median of at least {REPEATS} calls (more until they add up to {MIN_TIME} s) after warm-up; scipy/NumPy: one trajectory x {N}",
+        "timing": f"median of at least {REPEATS} calls (more until they add up to {MIN_TIME} s) after warm-up; "
+        f"scipy/NumPy: one trajectory x {N}",
         "machine": machine,
         "total_runtime_s": total,
         "records": records,

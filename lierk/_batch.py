@@ -281,9 +281,10 @@ def sweep_chunks(
     size rounded up to a multiple of the device count, padded with copies of
     the chunk's last member, which are dropped), so a sweep compiles once, and
     a later sweep of ``fn`` with the same chunk size, dtypes and devices
-    compiles nothing (see `sweep` for what "the same ``fn``" means).  The next chunk is dispatched before the current one is copied to
-    the host, so at most two chunks' outputs exist at a time: memory is
-    bounded by the chunk size, not by ``N``.
+    compiles nothing (see `sweep` for what "the same ``fn``" means).  The
+    next chunk is dispatched before the current one is copied to the host, so
+    at most two chunks' outputs exist at a time: memory is bounded by the
+    chunk size, not by ``N``.
 
     After `lierk.app.distributed.initialize`, every process calls this with the
     same arguments, ``skip`` included (the whole batch, e.g. a grid computed

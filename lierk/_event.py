@@ -117,7 +117,8 @@ class Event(eqx.Module):
             raise ValueError(f"Event(where=...) must be a function where(t, R, y) -> bool or None, got {where!r}")
         if not (isinstance(terminate, bool) or (_is_int(terminate) and terminate >= 1)):
             raise ValueError(
-                f"Event(terminate=...) must be True, False or a positive int (stop at the n-th crossing), got {terminate!r}"
+                "Event(terminate=...) must be True, False or a positive int (stop at the n-th crossing), "
+                f"got {terminate!r}"
             )
         if direction not in (-1, 0, 1) or isinstance(direction, bool):
             raise ValueError(f"Event(direction=...) must be 0 (both), 1 (rising) or -1 (falling), got {direction!r}")
@@ -127,7 +128,8 @@ class Event(eqx.Module):
             raise ValueError(f"Event(max_count=...) must be a positive int, got {max_count!r}")
         if _is_int(terminate) and not isinstance(terminate, bool) and max_count < terminate:
             raise ValueError(
-                f"Event(max_count={max_count}) must be at least terminate={terminate}, to hold the crossing that ends the solve"
+                f"Event(max_count={max_count}) must be at least terminate={terminate}, "
+                "to hold the crossing that ends the solve"
             )
         if not (_is_int(samples) and samples >= 1):
             raise ValueError(f"Event(samples=...) must be a positive int, got {samples!r}")

@@ -55,7 +55,8 @@ def from_arrays(vertices, faces, scale: float = 1.0) -> TriangleMesh:
         raise ValueError(f"mesh vertices must be an array of shape (V, 3) with V >= 4, got shape {v.shape}")
     if not np.isfinite(v).all():
         raise ValueError(
-            f"mesh vertices must be finite; vertex {int(np.argwhere(~np.isfinite(v))[0, 0])} is {v[np.argwhere(~np.isfinite(v))[0, 0]]}"
+            f"mesh vertices must be finite; vertex {int(np.argwhere(~np.isfinite(v))[0, 0])} "
+            f"is {v[np.argwhere(~np.isfinite(v))[0, 0]]}"
         )
     if f.ndim != 2 or f.shape[1] != 3 or len(f) < 4:
         raise ValueError(f"mesh faces must be an array of shape (F, 3) with F >= 4 triangles, got shape {f.shape}")

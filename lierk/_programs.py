@@ -4,13 +4,28 @@
 choose their program from the call's arguments alone, never from how the
 caller reached them:
 
-| the call | where it runs | the solver's form |
-|---|---|---|
-| no argument is a JAX tracer, called from Python (or under an eager transform of a function closing over it) | lierk's own program, compiled once per argument structure, on the CPU with `one_body_compiler_options` | one body |
-| no argument is a JAX tracer, inside a caller's ``jax.jit`` (values it closes over) | part of the caller's program, with its compile options (JAX gives a nested program no options of its own) | one body |
-| some argument is traced: inside ``jax.jit``, ``jax.grad``, ``jax.jacfwd``, a ``lax.scan`` body | part of the caller's program | one body |
-| a ``jax.vmap`` batches the call, now or later (``jax.vmap`` of the caller's jitted function too) | part of the caller's program, traced again by a batching rule (``jax.custom_batching.custom_vmap``) | batch |
-| a function in the problem closes over a traced value | part of the caller's program | batch |
++----------------------------------------------+---------------------------------------------------+-------------------+
+| the call                                     | where it runs                                     | the solver's form |
++==============================================+===================================================+===================+
+| no argument is a JAX tracer, called from     | lierk's own program, compiled once per argument   | one body          |
+| Python (or under an eager transform of a     | structure, on the CPU with                        |                   |
+| function closing over it)                    | `one_body_compiler_options`                       |                   |
++----------------------------------------------+---------------------------------------------------+-------------------+
+| no argument is a JAX tracer, inside a        | part of the caller's program, with its compile    | one body          |
+| caller's ``jax.jit`` (values it closes over) | options (JAX gives a nested program no options of |                   |
+|                                              | its own)                                          |                   |
++----------------------------------------------+---------------------------------------------------+-------------------+
+| some argument is traced: inside ``jax.jit``, | part of the caller's program                      | one body          |
+| ``jax.grad``, ``jax.jacfwd``, a ``lax.scan`` |                                                   |                   |
+| body                                         |                                                   |                   |
++----------------------------------------------+---------------------------------------------------+-------------------+
+| a ``jax.vmap`` batches the call, now or      | part of the caller's program, traced again by a   | batch             |
+| later (``jax.vmap`` of the caller's jitted   | batching rule                                     |                   |
+| function too)                                | (``jax.custom_batching.custom_vmap``)             |                   |
++----------------------------------------------+---------------------------------------------------+-------------------+
+| a function in the problem closes over a      | part of the caller's program                      | batch             |
+| traced value                                 |                                                   |                   |
++----------------------------------------------+---------------------------------------------------+-------------------+
 
 The two forms compute the same numbers to rounding; they differ in how the
 program is written, which trades compile time against run time:

@@ -187,7 +187,8 @@ def solve(
             )
         if saveat.steps is not False:
             raise ValueError(
-                "target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, so SaveAt(steps=...) cannot be used"
+                "target_error= saves at SaveAt(t0/t1/ts=...): the steps differ per setting, "
+                "so SaveAt(steps=...) cannot be used"
             )
         eps = validation.check(
             validation.check_scalar(target_error, "target_error", dtype),
@@ -439,7 +440,8 @@ def _check_adaptive(solver, saveat: SaveAt, rtol, atol, dt0, controller, adjoint
     if controller is None:
         if rtol is None:
             raise ValueError(
-                f"adaptive {solver.name} needs rtol= (and atol=), or controller=, or target_error=; or pass dt= for fixed steps"
+                f"adaptive {solver.name} needs rtol= (and atol=), or controller=, or target_error=; "
+                "or pass dt= for fixed steps"
             )
         controller = Controller.from_tolerances(rtol, atol)
     elif rtol is not None or atol is not None:

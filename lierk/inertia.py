@@ -229,7 +229,8 @@ def from_mesh(mesh, density: float, scale: float = 1.0) -> MeshInertia:
             vertices, faces = mesh
         except (TypeError, ValueError):
             raise ValueError(
-                f"mesh must be a file path, a trimesh.Trimesh, a (vertices, faces) pair or a TriangleMesh, got {type(mesh).__name__}"
+                "mesh must be a file path, a trimesh.Trimesh, a (vertices, faces) pair or a TriangleMesh, "
+                f"got {type(mesh).__name__}"
             ) from None
         m = _mesh.from_arrays(vertices, faces, scale)
     props = _mesh.mass_properties(m, density)

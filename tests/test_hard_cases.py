@@ -198,7 +198,8 @@ def test_fast_spin_adaptive_chooses_small_steps(solver):
     n_acc = int(sol.stats["num_accepted_steps"])
     mean_angle = 1e4 * T / n_acc
     print(
-        f"{solver.name}: err {err:.2e}, accepted {n_acc}, rejected {int(sol.stats['num_rejected_steps'])}, mean |omega| h {mean_angle:.3f} rad"
+        f"{solver.name}: err {err:.2e}, accepted {n_acc}, rejected {int(sol.stats['num_rejected_steps'])}, "
+        f"mean |omega| h {mean_angle:.3f} rad"
     )
     # Measured: RKF45 8.2e-5 (561 steps, mean |omega| h 0.18 rad), DP54 2.8e-5
     # (507, 0.20 rad), DOP853 5.6e-6 (102, 0.98 rad).  The error is that of a
@@ -272,7 +273,8 @@ def test_float32_floors(solver, kw):
     err = np.linalg.norm(R32 - exact_R(TEE, OMEGA_GENERIC, T))
     orth = float(so3.orthogonality_error(R32))
     print(
-        f"{solver.name} float32: gap to float64 {gap:.2e}, error vs exact {err:.2e}, orth {orth:.2e}, result {int(sol32.result)}"
+        f"{solver.name} float32: gap to float64 {gap:.2e}, error vs exact {err:.2e}, orth {orth:.2e}, "
+        f"result {int(sol32.result)}"
     )
     # Measured gaps: ExplicitEuler 6.1e-6, LieEuler 1.1e-6, NaiveLieRK4 5.4e-7,
     # RKMK4 7.3e-7, CF4 2.6e-6, RKMK(RK4) 9.2e-7, RKF45 1.0e-6, DP54 7.8e-6,

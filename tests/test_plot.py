@@ -189,17 +189,10 @@ def test_blitted_frames_are_the_pixels_of_full_draws(flip, parts):
     problem, sol = flip
     parts = lierk.inertia.tee_handle_parts() if parts == "tee" else None
     ts, R, _ = sol.trajectory()
-    make = lambda: plot._animation(
-        ts,
-        R,
-        parts,
-        problem.L,
-        frames=4,
-        title="t",
-        inertia=None,
-        origin=None,  # noqa: E731
-        trail=True,
-    )
+
+    def make():
+        return plot._animation(ts, R, parts, problem.L, frames=4, title="t", inertia=None, origin=None, trail=True)
+
     blitted = plot._frames(make())
     full = make()
     canvas = FigureCanvasAgg(full.fig)

@@ -30,7 +30,8 @@ def test_at_most_twelve_public_modules_sit_under_lierk():
 def test_import_lierk_loads_neither_the_application_nor_matplotlib_nor_tqdm():
     code = (
         "import sys, lierk; "
-        "print(sorted(m for m in sys.modules if m.split('.')[0] in ('matplotlib', 'tqdm') or m.startswith('lierk.app')))"
+        "print(sorted(m for m in sys.modules "
+        "if m.split('.')[0] in ('matplotlib', 'tqdm') or m.startswith('lierk.app')))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"

@@ -102,7 +102,9 @@ def test_no_effect_scene_is_the_free_body_with_the_same_jaxpr():
     direct = lierk.FreeRigidBody(lierk.inertia.tee_handle(), [1.0, 0.05, 0.0])
 
     def program(problem):
-        run = lambda p: lierk.solve(p, scene.solver, 1.0, dt=0.01, max_steps=100, saveat=scene.saveat()).R
+        def run(p):
+            return lierk.solve(p, scene.solver, 1.0, dt=0.01, max_steps=100, saveat=scene.saveat()).R
+
         return str(jax.make_jaxpr(run)(problem))
 
     assert program(scene.problem) == program(direct)
@@ -435,8 +437,8 @@ def test_with_t1_is_checked_like_run_t1():
         # Was refused as "not positive definite" (the check's determinant underflowed).
         (
             {"body": {"kind": "tensor", "inertia": [1e-300, 2e-300, 3e-300]}},
-            r"body.inertia = \[1.e-300, 2.e-300, 3.e-300\] .*: det\(I\), the product of the principal moments, = 6e-900 "
-            r"underflows float64",
+            r"body.inertia = \[1.e-300, 2.e-300, 3.e-300\] .*: det\(I\), the product of the principal moments, "
+            r"= 6e-900 underflows float64",
         ),
         ({"initial": {"omega": [1e155, 0.0, 0.0]}}, r"\|omega\|\^2 = 1e\+310 overflows float64"),
         # Was "the initial momentum I omega overflows", which it does not (1e196).
@@ -446,7 +448,8 @@ def test_with_t1_is_checked_like_run_t1():
                 "body": {"kind": "sphere", "mass": 1.0, "radius": 0.1},
                 "effects": [{"kind": "gravity", "pivot_to_com": [0, 0, 1e150]}],
             },
-            r"^body about the gravity pivot: inertia = .* det\(I\), the product of the principal moments, = .* overflows",
+            r"^body about the gravity pivot: inertia = .* det\(I\), "
+            r"the product of the principal moments, = .* overflows",
         ),
     ],
 )

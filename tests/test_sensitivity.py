@@ -134,7 +134,10 @@ def test_error_estimate_is_calibrated_on_a_near_axis_batch():
 def test_vmap_matches_a_python_loop():
     omegas = near_axis(BOX, 3, seed=1)
     body = lierk.FreeRigidBody(BOX, omegas[0])
-    f = lambda w: lierk.sensitivity(body.with_omega0(w), lierk.RKMK4(), 2.0, dt=0.05, estimate_error=False)  # noqa: E731
+
+    def f(w):
+        return lierk.sensitivity(body.with_omega0(w), lierk.RKMK4(), 2.0, dt=0.05, estimate_error=False)
+
     batched = jax.vmap(f)(jnp.asarray(omegas))
     for k, w in enumerate(omegas):
         one = f(jnp.asarray(w))

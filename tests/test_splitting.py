@@ -485,8 +485,8 @@ def test_scene_timed_torque(tmp_path):
 
 def test_scene_gravity_mass_must_match_the_body(tmp_path):
     text = (
-        SCENE.split("[[effects]]")[0]
-        + '[[effects]]\nkind = "gravity"\npivot = [0, 0, -0.05]\nmass = 3.0\n[run]\nsolver = "RKMK4"\nt1 = 1.0\ndt = 0.01\n'
+        SCENE.split("[[effects]]")[0] + '[[effects]]\nkind = "gravity"\npivot = [0, 0, -0.05]\nmass = 3.0\n'
+        '[run]\nsolver = "RKMK4"\nt1 = 1.0\ndt = 0.01\n'
     )
     with pytest.raises(ValueError, match=r"effects\[0\].mass = 3 kg differs from the body's mass 2 kg"):
         lierk.app.scene.load(write(tmp_path, text))

@@ -457,7 +457,8 @@ class Rotor(AbstractEffect):
             out = jax.eval_shape(momentum, jax.ShapeDtypeStruct((), jnp.result_type(float)))
             if getattr(out, "shape", None) != (self.axes.shape[0],):
                 raise ValueError(
-                    f"momentum must return shape ({self.axes.shape[0]},), one per wheel, got {getattr(out, 'shape', out)}"
+                    f"momentum must return shape ({self.axes.shape[0]},), one per wheel, "
+                    f"got {getattr(out, 'shape', out)}"
                 )
             self.profile, self.h0 = momentum, jnp.zeros((self.axes.shape[0],), self.axes.dtype)
             return
@@ -465,7 +466,8 @@ class Rotor(AbstractEffect):
         h0 = validation.asarray(momentum, name="momentum")
         if h0.shape != (k,):
             raise ValueError(
-                f"momentum must have shape ({k},) ({'body frame' if self.axes is None else 'one per wheel'}), got {h0.shape}"
+                f"momentum must have shape ({k},) ({'body frame' if self.axes is None else 'one per wheel'}), "
+                f"got {h0.shape}"
             )
         self.h0 = validation.check(h0, lambda x: (abs(x) < float("inf")).all(), "momentum must be finite, got {value}")
         if torque is None:

@@ -106,7 +106,8 @@ class AbstractSplitting(AbstractSolver):
         if not isinstance(problem, AbstractRigidBody):
             raise ValueError(
                 f"{self.name} splits off the exact torque-free flow, so it needs a rigid body with `drift` and "
-                f"`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), got {type(problem).__name__}"
+                "`kick` (lierk.RigidBodyWithEffects, FreeRigidBody, SpatialFreeRigidBody), "
+                f"got {type(problem).__name__}"
             )
         if self.scheme.nystrom:
             reads = problem.kick_reads_momentum

@@ -155,10 +155,10 @@ def _t1(parser: argparse.ArgumentParser) -> None:
 _SIMULATE = """
     Integrate SCENE.toml with the solver and step given in its [run] table, in chunks with a progress bar,
     then write to DIR: <name>.npz (ts; R, the attitude, body -> space; quaternion, its unit quaternion
-    (w, x, y, z), w >= 0; y, the state besides R, which for
-    every scene, with or without effects, is the body angular momentum m = I omega in kg m^2/s; with
-    reaction wheels also wheel_speeds, rad/s relative to the body; omega, the body angular velocity; L = R m, the angular momentum in space; the invariants; the inertia, omega0, R0
-    and t1), <name>_components.png (3x3 grid of R(t)), <name>_euler.png (Euler angles),
+    (w, x, y, z), w >= 0; y, the state besides R, which for every scene, with or without effects, is the
+    body angular momentum m = I omega in kg m^2/s; with reaction wheels also wheel_speeds, rad/s relative
+    to the body; omega, the body angular velocity; L = R m, the angular momentum in space; the invariants;
+    the inertia, omega0, R0 and t1), <name>_components.png (3x3 grid of R(t)), <name>_euler.png (Euler angles),
     <name>_invariants.png (relative drift of the conserved quantities) and <name>.gif (the body turning,
     with its axes and the angular momentum).
 """

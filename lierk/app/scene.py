@@ -204,7 +204,8 @@ class Scene:
         for k, v in values.items():
             if not tiny <= v <= big:
                 raise ValueError(
-                    f"{'t1' if k == 't1' else 'run.' + k} = {v:g} is outside single precision's range ({tiny:.2g} to {big:.2g})"
+                    f"{'t1' if k == 't1' else 'run.' + k} = {v:g} is outside single precision's range "
+                    f"({tiny:.2g} to {big:.2g})"
                 )
 
     def saveat(self) -> SaveAt:
@@ -418,7 +419,8 @@ def load(path: str | os.PathLike) -> Scene:
             raise ValueError(f"{path}: not valid TOML: {e}") from None
         except UnicodeDecodeError as e:
             raise ValueError(
-                f"{path}: not valid TOML: not UTF-8 text (byte {e.object[e.start : e.start + 1].hex()} at offset {e.start})"
+                f"{path}: not valid TOML: not UTF-8 text "
+                f"(byte {e.object[e.start : e.start + 1].hex()} at offset {e.start})"
             ) from None
     stem = os.path.splitext(os.path.basename(path))[0]
     try:
@@ -876,14 +878,16 @@ def _check_state(inertia: np.ndarray, omega0: np.ndarray, dtype, what: str, key:
         )
     if not math.isfinite(energy):
         raise ValueError(
-            f"{what}: the initial kinetic energy omega . I omega / 2 overflows (inertia {validation.show(inertia)} kg m^2, "
+            f"{what}: the initial kinetic energy omega . I omega / 2 overflows "
+            f"(inertia {validation.show(inertia)} kg m^2, "
             f"omega {validation.show(omega0)} rad/s)"
         )
     reason = validation.state_range_error(inertia, omega0, dtype)
     if reason is not None:
         shown = np.diagonal(inertia) if not np.any(inertia - np.diag(np.diagonal(inertia))) else inertia
         raise ValueError(
-            f"{what}: {key} = {validation.show(shown)} kg m^2 with initial.omega = {validation.show(omega0)} rad/s: {reason}"
+            f"{what}: {key} = {validation.show(shown)} kg m^2 "
+            f"with initial.omega = {validation.show(omega0)} rad/s: {reason}"
         )
 
 

@@ -876,7 +876,10 @@ def _must(types: list, extra: dict, value: Any, what: str, path: str) -> str:
     t = _pick(types, value)
     integer = isinstance(value, int) and not isinstance(value, bool)
     if isinstance(t, msgspec.inspect.LiteralType):
-        return f" = {value!r} is not allowed{_did_you_mean(value, list(t.values))}; choose one of: {', '.join(map(repr, t.values))}"
+        return (
+            f" = {value!r} is not allowed{_did_you_mean(value, list(t.values))}; "
+            f"choose one of: {', '.join(map(repr, t.values))}"
+        )
     if isinstance(t, msgspec.inspect.StrType):
         return f" must be a string{got}"
     if isinstance(t, msgspec.inspect.FloatType) and (integer or isinstance(value, float)):

@@ -121,7 +121,8 @@ class Simulation:
             f"scene {scene.name}" + (f": {scene.description}" if scene.description else ""),
             f"{scene.describe_run(sol)}, t1 = {scene.t1:g} s: {st['num_accepted_steps']} steps"
             + (f" ({st['num_rejected_steps']} rejected)" if st.get("num_rejected_steps") else "")
-            + f", {st['num_fevals']} {'drifts' if isinstance(scene.solver, AbstractSplitting) else 'field evaluations'}, "
+            + f", {st['num_fevals']} "
+            f"{'drifts' if isinstance(scene.solver, AbstractSplitting) else 'field evaluations'}, "
             f"{self.wall:.2f} s wall (incl. compilation)",
         ]
         if scene.target_error is not None:
