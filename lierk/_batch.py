@@ -235,10 +235,9 @@ _CACHE_CHUNK_RANGE = (32, 4096)
 
 
 @functools.lru_cache(maxsize=1)
-def _l2_bytes() -> int | None:
+def _l2_bytes(base: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
     """The L2 (data or unified) cache of the first CPU core in bytes, from
-    Linux's sysfs; None where it cannot be read."""
-    base = "/sys/devices/system/cpu/cpu0/cache"
+    Linux's sysfs (``base``); None where it cannot be read."""
     try:
         for index in sorted(os.listdir(base)):
             if not index.startswith("index"):
@@ -312,9 +311,11 @@ def _dispatch(
     """
     chunk = min(chunk, n)
     batch_sharding, replicated, n_dev = _shardings(shard)
-    block = cache_chunk or _default_cache_chunk(next(iter(batch_sharding.device_set)).platform)
     mesh = batch_sharding.mesh if n_dev > 1 else None
     padded = -(-chunk // n_dev) * n_dev
+    block = cache_chunk or _default_cache_chunk(next(iter(batch_sharding.device_set)).platform)
+    if block is not None and block >= padded // n_dev:
+        block = None  # one block holds a device's share: the plain vmap, one program for all such values
     jitted, dynamic = _compiled(fn)
     dynamic = [_place(_host_leaf(x), replicated) if n_dev > 1 else x for x in dynamic]
 
