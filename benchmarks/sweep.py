@@ -39,7 +39,7 @@ are in the JSON).  The CPU is split into one XLA host device per core
 Run: ``python benchmarks/sweep.py [--quick] [--only cache-blocks] [--out
 DIR]``; writes sweep.json and sweep.md to benchmarks/results (``--quick``:
 small sizes, to a temp dir; ``--only cache-blocks``: part 4 alone, to
-sweep_cache_blocks.json and .md).
+sweep-cache-blocks.json and .md).
 """
 
 from __future__ import annotations
@@ -374,9 +374,9 @@ def machine() -> dict:
     }
 
 
-def markdown_header(m: dict) -> list[str]:
+def markdown_header(m: dict, title: str = "Sweeps at scale (`benchmarks/sweep.py`)") -> list[str]:
     return [
-        "# Sweeps at scale (`benchmarks/sweep.py`)",
+        f"# {title}",
         "",
         f"{m['cpu_count']} cores ({m['cpu_model']}), {common.backend_text(m)}, jax {m['jax']}, "
         f"numba {m['numba']}. Other processes kept {m['others_cores_busy']:.2f} of the "
@@ -459,8 +459,9 @@ def main():
     if ARGS.only == "cache-blocks":
         res["cache_blocks"] = cache_blocks(block_batches, steps2, repeats)
         _finish(info, busy0, own0, wall0)
-        lines = markdown_header(info) + cache_blocks_markdown(res["cache_blocks"])[1:]
-        common.write_results(OUT, "sweep_cache_blocks", res, lines)
+        title = "Sweeps in cache blocks (`benchmarks/sweep.py --only cache-blocks`)"
+        lines = markdown_header(info, title) + cache_blocks_markdown(res["cache_blocks"])[1:]
+        common.write_results(OUT, "sweep-cache-blocks", res, lines)
         return
     res["compile_once"] = compile_once(batch1, steps1, 2 * repeats)
     for name, r in res["compile_once"]["calls"].items():

@@ -27,7 +27,7 @@ Run: ``python benchmarks/throughput.py [--quick] [--devices N] [--repeats N]
 [--through-sweep] [--batches B ...] [--solvers NAME ...] [--steps N] [--out DIR]``;
 writes benchmarks/results/throughput.json and throughput.md (``--quick``: a
 temporary directory; a run narrowed by ``--batches``, ``--solvers`` or
-``--steps``: throughput_narrowed.json and .md).
+``--steps``: throughput-narrowed.json and .md).
 """
 
 from __future__ import annotations
@@ -189,7 +189,7 @@ def main():
 
     common.write_results(
         OUT,
-        "throughput_narrowed" if narrowed else "throughput",
+        "throughput-narrowed" if narrowed else "throughput",
         {"machine": info, "dt": DT, "quick": quick, "results": rows},
         markdown(rows, info, batches),
     )

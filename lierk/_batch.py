@@ -5,7 +5,8 @@ sweeps practical: the batch is sharded across all `jax.devices()` (on a CPU
 started with ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` each core
 gets a slice; after `lierk.app.distributed.initialize` the devices of every
 process), cut into chunks of one compiled shape so that memory stays bounded,
-and compiled once per function.  The library never sets ``XLA_FLAGS`` itself;
+stepped inside the program in blocks that fit a core's cache, and compiled
+once per function.  The library never sets ``XLA_FLAGS`` itself;
 a script that wants several host devices sets it before importing jax.
 
 What counts as the same function for the compile cache is in `sweep`'s
