@@ -258,13 +258,29 @@ def _l2_bytes(base: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
     return None
 
 
+def _cores_per_cpu_device() -> float:
+    """The cores this process may run on, over its CPU devices (1 when the
+    CPU is split into one XLA host device per core)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cores = os.cpu_count() or 1
+    return cores / max(1, len(jax.local_devices(backend="cpu")))
+
+
 def _default_cache_chunk(platform: str) -> int | None:
     """The members a CPU core steps together by default: the largest power of
     two whose working set fits the L2 cache (`_WORKING_SET_PER_MEMBER` each),
     within `_CACHE_CHUNK_RANGE`; `_CACHE_CHUNK_FALLBACK` when the L2 size is
-    unknown.  None (the whole share at once) on other devices: a GPU wants
-    every member in flight."""
-    if platform != "cpu":
+    unknown.
+
+    None (the whole share at once) on a CPU device that spans several cores:
+    XLA splits a large batch's loops over the device's cores (the compiled
+    ops' ``outer_dimension_partitions``), which a block of a few hundred
+    members is too small for, so blocks would trade every core but one for
+    the cache.  None on other devices too: a GPU wants every member in
+    flight."""
+    if platform != "cpu" or _cores_per_cpu_device() > 1:
         return None
     l2 = _l2_bytes()
     if l2 is None:
@@ -463,11 +479,15 @@ def sweep(
     size, at most ``cache_chunk``; the last block padded with copies of its
     last row, whose output is dropped), so that a step's temporaries stay in
     the core's cache instead of streaming through memory for the whole
-    batch.  The default (``None``) on a CPU device is the largest power of
-    two whose members' working set (budgeted at 2 KiB each) fits the L2
-    cache of a core, read on Linux from ``/sys/devices/system/cpu``, and 256
-    where that cannot be read; between 32 and 4096.  On other devices (a
-    GPU) the default is the device's whole share at once.  Results equal an
+    batch.  The default (``None``), where each CPU device has a core of its
+    own (the CPU split into one XLA host device per core, as ``lierk
+    --devices N`` does), is the largest power of two whose members' working
+    set (budgeted at 2 KiB each) fits the L2 cache of a core, read on Linux
+    from ``/sys/devices/system/cpu``, and 256 where that cannot be read;
+    between 32 and 4096.  Elsewhere the default is the device's whole share
+    at once: on a CPU device that spans several cores (JAX's default of one
+    CPU device), XLA spreads a large batch's loops over its cores, which
+    blocks would undo; a GPU wants every member in flight.  Results equal an
     unblocked ``vmap`` of ``fn`` to rounding (the members are computed
     independently; a vectorised loop of another length can round a member's
     last bit differently); an adaptive solve stops each block when its own

@@ -240,8 +240,18 @@ def test_default_cache_chunk_follows_the_l2_size(tmp_path, l2, chunk):
     assert batch._l2_bytes(str(tmp_path / "missing")) is None
     with pytest.MonkeyPatch.context() as m:
         m.setattr(batch, "_l2_bytes", lambda: read)
+        m.setattr(batch, "_cores_per_cpu_device", lambda: 1.0)
         assert batch._default_cache_chunk("cpu") == chunk
         assert batch._default_cache_chunk("gpu") is None
+        # A CPU device over several cores: XLA splits the whole share's loops
+        # over them, so no blocks.
+        m.setattr(batch, "_cores_per_cpu_device", lambda: 2.0)
+        assert batch._default_cache_chunk("cpu") is None
+
+
+def test_cores_per_cpu_device_counts_this_process_cores():
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert batch._cores_per_cpu_device() == cores / len(jax.local_devices(backend="cpu"))
 
 
 # --------------------------------------------------------------------------
