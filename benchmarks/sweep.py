@@ -465,7 +465,7 @@ def main():
     block_batches = (1000,) if QUICK else (8192, 10000)
     res = {"machine": info, "quick": QUICK, "dt": DT}
     if ARGS.only == "cache-blocks":
-        res["cache_blocks"] = cache_blocks(block_batches, steps2, repeats)
+        res["cache_blocks"] = cache_blocks(block_batches, steps2, 2 * repeats)
         _finish(info, busy0, own0, wall0)
         title = "Sweeps in cache blocks (`benchmarks/sweep.py --only cache-blocks`)"
         lines = markdown_header(info, title) + cache_blocks_markdown(res["cache_blocks"])[1:]
@@ -490,7 +490,7 @@ def main():
     res["solvers"] = solvers(batch2, steps2 // 5, repeats)
     for name, r in res["solvers"]["calls"].items():
         print(f"solvers  {name:42s} {r['body_steps_per_s']:.3e} body-steps/s", flush=True)
-    res["cache_blocks"] = cache_blocks(block_batches, steps2, repeats)
+    res["cache_blocks"] = cache_blocks(block_batches, steps2, 2 * repeats)
     _finish(info, busy0, own0, wall0)
     common.write_results(OUT, "sweep", res, markdown(res))
 
