@@ -226,12 +226,14 @@ def _check_chunk_size(chunk_size: Any, name: str = "chunk_size") -> int:
 
 
 # A step's working set per member, in bytes, that the default cache chunk
-# budgets for: an RKMK4 step of the free body in float64 keeps a few hundred
-# numbers per member live (stages, their sums, the exponential's terms).  With
-# a 512 KiB L2 this gives chunks of 256, where benchmarks/results/sweep.md
-# measured the gain of chunks of 128 to 256 over the whole batch.
-_WORKING_SET_PER_MEMBER = 2048
-_CACHE_CHUNK_FALLBACK = 256  # when the L2 size cannot be read
+# budgets for.  The compiled RKMK4 step of the free body (float64) is about 22
+# kernels that write about 100 numbers per member (0.8 KB): stages, their sums,
+# the exponential's coefficients.  A block also pays a fixed cost per step (a
+# few microseconds of loop and kernel dispatch), which blocks of a few hundred
+# members amortise.  With a 512 KiB L2 this gives blocks of 512; measurements
+# in benchmarks/results/sweep-cache-blocks.md.
+_WORKING_SET_PER_MEMBER = 1024
+_CACHE_CHUNK_FALLBACK = 512  # when the L2 size cannot be read
 _CACHE_CHUNK_RANGE = (32, 4096)
 
 
@@ -482,8 +484,8 @@ def sweep(
     batch.  The default (``None``), where each CPU device has a core of its
     own (the CPU split into one XLA host device per core, as ``lierk
     --devices N`` does), is the largest power of two whose members' working
-    set (budgeted at 2 KiB each) fits the L2 cache of a core, read on Linux
-    from ``/sys/devices/system/cpu``, and 256 where that cannot be read;
+    set (budgeted at 1 KiB each) fits the L2 cache of a core, read on Linux
+    from ``/sys/devices/system/cpu``, and 512 where that cannot be read;
     between 32 and 4096.  Elsewhere the default is the device's whole share
     at once: on a CPU device that spans several cores (JAX's default of one
     CPU device), XLA spreads a large batch's loops over its cores, which

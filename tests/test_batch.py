@@ -222,7 +222,7 @@ def test_default_cache_chunk_reaches_the_program(monkeypatch):
 
 
 @pytest.mark.parametrize(
-    "l2, chunk", [("512K", 256), ("2048K", 1024), ("1M", 512), ("32K", 32), ("1G", 4096), (None, 256)]
+    "l2, chunk", [("512K", 512), ("2048K", 2048), ("1M", 1024), ("48K", 32), ("1536K", 1024), ("1G", 4096), (None, 512)]
 )
 def test_default_cache_chunk_follows_the_l2_size(tmp_path, l2, chunk):
     # A sysfs cache directory: L1 data and instruction, L2, L3.
