@@ -24,12 +24,22 @@ Part 3, every solver.  Batch 10000, 200 steps, float64, through
 `lierk.sweep`: RKMK4, RKMK(DOP853) and CF4 on the free T-handle, RKMK4 and
 RKMK(DOP853) on a heavy top (`Gravity`, the stage rotation of the vertical).
 
+Part 4, cache blocks.  Batches 8192 and 10000, RKMK4 with fixed steps
+(1000 steps) and DOP853 with adaptive steps (rtol = atol = 1e-8 in float64,
+1e-5 in float32, over the same 10 s), float64 and float32: a held ``jax.jit(jax.vmap(f))`` given the
+batch already on the devices, against `lierk.sweep` with its default
+``cache_chunk`` (each device steps its rows in blocks sized to the core's
+L2 cache) and with ``cache_chunk=batch`` (one block per device, the plain
+vmap inside `lierk.sweep`), interleaved in one loop.
+
 Every time is the minimum of the repeats after compile and warm-up (medians
 are in the JSON).  The CPU is split into one XLA host device per core
 (``XLA_FLAGS``, set here before jax is imported; the library never does).
 
-Run: ``python benchmarks/sweep.py [--quick] [--out DIR]``; writes sweep.json
-and sweep.md to benchmarks/results (``--quick``: small sizes, to a temp dir).
+Run: ``python benchmarks/sweep.py [--quick] [--only cache-blocks] [--out
+DIR]``; writes sweep.json and sweep.md to benchmarks/results (``--quick``:
+small sizes, to a temp dir; ``--only cache-blocks``: part 4 alone, to
+sweep-cache-blocks.json and .md).
 """
 
 from __future__ import annotations
@@ -57,8 +67,16 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec  # noqa: E402
 
 import lierk  # noqa: E402
 
-QUICK, OUT = common.cli(__doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__")
+
+def _options(parser):
+    parser.add_argument("--only", choices=["cache-blocks"], default=None, help="run part 4 alone")
+
+
+QUICK, OUT, ARGS = common.cli(
+    __doc__, "small sizes (batch 1000, 100 steps), written to a temp dir", __name__ == "__main__", extra=_options
+)
 DT = 0.01
+RTOL = {"float64": 1e-8, "float32": 1e-5}  # DOP853's adaptive cells, per dtype
 INERTIA = lierk.inertia.tee_handle()
 
 
@@ -236,6 +254,107 @@ def solvers(batch: int, n_steps: int, repeats: int) -> dict:
     return {"batch": batch, "steps": n_steps, "dtype": "float64", "calls": rows}
 
 
+def cache_blocks(batches, n_steps: int, repeats: int) -> list[dict]:
+    """Per batch, solver and dtype: the held ``jit(vmap)`` against
+    `lierk.sweep` in its default cache blocks and in one block per device."""
+    from lierk import _batch
+
+    devices = jax.devices()
+    sharding = NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch"))
+    block = _batch._default_cache_chunk(devices[0].platform)
+    t1 = n_steps * DT
+
+    def fixed(inertia, omega0):
+        sol = lierk.solve(lierk.FreeRigidBody(inertia, omega0), lierk.RKMK4(), t1, dt=DT, max_steps=n_steps)
+        return sol.R[-1], sol.stats["num_steps"]
+
+    def adaptive(inertia, omega0):
+        body = lierk.FreeRigidBody(inertia, omega0)
+        tol = RTOL[jnp.result_type(omega0).name]
+        sol = lierk.solve(body, lierk.DOP853(), t1, rtol=tol, atol=tol, max_steps=20 * n_steps)
+        return sol.R[-1], sol.stats["num_steps"]
+
+    cells = []
+    for solver, fn in (("RKMK4, fixed dt", fixed), ("DOP853, adaptive", adaptive)):
+        for dtype in (np.float64, np.float32):
+            f = functools.partial(fn, jnp.asarray(INERTIA, dtype))
+            for batch in batches:
+                w = omegas(batch, dtype)
+                held = jax.jit(jax.vmap(f))
+                w_dev = jax.device_put(w, sharding)
+                calls = {
+                    "held jit(vmap)": lambda: held(w_dev),
+                    "lierk.sweep, one block": lambda: lierk.sweep(f, w, cache_chunk=batch),
+                    f"lierk.sweep, blocks of {block}": lambda: lierk.sweep(f, w),
+                }
+                outs = {name: jax.block_until_ready(call()) for name, call in calls.items()}
+                times = interleaved(calls, repeats)
+                steps = {name: float(np.sum(np.asarray(out[1]))) for name, out in outs.items()}
+                rows = {name: {**summary(ts), "body_steps_per_s": steps[name] / min(ts)} for name, ts in times.items()}
+                floor = min(times["held jit(vmap)"])
+                for name, r in rows.items():
+                    r["speedup_over_held"] = floor / r["min_s"]
+                R = {name: np.asarray(out[0]) for name, out in outs.items()}
+                cells.append(
+                    {
+                        "solver": solver,
+                        "dtype": np.dtype(dtype).name,
+                        "batch": batch,
+                        "steps": n_steps if fn is fixed else "adaptive",
+                        "mean_steps": steps["held jit(vmap)"] / batch,
+                        "devices": len(devices),
+                        "cache_chunk": block,
+                        "calls": rows,
+                        "max_diff_to_held": {name: float(np.max(np.abs(R[name] - R["held jit(vmap)"]))) for name in R},
+                    }
+                )
+                c = cells[-1]
+                print(
+                    f"blocks   {solver:17s} {c['dtype']:8s} batch {batch:6d} "
+                    + "  ".join(f"{name} {r['speedup_over_held']:.2f}x" for name, r in rows.items()),
+                    flush=True,
+                )
+    return cells
+
+
+def cache_blocks_markdown(cells: list[dict]) -> list[str]:
+    if not cells:
+        return []
+    c0 = cells[0]
+    lines = [
+        "",
+        f"## Cache blocks: held `jit(vmap)` against `lierk.sweep`, {c0['devices']} devices",
+        "",
+        f"`lierk.sweep` with its default `cache_chunk` ({c0['cache_chunk']} on this machine: each device steps its "
+        "rows in blocks of at most that many) and with `cache_chunk=batch` (one block per device, a plain vmap "
+        "inside `lierk.sweep`), beside a held `jax.jit(jax.vmap(f))` given the batch already on the devices. "
+        "RKMK4: 1000 steps of 0.01 s; DOP853: adaptive, rtol = atol = 1e-8 (float64) or 1e-5 (float32) over the "
+        "same 10 s (body-steps "
+        "counted as the steps each member attempted). Speed-ups are the held jit's minimum time over each "
+        "call's.",
+        "",
+        "Each ratio is given for the minimum times (the least disturbed call) and for the medians (a shared "
+        "machine's typical call).",
+        "",
+        "| solver | dtype | batch | held jit (body-steps/s) | one block / held, min (median) "
+        "| blocks / held, min (median) | blocks / one block, min (median) | max diff to held |",
+        "|---|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for c in cells:
+        rows = c["calls"]
+        blocked = next(name for name in rows if name.startswith("lierk.sweep, blocks"))
+        held, one, blk = rows["held jit(vmap)"], rows["lierk.sweep, one block"], rows[blocked]
+
+        def ratio(slow, fast):
+            return f"{slow['min_s'] / fast['min_s']:.2f} ({slow['median_s'] / fast['median_s']:.2f})"
+
+        lines.append(
+            f"| {c['solver']} | {c['dtype']} | {c['batch']} | {held['body_steps_per_s']:.2e} | "
+            f"{ratio(held, one)} | {ratio(held, blk)} | {ratio(one, blk)} | {c['max_diff_to_held'][blocked]:.1e} |"
+        )
+    return lines
+
+
 def _cpu_seconds() -> tuple[float, float]:
     """(seconds all CPUs were busy, seconds this process ran) so far: their
     difference over the run is what others took from the machine."""
@@ -263,17 +382,22 @@ def machine() -> dict:
     }
 
 
-def markdown(res: dict) -> str:
-    m = res["machine"]
-    c = res["compile_once"]
-    lines = [
-        "# Sweeps at scale (`benchmarks/sweep.py`)",
+def markdown_header(m: dict, title: str = "Sweeps at scale (`benchmarks/sweep.py`)") -> list[str]:
+    return [
+        f"# {title}",
         "",
         f"{m['cpu_count']} cores ({m['cpu_model']}), {common.backend_text(m)}, jax {m['jax']}, "
         f"numba {m['numba']}. Other processes kept {m['others_cores_busy']:.2f} of the "
         f"{m['cpu_count']} cores busy during the run (load average {m['load_average_at_start'][0]:.1f} at the "
         f"start, {m['load_average_at_end'][0]:.1f} at the end; a shared machine: read the ratios).",
         "",
+    ]
+
+
+def markdown(res: dict) -> str:
+    c = res["compile_once"]
+    lines = [
+        *markdown_header(res["machine"]),
         f"## Compiled once: RKMK4, batch {c['batch']}, {c['steps']} steps, {c['dtype']}",
         "",
         f"First call: held jit {c['first_call_s']['held jit']:.2f} s, `lierk.sweep` "
@@ -322,7 +446,15 @@ def markdown(res: dict) -> str:
     ]
     for name, r in v["calls"].items():
         lines.append(f"| {name} | {r['dt']:g} | {r['body_steps_per_s']:.2e} |")
+    lines += cache_blocks_markdown(res["cache_blocks"])
     return "\n".join(lines) + "\n"
+
+
+def _finish(info: dict, busy0: float, own0: float, wall0: float) -> None:
+    info["load_average_at_end"] = os.getloadavg()
+    busy1, own1 = _cpu_seconds()
+    # Cores' worth of CPU that other processes used during the run (0 = idle machine).
+    info["others_cores_busy"] = ((busy1 - busy0) - (own1 - own0)) / (time.perf_counter() - wall0)
 
 
 def main():
@@ -330,7 +462,15 @@ def main():
     print(json.dumps(info))
     wall0, (busy0, own0) = time.perf_counter(), _cpu_seconds()
     batch1, steps1, batch2, steps2, repeats = (1000, 100, 1000, 100, 3) if QUICK else (2000, 200, 10000, 1000, 7)
+    block_batches = (1000,) if QUICK else (8192, 10000)
     res = {"machine": info, "quick": QUICK, "dt": DT}
+    if ARGS.only == "cache-blocks":
+        res["cache_blocks"] = cache_blocks(block_batches, steps2, 2 * repeats)
+        _finish(info, busy0, own0, wall0)
+        title = "Sweeps in cache blocks (`benchmarks/sweep.py --only cache-blocks`)"
+        lines = markdown_header(info, title) + cache_blocks_markdown(res["cache_blocks"])[1:]
+        common.write_results(OUT, "sweep-cache-blocks", res, lines)
+        return
     res["compile_once"] = compile_once(batch1, steps1, 2 * repeats)
     for name, r in res["compile_once"]["calls"].items():
         print(f"{name:45s} {1e3 * r['min_s']:8.1f} ms  {r['ratio_to_held']:.2f}x held", flush=True)
@@ -350,10 +490,8 @@ def main():
     res["solvers"] = solvers(batch2, steps2 // 5, repeats)
     for name, r in res["solvers"]["calls"].items():
         print(f"solvers  {name:42s} {r['body_steps_per_s']:.3e} body-steps/s", flush=True)
-    info["load_average_at_end"] = os.getloadavg()
-    busy1, own1 = _cpu_seconds()
-    # Cores' worth of CPU that other processes used during the run (0 = idle machine).
-    info["others_cores_busy"] = ((busy1 - busy0) - (own1 - own0)) / (time.perf_counter() - wall0)
+    res["cache_blocks"] = cache_blocks(block_batches, steps2, 2 * repeats)
+    _finish(info, busy0, own0, wall0)
     common.write_results(OUT, "sweep", res, markdown(res))
 
 

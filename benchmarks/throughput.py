@@ -15,9 +15,19 @@ is sharded over them (`NamedSharding` over the batch axis, as
 `lierk.sweep` does); batch 1000 is also timed on a single device for
 comparison.  Fewer steps are used for large batches to bound the run time.
 
-Run: ``python benchmarks/throughput.py [--quick] [--devices N] [--repeats N] [--out DIR]``;
+``--through-sweep`` times every cell a second time through `lierk.sweep`
+(the same per-member function, the NumPy batch, each device stepping its
+rows in the default cache blocks; ``shard=False`` for the one-device
+cells), interleaved with the ``jit(vmap)`` run, and adds a table of the
+ratio sweep / ``jit(vmap)``.  ``--batches``, ``--solvers`` and ``--steps``
+narrow a run, e.g. ``--through-sweep --batches 8192 10000 --solvers RKMK4
+DOP853 --steps 1000``.
+
+Run: ``python benchmarks/throughput.py [--quick] [--devices N] [--repeats N]
+[--through-sweep] [--batches B ...] [--solvers NAME ...] [--steps N] [--out DIR]``;
 writes benchmarks/results/throughput.json and throughput.md (``--quick``: a
-temporary directory).
+temporary directory; a run narrowed by ``--batches``, ``--solvers`` or
+``--steps``: throughput-narrowed.json and .md).
 """
 
 from __future__ import annotations
@@ -32,6 +42,10 @@ def _options(parser):
         "--devices", type=int, default=os.cpu_count() or 1, help="XLA host devices (default: CPU count)"
     )
     parser.add_argument("--repeats", type=int, default=5, help="timed runs at least (default 5)")
+    parser.add_argument("--through-sweep", action="store_true", help="time each cell through lierk.sweep too")
+    parser.add_argument("--batches", type=int, nargs="+", default=None, help="batch sizes (default 1 ... 10000)")
+    parser.add_argument("--solvers", nargs="+", default=None, help="solver names, e.g. RKMK4 DOP853 (default all)")
+    parser.add_argument("--steps", type=int, default=None, help="steps per run (default: a budget per batch)")
 
 
 QUICK, OUT, ARGS = common.cli(
@@ -83,25 +97,42 @@ def budget_steps(solver, batch: int, quick: bool) -> int:
     return int(min(1000, max(20, budget // batch)))
 
 
-def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> dict:
+def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int, through_sweep: bool = False) -> dict:
     inertia = jnp.asarray(lierk.inertia.tee_handle(), dtype)
     rng = np.random.default_rng(0)
-    omegas = jnp.asarray(rng.normal(size=(batch, 3)) * [1.0, 0.05, 0.3], dtype)
+    host = (rng.normal(size=(batch, 3)) * [1.0, 0.05, 0.3]).astype(dtype)
+    omegas = jnp.asarray(host)
     if len(devices) > 1:
         omegas = jax.device_put(omegas, NamedSharding(Mesh(np.array(devices), ("batch",)), PartitionSpec("batch")))
     else:
         omegas = jax.device_put(omegas, devices[0])
 
-    @jax.jit
-    @jax.vmap
-    def final_R(omega0):
+    def one(omega0):
         body = lierk.FreeRigidBody(inertia, omega0)
         return lierk.solve(body, solver, n * DT, dt=DT, max_steps=n).R[-1]
 
+    final_R = jax.jit(jax.vmap(one))
     t = time.perf_counter()
     compiled = final_R.lower(omegas).compile()
     compile_s = time.perf_counter() - t
-    out, run_s, first_s = common.timed(compiled, omegas, repeats=repeats, min_time=MIN_TIME)
+    sweep = {}
+    if through_sweep:
+        # Each timed twice, alternating, the better median kept: a change of
+        # load during the cell hits both.
+        def through(_):
+            return lierk.sweep(one, host, shard=len(devices) > 1)
+
+        jax.block_until_ready(through(None))
+        (out, run_a, first_s), (out_s, sweep_a, _), (_, run_b, _), (_, sweep_b, _) = [
+            common.timed(f, x, repeats=repeats, min_time=MIN_TIME / 2)
+            for _ in range(2)
+            for f, x in ((compiled, omegas), (through, None))
+        ]
+        run_s, sweep_s = min(run_a, run_b), min(sweep_a, sweep_b)
+        diff = float(jnp.max(jnp.abs(out_s - out)))
+        sweep = {"sweep_run_s_median": sweep_s, "sweep_body_steps_per_s": batch * n / sweep_s, "sweep_max_diff": diff}
+    else:
+        out, run_s, first_s = common.timed(compiled, omegas, repeats=repeats, min_time=MIN_TIME)
     assert out.dtype == dtype and bool(jnp.all(jnp.isfinite(out)))
     return {
         "solver": label(solver),
@@ -113,13 +144,21 @@ def measure(solver, batch: int, dtype, n: int, devices: list, repeats: int) -> d
         "first_run_s": first_s,
         "run_s_median": run_s,
         "body_steps_per_s": batch * n / run_s,
+        **sweep,
     }
 
 
 def main():
     quick = QUICK
-    batches = [1, 1000] if quick else [1, 10, 100, 1000, 10000]
+    batches = ARGS.batches or ([1, 1000] if quick else [1, 10, 100, 1000, 10000])
     solvers = [lierk.LieEuler(), lierk.RKMK4()] if quick else SOLVERS
+    if ARGS.solvers:
+        by_name = {label(s).split(" ")[0].upper(): s for s in SOLVERS}
+        unknown = [name for name in ARGS.solvers if name.upper() not in by_name]
+        if unknown:
+            raise SystemExit(f"--solvers: unknown {unknown}; choose from {sorted(by_name)}")
+        solvers = [by_name[name.upper()] for name in ARGS.solvers]
+    narrowed = ARGS.batches is not None or ARGS.solvers is not None or ARGS.steps is not None
     all_devices = jax.devices()
     info = common.machine_info()
     info["device_count"] = len(all_devices)
@@ -135,19 +174,24 @@ def main():
                 if not configs or batch == 1000:
                     configs.append(all_devices[:1])
                 for devs in configs:
-                    r = measure(solver, batch, dtype, budget_steps(solver, batch, quick), devs, ARGS.repeats)
+                    steps = ARGS.steps or budget_steps(solver, batch, quick)
+                    r = measure(solver, batch, dtype, steps, devs, ARGS.repeats, ARGS.through_sweep)
                     rows.append(r)
                     print(
                         f"{r['solver']:18s} {r['dtype']:8s} batch {batch:6d} dev {r['devices']}  "
                         f"{r['body_steps_per_s']:.3e} body-steps/s  (compile {r['compile_s']:.2f} s, "
-                        f"run {r['run_s_median'] * 1e3:.1f} ms, {r['steps']} steps)",
+                        f"run {r['run_s_median'] * 1e3:.1f} ms, {r['steps']} steps)"
+                        + (f"  sweep {r['sweep_body_steps_per_s']:.3e}" if "sweep_body_steps_per_s" in r else ""),
                         flush=True,
                     )
     info["total_s"] = time.perf_counter() - t_start
     info["load_average_at_end"] = os.getloadavg() if hasattr(os, "getloadavg") else None
 
     common.write_results(
-        OUT, "throughput", {"machine": info, "dt": DT, "quick": quick, "results": rows}, markdown(rows, info, batches)
+        OUT,
+        "throughput-narrowed" if narrowed else "throughput",
+        {"machine": info, "dt": DT, "quick": quick, "results": rows},
+        markdown(rows, info, batches),
     )
     print(f"({info['total_s']:.0f} s)")
 
@@ -183,6 +227,22 @@ def markdown(rows, info, batches) -> str:
             comp = [r["compile_s"] for r in sub if r["solver"] == name]
             lines.append(f"| {name} | " + " | ".join(cells) + f" | {np.median(comp):.2f} |")
         lines.append("")
+        timed_both = [r for r in sub if "sweep_body_steps_per_s" in r]
+        if timed_both:
+            lines += [
+                f"### {dtype} through `lierk.sweep` (default cache blocks) against `jit(vmap)`",
+                "",
+                "| solver | batch | devices | steps | jit(vmap) body-steps/s | lierk.sweep body-steps/s | ratio "
+                "| max diff |",
+                "|---|---:|---:|---:|---:|---:|---:|---:|",
+            ]
+            for r in timed_both:
+                ratio = r["sweep_body_steps_per_s"] / r["body_steps_per_s"]
+                lines.append(
+                    f"| {r['solver']} | {r['batch']} | {r['devices']} | {r['steps']} | {r['body_steps_per_s']:.2e} | "
+                    f"{r['sweep_body_steps_per_s']:.2e} | {ratio:.2f} | {r['sweep_max_diff']:.1e} |"
+                )
+            lines.append("")
     return "\n".join(lines)
 
 

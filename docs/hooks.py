@@ -87,6 +87,15 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
         "Sweeps at scale",
         "lierk.sweep against a held jit and native structure-of-arrays kernels in C and numba.",
     ),
+    "sweep-cache-blocks": (
+        "Sweeps in cache blocks",
+        "lierk.sweep stepping each device's rows in blocks that fit the cache, against a plain jit(vmap) "
+        "and one block per device (benchmarks/sweep.py --only cache-blocks).",
+    ),
+    "throughput-narrowed": (
+        "Throughput, a narrowed run",
+        "Selected solvers and batches of benchmarks/throughput.py, through jit(vmap) and through lierk.sweep.",
+    ),
     "xla_soa": ("The XLA ceiling", "RKMK4 written per component inside XLA: how fast code that XLA generates can be."),
     "long_horizon": ("Long horizon, free T-handle", "Error and invariant drift of every solver over 1000 s."),
     "long_horizon_top": (

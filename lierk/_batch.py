@@ -5,7 +5,8 @@ sweeps practical: the batch is sharded across all `jax.devices()` (on a CPU
 started with ``XLA_FLAGS=--xla_force_host_platform_device_count=N`` each core
 gets a slice; after `lierk.app.distributed.initialize` the devices of every
 process), cut into chunks of one compiled shape so that memory stays bounded,
-and compiled once per function.  The library never sets ``XLA_FLAGS`` itself;
+stepped inside the program in blocks that fit a core's cache, and compiled
+once per function.  The library never sets ``XLA_FLAGS`` itself;
 a script that wants several host devices sets it before importing jax.
 
 What counts as the same function for the compile cache is in `sweep`'s
@@ -18,6 +19,7 @@ import collections
 import functools
 import inspect
 import math
+import os
 import weakref
 from typing import Any, Callable, Iterable, Iterator
 
@@ -67,10 +69,34 @@ _BY_IDENTITY = _WeakIdentityCache()
 _BY_STRUCTURE: collections.OrderedDict = collections.OrderedDict()
 
 
+def _in_blocks(batched_fn: Callable, block: int | None, rows: tuple) -> Any:
+    """``batched_fn(*rows)``, the rows taken ``block`` at a time inside the
+    program: ``lax.map`` over a ``(n_blocks, size, ...)`` reshape of the
+    rows, the blocks as equal as can be (``size = ceil(n / n_blocks)`` with
+    ``n_blocks = ceil(n / block)``, at most ``block``), the last block
+    padded with copies of the last row (valid inputs) and the padding's
+    output dropped.  ``block`` None or ``>= n``: one call on all rows."""
+    n = jax.tree_util.tree_leaves(rows)[0].shape[0]
+    if block is None or block >= n:
+        return batched_fn(*rows)
+    n_blocks = -(-n // block)
+    size = -(-n // n_blocks)
+    pad = n_blocks * size - n
+
+    def split(x):
+        if pad:
+            x = jnp.concatenate([x, jnp.broadcast_to(x[-1:], (pad, *x.shape[1:]))])
+        return x.reshape(n_blocks, size, *x.shape[1:])
+
+    out = jax.lax.map(lambda r: batched_fn(*r), jax.tree_util.tree_map(split, rows))
+    return jax.tree_util.tree_map(lambda y: y.reshape(n_blocks * size, *y.shape[2:])[:n], out)
+
+
 def _jit_vmap(rebuild: Callable[[Any], Callable]) -> Callable:
-    """``jit`` of ``(mesh, dynamic, *args) -> vmap(rebuild(dynamic))(*args)``:
+    """``jit`` of ``(mesh, block, dynamic, *args) -> vmap(rebuild(dynamic))(*args)``:
     the batched arguments are mapped over axis 0, the function's own arrays
-    (``dynamic``) are not.
+    (``dynamic``) are not, and each device's rows run ``block`` at a time
+    (`_in_blocks`; ``mesh`` and ``block`` are static).
 
     With a ``mesh`` (static) the vmap runs under ``shard_map``: each device
     runs its own rows as a program of its own.  Left to the SPMD partitioner,
@@ -83,9 +109,9 @@ def _jit_vmap(rebuild: Callable[[Any], Callable]) -> Callable:
     error branches do not declare how their values vary over the mesh.)
     """
 
-    def batched(mesh, dynamic, *args):
+    def batched(mesh, block, dynamic, *args):
         def local(dyn, *rows):
-            return jax.vmap(rebuild(dyn))(*rows)
+            return _in_blocks(jax.vmap(rebuild(dyn)), block, rows)
 
         if mesh is None:
             return local(dynamic, *args)
@@ -94,7 +120,7 @@ def _jit_vmap(rebuild: Callable[[Any], Callable]) -> Callable:
             dynamic, *args
         )
 
-    return jax.jit(batched, static_argnums=0)
+    return jax.jit(batched, static_argnums=(0, 1))
 
 
 def _compiled(fn: Callable) -> tuple[Callable, list]:
@@ -193,10 +219,81 @@ def _to_host(out: Any, m: int) -> Any:
 # The chunks
 
 
-def _check_chunk_size(chunk_size: Any) -> int:
+def _check_chunk_size(chunk_size: Any, name: str = "chunk_size") -> int:
     if isinstance(chunk_size, bool) or not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
-        raise ValueError(f"chunk_size must be a positive int, got {chunk_size!r}")
+        raise ValueError(f"{name} must be a positive int, got {chunk_size!r}")
     return int(chunk_size)
+
+
+# A step's working set per member, in bytes, that the default cache chunk
+# budgets for.  The compiled RKMK4 step of the free body (float64) is about 22
+# kernels that write about 100 numbers per member (0.8 KB): stages, their sums,
+# the exponential's coefficients.  A block also pays a fixed cost per step (a
+# few microseconds of loop and kernel dispatch), which blocks of a few hundred
+# members amortise.  With a 512 KiB L2 this gives blocks of 512; measurements
+# in benchmarks/results/sweep-cache-blocks.md.
+_WORKING_SET_PER_MEMBER = 1024
+_CACHE_CHUNK_FALLBACK = 512  # when the L2 size cannot be read
+_CACHE_CHUNK_RANGE = (32, 4096)
+
+
+@functools.lru_cache(maxsize=1)
+def _l2_bytes(base: str = "/sys/devices/system/cpu/cpu0/cache") -> int | None:
+    """The L2 (data or unified) cache of the first CPU core in bytes, from
+    Linux's sysfs (``base``); None where it cannot be read."""
+    try:
+        for index in sorted(os.listdir(base)):
+            if not index.startswith("index"):
+                continue
+
+            def read(name, index=index):
+                with open(os.path.join(base, index, name)) as f:
+                    return f.read().strip()
+
+            if read("level") == "2" and read("type") in ("Unified", "Data"):
+                size = read("size")
+                scale = {"K": 1 << 10, "M": 1 << 20, "G": 1 << 30}.get(size[-1:].upper(), 1)
+                value = int(size.rstrip("KMGkmg")) * scale
+                return value if value > 0 else None
+    except (OSError, ValueError):
+        pass
+    return None
+
+
+def _cores_per_cpu_device() -> float:
+    """The cores this process may run on, over its CPU devices (1 when the
+    CPU is split into one XLA host device per core)."""
+    try:
+        cores = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not on Linux
+        cores = os.cpu_count() or 1
+    return cores / max(1, len(jax.local_devices(backend="cpu")))
+
+
+def _default_cache_chunk(platform: str) -> int | None:
+    """The members a CPU core steps together by default: the largest power of
+    two whose working set fits the L2 cache (`_WORKING_SET_PER_MEMBER` each),
+    within `_CACHE_CHUNK_RANGE`; `_CACHE_CHUNK_FALLBACK` when the L2 size is
+    unknown.
+
+    None (the whole share at once) on a CPU device that spans several cores:
+    XLA splits a large batch's loops over the device's cores (the compiled
+    ops' ``outer_dimension_partitions``), which a block of a few hundred
+    members is too small for, so blocks would trade every core but one for
+    the cache.  None on other devices too: a GPU wants every member in
+    flight."""
+    if platform != "cpu" or _cores_per_cpu_device() > 1:
+        return None
+    l2 = _l2_bytes()
+    if l2 is None:
+        return _CACHE_CHUNK_FALLBACK
+    lo, hi = _CACHE_CHUNK_RANGE
+    members = max(1, l2 // _WORKING_SET_PER_MEMBER)
+    return min(hi, max(lo, 1 << (members.bit_length() - 1)))
+
+
+def _check_cache_chunk(cache_chunk: Any) -> int | None:
+    return None if cache_chunk is None else _check_chunk_size(cache_chunk, "cache_chunk")
 
 
 def _batch_size(batched_args: tuple) -> int:
@@ -215,7 +312,7 @@ def _batch_size(batched_args: tuple) -> int:
 
 
 def _dispatch(
-    fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool, compiling=None
+    fn, batched_args, n: int, chunk: int, skip: frozenset, shard: bool, compiling=None, cache_chunk=None
 ) -> Iterator[tuple[int, int, int, Any]]:
     """``(index, start, stop, out)`` per chunk not in ``skip``, where ``out`` is
     the padded chunk's output on the devices, dispatched but not waited for.
@@ -227,12 +324,17 @@ def _dispatch(
     Every chunk is padded to the same ``padded`` rows (the chunk size rounded
     up to a multiple of the device count) with copies of its last member, so
     one compiled shape serves them all.  The copies are valid inputs: they
-    cannot fail or produce NaNs of their own.
+    cannot fail or produce NaNs of their own.  Inside the program each
+    device runs its rows ``cache_chunk`` at a time (`_in_blocks`; None: the
+    device's default, `_default_cache_chunk`).
     """
     chunk = min(chunk, n)
     batch_sharding, replicated, n_dev = _shardings(shard)
     mesh = batch_sharding.mesh if n_dev > 1 else None
     padded = -(-chunk // n_dev) * n_dev
+    block = cache_chunk or _default_cache_chunk(next(iter(batch_sharding.device_set)).platform)
+    if block is not None and block >= padded // n_dev:
+        block = None  # one block holds a device's share: the plain vmap, one program for all such values
     jitted, dynamic = _compiled(fn)
     dynamic = [_place(_host_leaf(x), replicated) if n_dev > 1 else x for x in dynamic]
 
@@ -241,7 +343,7 @@ def _dispatch(
         isinstance(x, jax.Array) and x.sharding.is_equivalent_to(batch_sharding, x.ndim) for x in leaves
     ):
         # Already where the sweep would put it (e.g. a previous sweep's output).
-        yield 0, 0, n, jitted(mesh, dynamic, *jax.tree_util.tree_unflatten(treedef, leaves))
+        yield 0, 0, n, jitted(mesh, block, dynamic, *jax.tree_util.tree_unflatten(treedef, leaves))
         return
     leaves = [_host_leaf(x) for x in leaves]
     for index in range(math.ceil(n / chunk)):
@@ -255,9 +357,9 @@ def _dispatch(
         args = jax.tree_util.tree_unflatten(treedef, [_place(x[rows], batch_sharding) for x in leaves])
         if compiling is not None:
             with compiling():
-                jitted.lower(mesh, dynamic, *args).compile()
+                jitted.lower(mesh, block, dynamic, *args).compile()
             compiling = None
-        yield index, start, stop, jitted(mesh, dynamic, *args)
+        yield index, start, stop, jitted(mesh, block, dynamic, *args)
 
 
 def sweep_chunks(
@@ -267,6 +369,7 @@ def sweep_chunks(
     skip: Iterable[int] = (),
     shard: bool = True,
     compiling: Callable[[], Any] | None = None,
+    cache_chunk: int | None = None,
 ) -> Iterator[tuple[int, int, int, Any]]:
     """``jax.vmap(fn)`` over the batch, one chunk at a time, results on the host.
 
@@ -282,9 +385,10 @@ def sweep_chunks(
     the chunk's last member, which are dropped), so a sweep compiles once, and
     a later sweep of ``fn`` with the same chunk size, dtypes and devices
     compiles nothing (see `sweep` for what "the same ``fn``" means).  The
-    next chunk is dispatched before the current one is copied to the host, so
-    at most two chunks' outputs exist at a time: memory is bounded by the
-    chunk size, not by ``N``.
+    next chunk is dispatched before the current one is copied to the host,
+    so at most two chunks' outputs exist at a time: memory is bounded by the
+    chunk size, not by ``N``.  Inside the program, each device steps its
+    share of a chunk ``cache_chunk`` members at a time, as in `sweep`.
 
     After `lierk.app.distributed.initialize`, every process calls this with the
     same arguments, ``skip`` included (the whole batch, e.g. a grid computed
@@ -307,9 +411,13 @@ def sweep_chunks(
         compiling: a context-manager factory (e.g. a progress display's
             "compiling" phase) inside which the program is compiled before
             the first chunk runs; None compiles at the first chunk's call.
+        cache_chunk: members each device steps together inside the
+            program, a positive int or None (the default for the device),
+            as in `sweep`.
 
     Raises:
-        ValueError: ``chunk_size`` not a positive int; ``skip`` holding
+        ValueError: ``chunk_size`` or ``cache_chunk`` not a positive int
+            (``cache_chunk`` None is the default); ``skip`` holding
             something that is not a chunk index; batched arguments without a
             common leading axis, or an empty batch.
 
@@ -320,6 +428,7 @@ def sweep_chunks(
         ...     np.save(f"out/R_{k:04d}.npy", R)  # (stop - start, 3, 3)
     """
     chunk = _check_chunk_size(chunk_size)
+    block = _check_cache_chunk(cache_chunk)
     n = _batch_size(batched_args)
     n_chunks = math.ceil(n / chunk)
     skip = frozenset(skip)
@@ -329,7 +438,7 @@ def sweep_chunks(
             f"skip holds {bad[0]!r}, which is not a chunk index: {n} members in chunks of {chunk} "
             f"make chunks 0 to {n_chunks - 1}"
         )
-    return _host_chunks(_dispatch(fn, batched_args, n, chunk, skip, shard, compiling))
+    return _host_chunks(_dispatch(fn, batched_args, n, chunk, skip, shard, compiling, block))
 
 
 def _host_chunks(dispatched: Iterator) -> Iterator[tuple[int, int, int, Any]]:
@@ -352,6 +461,7 @@ def sweep(
     chunk_size: int | None = None,
     progress: bool = False,
     shard: bool = True,
+    cache_chunk: int | None = None,
 ) -> Any:
     """``jax.vmap(fn)(*batched_args)``, sharded over devices, compiled once per
     function, optionally in chunks.
@@ -365,6 +475,25 @@ def sweep(
     copies of its last member, split over a 1-d `Mesh` of `jax.devices()` with
     a `NamedSharding`, and the padding is dropped from the result.  The chunks
     run on `sweep_chunks`' machinery, all at one compiled shape.
+
+    Inside the compiled program, each device steps its rows ``cache_chunk``
+    members at a time (a ``lax.map`` over ``vmap(fn)`` of blocks of equal
+    size, at most ``cache_chunk``; the last block padded with copies of its
+    last row, whose output is dropped), so that a step's temporaries stay in
+    the core's cache instead of streaming through memory for the whole
+    batch.  The default (``None``), where each CPU device has a core of its
+    own (the CPU split into one XLA host device per core, as ``lierk
+    --devices N`` does), is the largest power of two whose members' working
+    set (budgeted at 1 KiB each) fits the L2 cache of a core, read on Linux
+    from ``/sys/devices/system/cpu``, and 512 where that cannot be read;
+    between 32 and 4096.  Elsewhere the default is the device's whole share
+    at once: on a CPU device that spans several cores (JAX's default of one
+    CPU device), XLA spreads a large batch's loops over its cores, which
+    blocks would undo; a GPU wants every member in flight.  Results equal an
+    unblocked ``vmap`` of ``fn`` to rounding (the members are computed
+    independently; a vectorised loop of another length can round a member's
+    last bit differently); an adaptive solve stops each block when its own
+    members are done.  Measurements: ``benchmarks/results/sweep.md``.
 
     Compiled once: the compiled ``jit(vmap(fn))`` is cached per function, and
     jit's own cache adds the shapes, dtypes and shardings, so a second call
@@ -400,6 +529,10 @@ def sweep(
         progress: draw a progress bar on stderr, one tick per chunk.
         shard: split each chunk over all devices.  With ``False``: one local
             device.
+        cache_chunk: members each device steps together inside the
+            program, a positive int; ``>=`` the device's share of a chunk:
+            all of them at once (a plain ``vmap``); ``None``: the default
+            above.  Each value is a static part of the compiled program.
 
     Returns:
         The output pytree of ``fn`` with a leading axis of length ``N`` on
@@ -408,8 +541,9 @@ def sweep(
             first device).
 
     Raises:
-        ValueError: ``chunk_size`` not a positive int or None; batched
-            arguments without a common leading axis, or an empty batch.
+        ValueError: ``chunk_size`` or ``cache_chunk`` not a positive int
+            or None; batched arguments without a common leading axis, or an
+            empty batch.
 
     Example:
         >>> I = lierk.inertia.tee_handle()
@@ -421,6 +555,7 @@ def sweep(
     """
     n = _batch_size(batched_args)
     chunk = n if chunk_size is None else _check_chunk_size(chunk_size)
+    block = _check_cache_chunk(cache_chunk)
     bar = None
     if progress:
         from ._progress import Progress
@@ -428,7 +563,7 @@ def sweep(
         bar = Progress("sweep", n, " members")
     pieces = []
     compiling = None if bar is None else bar.compiling
-    for _, start, stop, out in _dispatch(fn, batched_args, n, chunk, frozenset(), shard, compiling):
+    for _, start, stop, out in _dispatch(fn, batched_args, n, chunk, frozenset(), shard, compiling, block):
         pieces.append((stop - start, out))
         if bar is not None:
             jax.block_until_ready(out)

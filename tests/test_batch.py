@@ -126,6 +126,135 @@ def test_float64_inputs_follow_jax_precision_setting():
 
 
 # --------------------------------------------------------------------------
+# Blocks that fit the cache: the same members, stepped a block at a time
+
+BOX = np.diag([1.0, 2.0, 3.0])  # kg m^2, a 1:2:3 box
+
+
+def _fixed(inertia, omega0):
+    body = lierk.FreeRigidBody(inertia, omega0)
+    sol = lierk.solve(body, lierk.RKMK4(), 3.0, dt=0.05, max_steps=60)
+    return sol.R[-1], sol.stats["num_steps"]
+
+
+def _adaptive(inertia, omega0):
+    body = lierk.FreeRigidBody(inertia, omega0)
+    sol = lierk.solve(body, lierk.DOP853(), 3.0, rtol=1e-6, atol=1e-6, max_steps=400)
+    return sol.R[-1], sol.stats["num_steps"]
+
+
+def _omegas(n, dtype):
+    # Spins of 0.3 to 3 rad/s in all directions: the adaptive members take
+    # 3 to 9 steps, so most blocks end before the slowest member.
+    rng = np.random.default_rng(11)
+    w = rng.normal(size=(n, 3))
+    return (w * rng.uniform(0.3, 3.0, size=(n, 1)) / np.linalg.norm(w, axis=1, keepdims=True)).astype(dtype)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+@pytest.mark.parametrize("fn", [_fixed, _adaptive])
+def test_cache_blocks_give_the_unblocked_results(fn, dtype):
+    # 10 members in blocks of at most 4: three blocks of 4, the last padded
+    # with 2 copies of member 9.  A shifted, repeated or dropped member, or a
+    # block that stopped early, shows as an O(1) difference or a step count.
+    w = _omegas(10, dtype)
+    f = functools.partial(fn, jnp.asarray(BOX, dtype))
+    R_whole, steps_whole = sweep(f, w, cache_chunk=10)  # one block: a plain vmap
+    R_blocks, steps_blocks = sweep(f, w, cache_chunk=4)
+    assert R_blocks.shape == (10, 3, 3) and R_blocks.dtype == dtype
+    assert len(set(np.asarray(steps_whole).tolist())) > 1 or fn is _fixed  # the members differ
+    np.testing.assert_array_equal(np.asarray(steps_blocks), np.asarray(steps_whole))
+    atol = 1e-13 if dtype == np.float64 else 1e-5
+    np.testing.assert_allclose(np.asarray(R_blocks), np.asarray(R_whole), rtol=0, atol=atol)
+    if fn is _adaptive:
+        return  # (its compilations are the slow ones)
+    # Host chunks of 7 (the second padded by 4) and blocks of 3 inside them.
+    chunks = list(sweep_chunks(f, w, chunk_size=7, cache_chunk=3))
+    assert [c[:3] for c in chunks] == [(0, 0, 7), (1, 7, 10)]
+    R_chunks = np.concatenate([out[0] for *_, out in chunks])
+    np.testing.assert_allclose(R_chunks, np.asarray(R_whole), rtol=0, atol=atol)
+
+
+def test_cache_blocks_of_a_jacobian():
+    # d R(T) / d omega0 of each member, blocks of 3 over 7 members.
+    def jac(omega0):
+        return jax.jacfwd(lambda w: _fixed(BOX, w)[0])(omega0)
+
+    w = _omegas(7, np.float64)
+    whole = np.asarray(sweep(jac, w, cache_chunk=7))
+    blocks = np.asarray(sweep(jac, w, cache_chunk=3))
+    assert blocks.shape == (7, 3, 3, 3)
+    np.testing.assert_allclose(blocks, whole, rtol=0, atol=1e-12)
+    # Against a central difference (errors O(eps^2) ~ 1e-8 here).
+    eps = 1e-5
+    i, k = 6, 1  # a member of the padded last block
+    e = np.eye(3)[k] * eps
+    fd = (np.asarray(_fixed(BOX, w[i] + e)[0]) - np.asarray(_fixed(BOX, w[i] - e)[0])) / (2 * eps)
+    np.testing.assert_allclose(blocks[i, :, :, k], fd, rtol=0, atol=1e-6)
+
+
+def test_cache_chunk_not_smaller_than_the_batch_is_the_plain_program():
+    count = _Counted()
+    f = count(lambda v: v * 2.0)
+    x = np.arange(5.0)
+    for cache_chunk in (5, 6, 1000):
+        np.testing.assert_array_equal(np.asarray(sweep(f, x, cache_chunk=cache_chunk)), 2.0 * x)
+    assert count.traces == 1
+    # Blocks of 2, whatever the values, chunks of the same size: one more.
+    sweep(f, x, cache_chunk=2)
+    sweep(f, x + 1.0, cache_chunk=2)
+    list(sweep_chunks(f, x, chunk_size=5, cache_chunk=2))
+    assert count.traces == 2
+
+
+def test_default_cache_chunk_reaches_the_program(monkeypatch):
+    seen = []
+    monkeypatch.setattr(batch, "_default_cache_chunk", lambda platform: seen.append(platform) or 3)
+    blocks = []
+    in_blocks = batch._in_blocks
+    monkeypatch.setattr(batch, "_in_blocks", lambda f, block, rows: blocks.append(block) or in_blocks(f, block, rows))
+    x = np.arange(1.0, 9.0)
+    np.testing.assert_array_equal(np.asarray(sweep(lambda v: v + 0.5, x)), x + 0.5)
+    assert seen == ["cpu"] and blocks == [3]
+    ((*_, out),) = sweep_chunks(lambda v: v - 0.5, x, chunk_size=8)
+    np.testing.assert_array_equal(out, x - 0.5)
+    assert seen == ["cpu"] * 2 and blocks == [3] * 2
+
+
+@pytest.mark.parametrize(
+    "l2, chunk", [("512K", 512), ("2048K", 2048), ("1M", 1024), ("48K", 32), ("1536K", 1024), ("1G", 4096), (None, 512)]
+)
+def test_default_cache_chunk_follows_the_l2_size(tmp_path, l2, chunk):
+    # A sysfs cache directory: L1 data and instruction, L2, L3.
+    for i, (level, kind, size) in enumerate(
+        [(1, "Data", "32K"), (1, "Instruction", "32K"), (2, "Unified", l2), (3, "Unified", "32768K")]
+    ):
+        d = tmp_path / f"index{i}"
+        d.mkdir()
+        (d / "level").write_text(f"{level}\n")
+        (d / "type").write_text(f"{kind}\n")
+        if size is not None:
+            (d / "size").write_text(f"{size}\n")
+    read = batch._l2_bytes(str(tmp_path))
+    assert read == (None if l2 is None else int(l2[:-1]) << {"K": 10, "M": 20, "G": 30}[l2[-1]])
+    assert batch._l2_bytes(str(tmp_path / "missing")) is None
+    with pytest.MonkeyPatch.context() as m:
+        m.setattr(batch, "_l2_bytes", lambda: read)
+        m.setattr(batch, "_cores_per_cpu_device", lambda: 1.0)
+        assert batch._default_cache_chunk("cpu") == chunk
+        assert batch._default_cache_chunk("gpu") is None
+        # A CPU device over several cores: XLA splits the whole share's loops
+        # over them, so no blocks.
+        m.setattr(batch, "_cores_per_cpu_device", lambda: 2.0)
+        assert batch._default_cache_chunk("cpu") is None
+
+
+def test_cores_per_cpu_device_counts_this_process_cores():
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count()
+    assert batch._cores_per_cpu_device() == cores / len(jax.local_devices(backend="cpu"))
+
+
+# --------------------------------------------------------------------------
 # Compiled once
 
 
@@ -244,6 +373,10 @@ def test_bad_chunk_size_is_named(bad):
         sweep(lambda v: v, x, chunk_size=bad)
     with pytest.raises(ValueError, match=f"chunk_size must be a positive int, got {bad!r}"):
         sweep_chunks(lambda v: v, x, chunk_size=bad)  # raises at the call, not at next()
+    with pytest.raises(ValueError, match=f"cache_chunk must be a positive int, got {bad!r}"):
+        sweep(lambda v: v, x, cache_chunk=bad)
+    with pytest.raises(ValueError, match=f"cache_chunk must be a positive int, got {bad!r}"):
+        sweep_chunks(lambda v: v, x, chunk_size=2, cache_chunk=bad)
 
 
 @pytest.mark.parametrize("bad", [3, -1, "1", 1.0])
