@@ -32,11 +32,13 @@ jax.config.update("jax_enable_x64", True)
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
-from common import cli, git_commit, machine_info, timed, write_results  # noqa: E402
+from common import backend_text, cli, git_commit, machine_info, timed, write_results  # noqa: E402
 
 import lierk  # noqa: E402
 
-QUICK, OUT = cli(__doc__, "tiny run (50 bodies over 10 s, one repeat) to check the script works", __name__ == "__main__")
+QUICK, OUT = cli(
+    __doc__, "tiny run (50 bodies over 10 s, one repeat) to check the script works", __name__ == "__main__"
+)
 
 BATCH = 50 if QUICK else 500
 T1 = 10.0 if QUICK else 60.0
@@ -107,6 +109,9 @@ def main():
         f"Free 1:2:3 boxes near their intermediate axis over {T1:g} s, float64: one body and a `jax.vmap` of "
         f"{BATCH}; each event records every crossing. First: compile and first call; later: median of later "
         "calls; ratios to the same solve without an event.",
+        "",
+        f"Machine: {result['machine']['cpu_count']} cores, {result['machine']['cpu']}, "
+        f"{backend_text(result['machine'])}, jax {result['machine']['jax']}; lierk at {result['commit']}.",
         "",
         "| bodies | solver | event | first (s) | first ratio | later (ms) | later ratio | crossings |",
         "|---:|---|---|---:|---:|---:|---:|---:|",

@@ -78,6 +78,11 @@ DESCRIPTIONS: dict[str, tuple[str, str]] = {
         "Event times against cost",
         "How accurately and how cheaply lierk and diffrax find an event time on fast Lagrange tops.",
     ),
+    "event_cost": (
+        "What an event costs",
+        "The same solve with and without an event, one body and a vmap of 500, fixed RKMK4 and "
+        "adaptive DOP853: compile and first call, and later runs.",
+    ),
     "sensitivity": (
         "Jacobians against cost",
         "dR(T)/d omega0 for lierk's two methods and diffrax's adjoints, error against time.",
