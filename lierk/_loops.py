@@ -42,6 +42,9 @@ __all__ = ["solve_fixed", "solve_fixed_at", "solve_adaptive", "num_steps", "step
 # Fixed-step runs of at least this many steps squared (256) are checkpointed in
 # blocks for reverse mode (`solve_fixed`).
 _CHECKPOINT_BLOCK_MIN = 16
+# Runs of at least this many steps skip their checkpoint blocks past the
+# run's end one by one (`_chunked`).
+_IDLE_BLOCKS_FROM = 4096
 
 
 def num_steps(t0, t1, dt, max_steps=None) -> int:
@@ -177,12 +180,12 @@ def _chunked(one, carry, n: int, every: int, time, idle: _Idle | None = None):
     (``time`` of their step index) and stacked ``carry[0]``, or None when
     ``every`` is 0 or exceeds ``n``.
 
-    ``idle``: the no-op steps after the run's end (`_Idle`).  A chunk, a
-    remainder or a checkpoint block of at least `_CHECKPOINT_BLOCK_MIN`
-    steps that starts after it is skipped (one ``lax.cond``, which costs
-    next to nothing per 16 steps and more), so that a static step count far
+    ``idle``: the no-op steps after the run's end (`_Idle`).  A chunk or a
+    remainder of at least `_CHECKPOINT_BLOCK_MIN` steps, and in runs of
+    `_IDLE_BLOCKS_FROM` steps or more a checkpoint block, that starts after
+    it is skipped (one ``lax.cond`` each), so that a static step count far
     beyond the run's, a generous ``max_steps`` or a scene's last piece
-    padded to the others' length, costs no steps.  Where the run ends
+    padded to the others' length, costs few steps.  Where the run ends
     inside such a block, its steps are taken: at most about ``sqrt(n)``.
     (Under ``vmap`` with a batched end the ``cond`` is a select, and every
     step runs, as without it.)"""
@@ -211,7 +214,18 @@ def _chunked(one, carry, n: int, every: int, time, idle: _Idle | None = None):
         if math.isqrt(length) < _CHECKPOINT_BLOCK_MIN:
             return scan(carry, length)
         block, blocks, rem = _blocks(length, pad=last)
-        body = jax.checkpoint(lambda c, _: (unless_idle(lambda c: scan(c, block), c, block), None), prevent_cse=False)
+        # Each block's skip is a conditional around its scan, which costs
+        # a batch of short runs far more than its share of steps
+        # (`benchmarks/headline.py`'s top_rkmk_dop853, 400 steps in blocks
+        # of 20: 1.4x to 1.7x the run): blocks are skipped in runs of
+        # `_IDLE_BLOCKS_FROM` steps and more, where they are 64 steps or
+        # longer.  Shorter runs skip whole chunks and the remainder only.
+        if length >= _IDLE_BLOCKS_FROM:
+            body = jax.checkpoint(
+                lambda c, _: (unless_idle(lambda c: scan(c, block), c, block), None), prevent_cse=False
+            )
+        else:
+            body = jax.checkpoint(lambda c, _: (scan(c, block), None), prevent_cse=False)
         carry = jax.lax.scan(body, carry, None, length=blocks)[0]
         return scan(carry, rem) if rem else carry
 
