@@ -214,18 +214,19 @@ def _chunked(one, carry, n: int, every: int, time, idle: _Idle | None = None):
         if math.isqrt(length) < _CHECKPOINT_BLOCK_MIN:
             return scan(carry, length)
         block, blocks, rem = _blocks(length, pad=last)
+
         # Each block's skip is a conditional around its scan, which costs
         # a batch of short runs far more than its share of steps
         # (`benchmarks/headline.py`'s top_rkmk_dop853, 400 steps in blocks
         # of 20: 1.4x to 1.7x the run): blocks are skipped in runs of
         # `_IDLE_BLOCKS_FROM` steps and more, where they are 64 steps or
         # longer.  Shorter runs skip whole chunks and the remainder only.
-        if length >= _IDLE_BLOCKS_FROM:
-            body = jax.checkpoint(
-                lambda c, _: (unless_idle(lambda c: scan(c, block), c, block), None), prevent_cse=False
-            )
-        else:
-            body = jax.checkpoint(lambda c, _: (scan(c, block), None), prevent_cse=False)
+        def run(c):
+            if length < _IDLE_BLOCKS_FROM:
+                return scan(c, block)
+            return unless_idle(lambda c: scan(c, block), c, block)
+
+        body = jax.checkpoint(lambda c, _: (run(c), None), prevent_cse=False)
         carry = jax.lax.scan(body, carry, None, length=blocks)[0]
         return scan(carry, rem) if rem else carry
 
