@@ -11,7 +11,9 @@ DOP853 (rtol = atol = 1e-8).  Events, each recording every crossing:
   crossings per body in 60 s);
 - ``lierk.conditions.tilt(1.0, axis=(0, 1, 0))``: the intermediate axis
   leaning 1 rad from space z (a condition on the attitude);
-- a user's own condition, ``Event(lambda t, R, m: m[1] - 0.5 m0[1])``.
+- a user's own condition, ``Event(lambda t, R, m: m[1] - 0.5 m0[1])``;
+- the tilt read at 4 points of each step (``samples=4``), which builds
+  every step's interpolant.
 
 Each program is one ``jax.jit`` (of the ``jax.vmap`` for the batch).  Times:
 compile and first call together, then the median of later calls (at least
@@ -54,6 +56,7 @@ EVENTS = {
     "flip": lambda body, w: lierk.conditions.flip(body),
     "tilt": lambda body, w: lierk.conditions.tilt(1.0, axis=(0.0, 1.0, 0.0)),
     "own": lambda body, w: lierk.Event(lambda t, R, m: m[1] - 0.5 * body.inertia[1, 1] * w[1]),
+    "tilt, samples 4": lambda body, w: lierk.Event(lierk.conditions.tilt(1.0, axis=(0.0, 1.0, 0.0)).cond, samples=4),
 }
 
 
@@ -98,7 +101,7 @@ def main():
                 )
                 r = records[-1]
                 print(
-                    f"  {size:4d} bodies, {label}, {event:5s}: first {first:.2f} s ({r['first_ratio']:.2f}x), "
+                    f"  {size:4d} bodies, {label}, {event:15s}: first {first:.2f} s ({r['first_ratio']:.2f}x), "
                     f"later {later * 1e3:.2f} ms ({r['later_ratio']:.2f}x), {r['crossings']} crossings",
                     flush=True,
                 )

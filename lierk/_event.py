@@ -2,23 +2,35 @@
 on the dense output of each step, and optionally the end of the solve there.
 
 An `Event` holds a scalar condition ``cond(t, R, y)``.  After every accepted
-step `lierk.solve` samples the condition on the step's interpolant
-(`lierk._interpolation`: ``R(t_n + theta h) = R_n exp(hat(u(theta)))``, or
-for the splittings a shortened step of the method) at
-``samples + 1`` equally spaced points, brackets each sign change between
-neighbouring samples, and finds the crossing time by the Illinois method
-(regula falsi that halves a stale end's value) on ``theta``, to a few
-rounding errors of the step.  The time is then as accurate as the
-interpolant: the solver's own accuracy (``tests/test_events.py``).
+step `lierk.solve` reads the condition at the step's end (and, with
+``samples > 1``, at ``samples - 1`` equally spaced points inside the step,
+on its interpolant), and brackets each sign change between neighbouring
+points.  Only in a step where some condition changed sign is the crossing
+located: on the step's interpolant (`lierk._interpolation`: ``R(t_n +
+theta h) = R_n exp(hat(u(theta)))``, or for the splittings a shortened step
+of the method), by the Illinois method (regula falsi that halves a stale
+end's value) on ``theta``, to a few rounding errors of the step.  The time
+is then as accurate as the interpolant: the solver's own accuracy
+(``tests/test_events.py``).
+
+What that costs.  A Hermite interpolant (RKMK4, CF4, ...) is built from the
+step's two ends, so it is built, with the step taken again, only in a step
+where a condition changed sign; a continuous extension (DOP853's) continues
+the step's own stages and is built in every step, as is any interpolant when
+an event samples inside the steps.  Under `jax.vmap` the members whose
+condition changed sign are gathered and located as a small batch of their
+own (`_crossings`), so a step where one member of many crossed costs about
+one member's location.  Measured in ``benchmarks/results/event_cost.md``.
 
 A crossing is a move from a strictly negative value to zero or above
 (rising) or from a strictly positive value to zero or below (falling).  So a
 condition that starts at zero (at ``t0``, or after an event stopped a solve
 that is restarted from there) does not fire by leaving zero, only by
 reaching it again; a condition that touches zero from above counts once, as
-falling.  Crossings closer together than ``1/samples`` of a step can be
-missed (in pairs: the samples show no sign change); raise ``samples`` or
-bound the step (`lierk.Controller` ``dtmax``) for such conditions.
+falling.  Crossings closer together than ``1/samples`` of a step (one step
+by default) can be missed in pairs: the points read show no sign change.
+Raise ``samples`` or bound the step (`lierk.Controller` ``dtmax``) for such
+conditions.
 
 The event time is differentiable with respect to everything the condition
 and the motion depend on (initial state, inertia, the condition's own
@@ -47,6 +59,8 @@ __all__ = ["Event", "EventRecord"]
 
 # Illinois iterations at most; it converges superlinearly, and ~10 are usual.
 _MAX_ITERATIONS = 100
+# The fewest members of a batch whose crossings are located together.
+_CROSSED_AT_ONCE = 8
 
 
 class Event(eqx.Module):
@@ -78,8 +92,12 @@ class Event(eqx.Module):
         max_count: how many crossing times (and states) to keep, per batch
             member: by default ``n`` for ``terminate=n``, 1 for ``True`` and
             64 otherwise.  `EventRecord.count` keeps counting past it.
-        samples: sign checks per step (default 4): crossings closer than
-            ``h/samples`` apart can be missed in pairs.
+        samples: sign checks per step (default 1: at the step's end, as
+            SciPy and diffrax check): crossings closer than ``h/samples``
+            apart can be missed in pairs.  Above 1, the condition is also
+            read inside each step, on its interpolant, which every step then
+            builds: in a fixed-step solve that costs about a step more per
+            step (``benchmarks/results/event_cost.md``).
 
     Raises:
         ValueError: bad arguments here; in `lierk.solve`, a ``cond`` that
@@ -109,7 +127,7 @@ class Event(eqx.Module):
         direction: int = 0,
         where: Callable | None = None,
         max_count: int | None = None,
-        samples: int = 4,
+        samples: int = 1,
     ):
         if not callable(cond):
             raise ValueError(f"Event(cond): cond must be a function cond(t, R, y) -> scalar, got {cond!r}")
@@ -220,6 +238,7 @@ class State(NamedTuple):
     y: tuple  # per event: pytree of (max_count, ...)
     stopped: Array  # (n_events,) which event ended the solve
     nan: Array  # a condition was NaN
+    rebuilt: Array  # steps whose interpolant was built again to locate a crossing
 
 
 def _check_output(out, what: str, i: int, floating: bool) -> None:
@@ -254,6 +273,7 @@ def init(events: tuple[Event, ...], t0: Array, R0: Array, y0: Any) -> State:
         ),
         stopped=jnp.zeros((n,), bool),
         nan=jnp.any(jnp.isnan(jnp.stack(gs))),
+        rebuilt=jnp.zeros((), jnp.int32),
     )
 
 
@@ -266,103 +286,257 @@ class Stop(NamedTuple):
     y: Any
 
 
+class Interpolant(eqx.Module):
+    """One step's interpolant (`lierk._interpolation`), as the events need
+    it: the coefficients ``(Fu, Fy)`` where the loop built them (dense
+    output, or an event that samples inside its steps), else the solver and
+    problem to build them again from the step's start, which a solve does
+    only in the steps where a condition changed sign.  ``partial``: the
+    splittings' `lierk._interpolation.PartialStep`, or None."""
+
+    coefficients: Any
+    problem: Any
+    solver: Any
+    partial: Any
+
+    @property
+    def rebuilds(self) -> bool:
+        """Whether calling it takes the step again (no coefficients given, and
+        not a shortened step)."""
+        return self.coefficients is None and self.partial is None
+
+    def __call__(self, t, h, R, y) -> tuple:
+        if self.coefficients is not None:
+            return self.coefficients
+        if self.partial is not None:
+            return None, None  # a shortened step needs none
+        node = self.solver.dense_node(self.problem, t, R, y)
+        return self.solver.dense_step(self.problem, t, h, R, y, None, node)[1]
+
+
+def samples_inside(events: tuple[Event, ...]) -> bool:
+    """Whether some event samples its condition inside the steps
+    (``samples > 1``): the loop then builds every step's interpolant."""
+    return any(ev.samples > 1 for ev in events)
+
+
 def process(
-    events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1: Any, active: Array, partial: Any = None
+    events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1: Any, active: Array, interpolant: Interpolant
 ) -> tuple[State, Stop]:
     """The events of one step.
 
     Args:
         events: the events.
         state: their state at the step's start.
-        step: ``(t, h, R, y, Fu, Fy)``: the step's start (s), size (s), start
-            state and interpolant (`lierk._interpolation`).
+        step: ``(t, h, R, y)``: the step's start (s), size (s) and start state.
         R1, y1: the state at the step's end.
         active: whether the step counts (accepted, and not past the end).
-        partial: the solver's `lierk._interpolation.PartialStep` (the
-            splittings'), which then replaces ``Fu`` and ``Fy``, or None.
+        interpolant: the step's `Interpolant`.
 
     Returns:
         The state after the step (unchanged where not ``active``) and the
         `Stop` of a terminating event in it.
+
+    The conditions are read at the step's end (and, for ``samples > 1``,
+    inside it); the crossings are located, and ``where`` read at them, only
+    in a step where some condition changed sign (`_located`).
     """
-    t, h, R, y = step[:4]
-    # The interpolant rides with the step into the root finder, so that the
-    # event time's derivative sees the problem's arrays a PartialStep reads.
-    step = (*step, partial)
+    t, h, R, y = step
     dtype = R.dtype
+    coefficients = interpolant(t, h, R, y) if samples_inside(events) else None
     interior = {}
-    found = []  # per event: (theta, valid, t*, R*, y*, g at the end)
+    brackets, g_ends = [], []
     nan = state.nan
     for i, ev in enumerate(events):
         K = ev.samples
         if K not in interior:
             thetas = jnp.arange(1, K, dtype=dtype) / K
-            interior[K] = (thetas, jax.vmap(lambda th: _state(step, th))(thetas))
+            full = (*step, *coefficients, interpolant.partial) if K > 1 else None
+            interior[K] = (thetas, jax.vmap(lambda th: _state(full, th))(thetas) if K > 1 else (None, None))
         thetas, (Rs, ys) = interior[K]
-        gi = jax.vmap(lambda th, Ri, yi: jnp.asarray(ev.cond(t + th * h, Ri, yi), dtype))(thetas, Rs, ys)
         g_end = jnp.asarray(ev.cond(t + h, R1, y1), dtype)
-        g = jnp.concatenate([state.g[i][None], gi, g_end[None]])
+        if K > 1:
+            gi = jax.vmap(lambda th, Ri, yi: jnp.asarray(ev.cond(t + th * h, Ri, yi), dtype))(thetas, Rs, ys)
+            g = jnp.concatenate([state.g[i][None], gi, g_end[None]])
+            # The states at each bracket's far end; the root finder carries
+            # them along, so the interpolant is not evaluated again at the
+            # roots (a splitting's is a step of the method: a large program,
+            # and a step's cost per bracket).
+            ends = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), (Rs, ys), (R1, y1))
+        else:
+            g = jnp.stack([state.g[i], g_end])
+            ends = jax.tree_util.tree_map(lambda b: b[None], (R1, y1))
         grid = jnp.concatenate([jnp.zeros((1,), dtype), thetas, jnp.ones((1,), dtype)])
         glo, ghi = g[:-1], g[1:]
         up, down = (glo < 0) & (ghi >= 0), (glo > 0) & (ghi <= 0)
         cross = up | down if ev.direction == 0 else up if ev.direction == 1 else down
-        valid = active & cross
         nan = nan | (active & jnp.any(jnp.isnan(g)))
-        # The states at each bracket's far end; the root finder carries them
-        # along, so the interpolant is not evaluated again at the roots (a
-        # splitting's is a step of the method: a large program, and a step's
-        # cost per bracket).
-        ends = jax.tree_util.tree_map(lambda a, b: jnp.concatenate([a, b[None]]), (Rs, ys), (R1, y1))
-        theta, Rr, yr = _roots(ev.cond, step, (grid[:-1], grid[1:], glo, ghi, valid, ends))
-        tr = t + theta * h
-        if ev.where is not None:
-            valid = valid & jax.vmap(ev.where)(tr, Rr, yr)
-        found.append((valid, tr, Rr, yr, g_end))
+        brackets.append((grid[:-1], grid[1:], glo, ghi, active & cross, ends))
+        g_ends.append(g_end)
 
-    # The first crossing that ends the solve, over every event.
-    inf = jnp.asarray(jnp.inf, dtype)
-    firsts = []
-    for i, (ev, (valid, tr, Rr, yr, _)) in enumerate(zip(events, found)):
+    interpolant = eqx.tree_at(lambda s: s.coefficients, interpolant, coefficients, is_leaf=lambda x: x is None)
+    found, stopped = _crossings(events, state.counts, step, R1, y1, interpolant, tuple(brackets))
+    crossed = jnp.any(jnp.stack([jnp.any(b[4]) for b in brackets]))
+
+    # Where the solve ended: at the crossing of the event that ended it.
+    t_stop, stop_R, stop_y = t + h, R1, y1
+    for i, (ev, (keep, tr, Rr, yr)) in enumerate(zip(events, found)):
         if ev.stop_at:
-            ends = valid & (state.counts[i] + jnp.cumsum(valid, dtype=jnp.int32) == ev.stop_at)
-            j = jnp.argmax(ends)
-            firsts.append((jnp.where(jnp.any(ends), tr[j], inf), Rr[j], jax.tree_util.tree_map(lambda a: a[j], yr)))
-        else:
-            firsts.append((inf, None, None))
-    t_stop = inf
-    stop_R, stop_y = R1, y1
-    stopped = []
-    for tf, Rf, yf in firsts:
-        earlier = tf < t_stop
-        stopped.append(earlier)
-        if Rf is not None:
-            stop_R = jnp.where(earlier, Rf, stop_R)
-            stop_y = jax.tree_util.tree_map(lambda a, b: jnp.where(earlier, a, b), yf, stop_y)
-        t_stop = jnp.minimum(t_stop, tf)
-    # Only the first event to reach t_stop ended the solve.
-    stopped = jnp.stack(stopped)
-    stopped = stopped & (jnp.cumsum(stopped) == jnp.sum(stopped))  # the last "earlier" is the earliest
-    stop = jnp.isfinite(t_stop)
+            j = jnp.argmax(keep & (state.counts[i] + jnp.cumsum(keep, dtype=jnp.int32) == ev.stop_at))
+            t_stop = jnp.where(stopped[i], tr[j], t_stop)
+            stop_R = jnp.where(stopped[i], Rr[j], stop_R)
+            stop_y = jax.tree_util.tree_map(lambda a, b: jnp.where(stopped[i], a[j], b), yr, stop_y)
+    # (Without a terminating event nothing stops: a constant, so that the
+    # loop's choices between the step's end and the event's fold away.)
+    stop = Stop(jnp.any(stopped) if any(ev.stop_at for ev in events) else jnp.asarray(False), t_stop, stop_R, stop_y)
 
+    # The records are written here, outside `_crossings`' loop: carried
+    # through it, each step copied them whole (64 rows: 5x the step).
     counts, ts_b, R_b, y_b = [], [], [], []
-    for i, (ev, (valid, tr, Rr, yr, _)) in enumerate(zip(events, found)):
-        keep = valid & (tr <= t_stop)
-        pos = state.counts[i] + jnp.cumsum(keep, dtype=jnp.int32) - 1
-        pos = jnp.where(keep, pos, ev.max_count)  # out of range: dropped
-        ts_b.append(state.ts[i].at[pos].set(tr, mode="drop"))
-        R_b.append(state.R[i].at[pos].set(Rr, mode="drop"))
-        y_b.append(jax.tree_util.tree_map(lambda b, v: b.at[pos].set(v, mode="drop"), state.y[i], yr))
+    for i, (ev, (keep, tr, Rr, yr)) in enumerate(zip(events, found)):
+        if keep.shape[0] == 1:
+            # One bracket, one row at most: read and write it in place.
+            n = state.counts[i]
+            pos, write = jnp.minimum(n, ev.max_count - 1), keep[0] & (n < ev.max_count)
+
+            def put(buf, v):
+                return buf.at[pos].set(jnp.where(write, v[0], buf[pos]))
+        else:
+            pos = state.counts[i] + jnp.cumsum(keep, dtype=jnp.int32) - 1
+            pos = jnp.where(keep, pos, ev.max_count)  # out of range: dropped
+
+            def put(buf, v):
+                return buf.at[pos].set(v, mode="drop")
+
+        ts_b.append(put(state.ts[i], tr))
+        R_b.append(put(state.R[i], Rr))
+        y_b.append(jax.tree_util.tree_map(put, state.y[i], yr))
         counts.append(state.counts[i] + jnp.sum(keep, dtype=jnp.int32))
     new = State(
-        g=tuple(jnp.where(active, f[4], g0) for f, g0 in zip(found, state.g)),
+        g=tuple(jnp.where(active, g_end, g0) for g_end, g0 in zip(g_ends, state.g)),
         counts=jnp.stack(counts),
         ts=tuple(ts_b),
         R=tuple(R_b),
         y=tuple(y_b),
-        stopped=state.stopped | stopped,
+        stopped=state.stopped | stopped if any(ev.stop_at for ev in events) else state.stopped,
         nan=nan,
+        rebuilt=state.rebuilt + crossed.astype(jnp.int32) if interpolant.rebuilds else state.rebuilt,
     )
-    return new, Stop(stop, jnp.where(stop, t_stop, t + h), stop_R, stop_y)
+    return new, stop
+
+
+@eqx.filter_custom_jvp
+def _crossings(events, counts, step, R1, y1, interpolant, brackets):
+    """`process` past the sign checks: `_found`, computed only where some
+    bracket is valid; elsewhere no crossing (zeros, and ``keep`` false).
+    One body computes it in a conditional, in a step where it crossed; a
+    batch under `jax.vmap` computes it for the members that crossed only, a
+    few at a time (`_crossed_members`).  Its derivative is `_found`'s,
+    computed in every step."""
+    args = (events, counts, step, R1, y1, interpolant, brackets)
+    dynamic, static = eqx.partition(args, eqx.is_array)
+    # "No crossing": zeros, and ``keep`` false.
+    none = lambda lead=(): jax.tree_util.tree_map(lambda s: jnp.zeros(lead + s.shape, s.dtype), shapes)  # noqa: E731
+
+    def crossed(d):
+        return jnp.any(jnp.stack([jnp.any(b[4]) for b in eqx.combine(d, static)[6]]))
+
+    # `custom_vmap` refuses a function whose constants an enclosing
+    # transformation batched: its constants (a tableau, a condition's
+    # arrays) become explicit arguments of a traced jaxpr.
+    closed, shapes = jax.make_jaxpr(lambda d: _found(*eqx.combine(d, static)), return_shape=True)(dynamic)
+    _, out_tree = jax.tree_util.tree_flatten(shapes)
+
+    def found(consts, d):
+        return jax.tree_util.tree_unflatten(
+            out_tree, jax.core.eval_jaxpr(closed.jaxpr, consts, *jax.tree_util.tree_leaves(d))
+        )
+
+    @jax.custom_batching.custom_vmap
+    def one(consts, d):
+        return jax.lax.cond(crossed(d), found, lambda *_: none(), consts, d)
+
+    @one.def_vmap
+    def batch(axis_size, in_batched, consts, d):
+        out = _crossed_members(crossed, found, (consts, d), tuple(in_batched), axis_size, none((axis_size,)))
+        return out, jax.tree_util.tree_map(lambda _: True, out)
+
+    return one(tuple(closed.consts), dynamic)
+
+
+def _crossed_members(crossed, found, args, batched, size: int, out):
+    """``found(*args)`` for the members of a batch of ``size`` (``args``
+    batched where ``batched``) where ``crossed(args[-1])``, written into
+    ``out`` (the batch's "no crossing"): the members that crossed are
+    gathered, `_CROSSED_AT_ONCE` or ``size / 64`` at a time, and computed as
+    a small batch, so that a step where one member of thousands crossed
+    costs about one member's location, not the batch's."""
+    axes = jax.tree_util.tree_map(lambda b: 0 if b else None, batched)
+    if any(jax.tree_util.tree_leaves(batched[-1])):
+        need = jax.vmap(crossed, in_axes=(axes[-1],))(args[-1])
+    else:
+        need = jnp.broadcast_to(crossed(args[-1]), (size,))
+    chunk = min(size, max(_CROSSED_AT_ONCE, size // 64))
+
+    def body(carry):
+        need, out = carry
+        (idx,) = jnp.nonzero(need, size=chunk, fill_value=0)
+        real = need[idx] & (jnp.arange(chunk) < jnp.sum(need))
+        rows = jnp.where(real, idx, size)  # out of range: dropped
+        picked = jax.tree_util.tree_map(lambda x, b: x[idx] if b else x, args, batched)
+        res = jax.vmap(found, in_axes=axes)(*picked)
+        out = jax.tree_util.tree_map(lambda o, r: o.at[rows].set(r, mode="drop"), out, res)
+        return need.at[rows].set(False, mode="drop"), out
+
+    def chunks(need, out):
+        return jax.lax.while_loop(lambda c: jnp.any(c[0]), body, (need, out))[1]
+
+    # A conditional on the whole batch: in the steps where no member crossed
+    # (most of them) the loop is not entered, and its operands not copied.
+    return jax.lax.cond(jnp.any(need), chunks, lambda need, out: out, need, out)
+
+
+@_crossings.def_jvp
+def _crossings_jvp(primals, tangents):
+    return eqx.filter_jvp(_found, primals, tangents)
+
+
+def _found(events, counts, step, R1, y1, interpolant, brackets):
+    """The crossings in one step's ``brackets`` (per event ``(lo, hi, g(lo),
+    g(hi), valid, ends)``), located and filtered by ``where``, given each
+    event's ``counts`` so far: per event ``(keep, t*, R*, y*)`` (``keep``:
+    the crossings to record), and which event ended the solve
+    ``(n_events,)``."""
+    t, h = step[:2]
+    dtype = step[2].dtype
+    conds = tuple(ev.cond for ev in events)
+    located = _located(conds, step, interpolant, brackets)
+    found = []  # per event: (valid, t*, R*, y*)
+    for ev, (theta, Rr, yr), bracket in zip(events, located, brackets):
+        valid = bracket[4]
+        tr = t + theta * h
+        if ev.where is not None:
+            valid = valid & jax.vmap(ev.where)(tr, Rr, yr)
+        found.append((valid, tr, Rr, yr))
+    # The first crossing that ends the solve, over every event.
+    inf = jnp.asarray(jnp.inf, dtype)
+    firsts = []
+    for i, (ev, (valid, tr, Rr, yr)) in enumerate(zip(events, found)):
+        if ev.stop_at:
+            ends = valid & (counts[i] + jnp.cumsum(valid, dtype=jnp.int32) == ev.stop_at)
+            firsts.append(jnp.where(jnp.any(ends), tr[jnp.argmax(ends)], inf))
+        else:
+            firsts.append(inf)
+    t_stop = inf
+    stopped = []
+    for tf in firsts:
+        stopped.append(tf < t_stop)
+        t_stop = jnp.minimum(t_stop, tf)
+    # Only the first event to reach t_stop ended the solve.
+    stopped = jnp.stack(stopped)
+    stopped = stopped & (jnp.cumsum(stopped) == jnp.sum(stopped))  # the last "earlier" is the earliest
+    kept = tuple((valid & (tr <= t_stop), tr, Rr, yr) for valid, tr, Rr, yr in found)
+    return kept, stopped
 
 
 def _state(step, theta):
@@ -429,26 +603,51 @@ def _illinois(cond, step, bracket):
 
 
 @eqx.filter_custom_jvp
-def _roots(cond, step, bracket):
-    return _illinois(cond, step, bracket)
+def _located(conds, step, interpolant, brackets):
+    """Per event, `_illinois`'s ``(theta, R, y)`` for its ``brackets``, with
+    the step ``(t, h, R, y)`` and its `Interpolant`."""
+    full = (*step, *interpolant(*step), interpolant.partial)
+    return tuple(_illinois(c, full, b) for c, b in zip(conds, brackets))
 
 
-@_roots.def_jvp
-def _roots_jvp(primals, tangents):
+@_located.def_jvp
+def _located_jvp(primals, tangents):
     # The implicit function theorem at each root: d theta = -(dg/dp . dp) / (dg/dtheta);
     # the states there move with the root and with the interpolant.
-    cond, step, bracket = primals
-    t_cond, t_step, _ = tangents
-    theta, Rr, yr = _roots(cond, step, bracket)
-    valid = bracket[4]
-    dyn, static = eqx.partition((cond, step), eqx.is_inexact_array)
-    # (Symbolic zeros come as None: materialise them.)
-    t_dyn = jax.tree_util.tree_map(
+    conds, step, interpolant, brackets = primals
+    t_conds, t_step, t_interpolant, _ = tangents
+    dyn, static = eqx.partition((conds, step, interpolant), eqx.is_inexact_array)
+    t_dyn = _materialised(dyn, (t_conds, t_step, t_interpolant))
+
+    def full(d):
+        # The conditions and the step with its interpolant's coefficients,
+        # built once here (with their tangents) for every root.
+        cs, st, interp = eqx.combine(d, static)
+        return cs, (*st, *interp(*st), interp.partial)
+
+    (cs, st), (t_cs, t_st) = eqx.filter_jvp(full, (dyn,), (t_dyn,))
+    located = tuple(_illinois(c, st, b) for c, b in zip(cs, brackets))
+    out_tangents = []
+    for i, ((theta, Rr, yr), bracket) in enumerate(zip(located, brackets)):
+        cdyn, cstatic = eqx.partition((cs[i], st), eqx.is_inexact_array)
+        out_tangents.append(_root_tangents(cdyn, cstatic, _materialised(cdyn, (t_cs[i], t_st)), theta, bracket[4]))
+    return located, tuple(out_tangents)
+
+
+def _materialised(dyn, tangents):
+    """``tangents`` for the arrays ``dyn`` (None elsewhere), with symbolic
+    zeros (None) made zero arrays."""
+    return jax.tree_util.tree_map(
         lambda p, t: p if p is None else jnp.zeros_like(p) if t is None else t,
         dyn,
-        (t_cond, t_step),
+        tangents,
         is_leaf=lambda x: x is None,
     )
+
+
+def _root_tangents(dyn, static, t_dyn, theta, valid):
+    """``(d theta, dR, dy)`` at the roots ``theta`` of one condition, for
+    ``dyn`` (the condition and step's arrays) moving along ``t_dyn``."""
 
     def g(th, d):
         c, s = eqx.combine(d, static)
@@ -467,4 +666,4 @@ def _roots_jvp(primals, tangents):
         return _state(eqx.combine(d, static)[1], th)
 
     d_state = jax.vmap(lambda th, dth: jax.jvp(state, (th, dyn), (dth, t_dyn))[1])(theta, d_theta)
-    return (theta, Rr, yr), (d_theta, *d_state)
+    return (d_theta, *d_state)

@@ -345,16 +345,31 @@ def solve_fixed_at(problem, solver, t0, t1, dt, saveat: SaveAt, max_steps: int |
     return Solution(ts_out, R, y, n_saved.astype(jnp.int32), _fixed_stats(taken, solver), result)
 
 
-def _fixed_stats(taken, solver, tracked: bool = False) -> dict:
+def _tracked(saveat: SaveAt, solver, events: tuple) -> bool:
+    """Whether every step builds its interpolant: for dense output, for
+    events that sample inside the steps, and for events on a solver whose
+    interpolant comes from the step's own stages (`dense_in_step`).  Other
+    events build it only in a step where a condition changed sign."""
+    return bool(saveat.dense or events and (event_lib.samples_inside(events) or solver.dense_in_step))
+
+
+def _rebuild_fevals(solver, ev, like: Array) -> Array | int:
+    """Field evaluations of the interpolants events built apart (`_tracked`),
+    in ``like``'s dtype."""
+    return 0 if ev is None else (ev.rebuilt * solver.dense_rebuild_fevals).astype(like.dtype)
+
+
+def _fixed_stats(taken, solver, tracked: bool = False, rebuilt: Array | int = 0) -> dict:
     """Step and field-evaluation counts of ``taken`` fixed steps; ``tracked``:
-    each step built its interpolant (`AbstractSolver.dense_fevals`)."""
+    each step built its interpolant (`AbstractSolver.dense_fevals`);
+    ``rebuilt``: the evaluations of those events built apart (`_rebuild_fevals`)."""
     per_step, initial = solver.dense_fevals if tracked else (0, 0)
     served = 1 if tracked and solver.dense_serves_first_stage else 0
     return {
         "num_steps": taken,
         "num_accepted_steps": taken,
         "num_rejected_steps": jnp.zeros_like(taken),
-        "num_fevals": initial + taken * (solver.stages + per_step - served),
+        "num_fevals": initial + taken * (solver.stages + per_step - served) + rebuilt,
     }
 
 
@@ -370,17 +385,22 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
     stopped0 = ev0.nan if events else jnp.asarray(False)
     every = saveat.every
     partial = solver.dense_partial(problem)
+    tracked = _tracked(saveat, solver, events)
 
     def one(carry, _):
         (R, y), node, k, taken, ev, stopped, t_end = carry
         t = time(k)
         h = jnp.where(stopped, jnp.zeros_like(dt), size(k))
-        st, (Fu, Fy), node1 = solver.dense_step(problem, t, h, R, y, None, node)
+        if tracked:
+            st, (Fu, Fy), node1 = solver.dense_step(problem, t, h, R, y, None, node)
+        else:
+            st, Fu, Fy, node1 = solver.step(problem, t, h, R, y), None, None, None
         live = (k < count) & ~stopped
         state = (st.R, st.y)
         t_end = jnp.where(live, time(k + 1), t_end)
         if events:
-            ev, stop = event_lib.process(events, ev, (t, h, R, y, Fu, Fy), st.R, st.y, live, partial)
+            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, partial)
+            ev, stop = event_lib.process(events, ev, (t, h, R, y), st.R, st.y, live, interpolant)
             state = jax.tree_util.tree_map(lambda a, b: jnp.where(stop.stop, a, b), (stop.R, stop.y), state)
             t_end = jnp.where(stop.stop, stop.t, t_end)
             stopped = stopped | stop.stop | ev.nan
@@ -391,7 +411,8 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         return carry, (record, state if every else None)
 
     izero = jnp.asarray(0)
-    carry = (_moved_together((R0, y0)), solver.dense_node(problem, t0, R0, y0), izero, izero, ev0, stopped0, t0)
+    node0 = solver.dense_node(problem, t0, R0, y0) if tracked else None
+    carry = (_moved_together((R0, y0)), node0, izero, izero, ev0, stopped0, t0)
     n_chunks, rem = divmod(n, every) if every else (0, n)
     interpolation = None
     if saveat.dense:
@@ -442,7 +463,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         R,
         y,
         n_saved,
-        _fixed_stats(taken, solver, tracked=True),
+        _fixed_stats(taken, solver, tracked=tracked, rebuilt=_rebuild_fevals(solver, ev if events else None, taken)),
         result,
         interpolation=interpolation,
         events=records_out,
@@ -611,8 +632,7 @@ def _adaptive_loop(
     record = controller.decides and replay is None and (record or adjoint.kind == "checkpointed")
     decisions = jnp.full((max_steps,), jnp.nan, R0.dtype) if record else None
 
-    # Dense output and events build every step's interpolant.
-    tracked = saveat.dense or bool(events)
+    tracked = _tracked(saveat, solver, events)
     init = _adaptive_init(problem, solver, t0, t1, dt0, h0, f0, saveat, max_steps, decisions, events, tracked)
     init = _batched_together(init, (problem, t0, t1, h0, f0, controller))
 
@@ -671,7 +691,8 @@ def _adaptive_loop(
         t_end, R_end, y_end = t_new, st.R, st.y
         ev, stopped, nan = c.ev, jnp.asarray(False), jnp.asarray(False)
         if events:
-            ev, stopped, nan, (t_end, R_end, y_end) = _events_in_step(events, c, (h, Fu, Fy), st, t_new, accept)
+            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, None)
+            ev, stopped, nan, (t_end, R_end, y_end) = _events_in_step(events, c, h, interpolant, st, t_new, accept)
         dense = c.dense
         if saveat.dense:
             dense = _dense_update(c.dense, c.num_accepted, accept, (c.t, h, c.R, c.y, Fu, Fy))
@@ -822,12 +843,12 @@ def _decide(c: _Carry, d, h, record: bool, replay):
     return accept, h_out, decisions
 
 
-def _events_in_step(events, c: _Carry, slopes, st, t_new, accept):
-    """The events of one attempt: ``(event state, stopped, NaN condition,
+def _events_in_step(events, c: _Carry, h, interpolant, st, t_new, accept):
+    """The events of one attempt of size ``h`` with its
+    `lierk._event.Interpolant`: ``(event state, stopped, NaN condition,
     (t, R, y) where the step ends)``, the stop of a terminating event or the
     step's end."""
-    h, Fu, Fy = slopes
-    ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y, Fu, Fy), st.R, st.y, accept)
+    ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y), st.R, st.y, accept, interpolant)
     stopped = stop.stop
     end = (
         jnp.where(stopped, stop.t, t_new),
@@ -879,7 +900,9 @@ def _adaptive_stats(solver, final: _Carry, f0, dt0, tracked: bool) -> dict[str, 
         "num_steps": final.num_steps,
         "num_accepted_steps": final.num_accepted,
         "num_rejected_steps": final.num_rejected,
-        "num_fevals": fevals_setup + final.num_steps * fevals_per_attempt,
+        "num_fevals": fevals_setup
+        + final.num_steps * fevals_per_attempt
+        + _rebuild_fevals(solver, final.ev, final.num_steps),
     }
 
 

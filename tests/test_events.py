@@ -267,12 +267,16 @@ def test_batch_members_stop_at_their_own_events():
 
 def test_two_crossings_in_one_step_and_several_events():
     # One step of 1 s: the parabola crosses at 0.3 and 0.7 (exactly: it reads t only).
-    parabola = lierk.Event(lambda t, R, m: (t - 0.3) * (t - 0.7))
+    # Checked at the step's ends only (the default), the pair is not seen;
+    # sampled inside the step, both are found.
+    quick = lierk.Event(lambda t, R, m: (t - 0.3) * (t - 0.7))
+    assert int(_solve(BODY, lierk.RKMK4(), 1.0, quick, dt=1.0).events.count) == 0
+    parabola = lierk.Event(lambda t, R, m: (t - 0.3) * (t - 0.7), samples=4)
     sol = _solve(BODY, lierk.RKMK4(), 1.0, parabola, dt=1.0)
     np.testing.assert_allclose(_times(sol.events), [0.3, 0.7], atol=1e-15)
     # A terminating event between them drops the crossing after it.
     half = lierk.Event(lambda t, R, m: t - 0.5, terminate=True)
-    rising = lierk.Event(lambda t, R, m: (t - 0.3) * (t - 0.7), direction=1)
+    rising = lierk.Event(lambda t, R, m: (t - 0.3) * (t - 0.7), direction=1, samples=4)
     sol = _solve(BODY, lierk.RKMK4(), 1.0, [parabola, half, rising], dt=1.0)
     assert [int(r.count) for r in sol.events] == [1, 1, 0]
     assert [bool(r.stopped) for r in sol.events] == [False, True, False]

@@ -59,6 +59,25 @@ class AbstractSolver(eqx.Module):
     # (``init``'s ``f0`` None).
     dense_serves_first_stage: ClassVar[bool] = False
 
+    @property
+    def dense_in_step(self) -> bool:
+        """Whether the step's interpolant comes from the step's own stages (a
+        continuous extension, `lierk.AbstractRKMK` with DOP853's), so that
+        building it apart means taking the step again: events then build it
+        in every step.  False here: the Hermite interpolant is built from
+        the step's ends, which events do only in a step where a condition
+        changed sign (`lierk._event`)."""
+        return False
+
+    @property
+    def dense_rebuild_fevals(self) -> int:
+        """Field evaluations that building one step's interpolant apart costs
+        (the step again and `dense_fevals`' both counts): what an event adds
+        in each step where a condition changed sign, for a solver whose
+        interpolant is not `dense_in_step`."""
+        per_step, initial = self.dense_fevals
+        return self.stages - (1 if self.dense_serves_first_stage else 0) + per_step + initial
+
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
 

@@ -185,6 +185,11 @@ class AbstractRKMK(AbstractSolver):
         return (len(self.tableau.dense_c), 0) if self.tableau.dense else super().dense_fevals
 
     @property
+    def dense_in_step(self) -> bool:
+        """A continuous extension continues the step's own stages."""
+        return bool(self.tableau.dense)
+
+    @property
     def dense_serves_first_stage(self) -> bool:  # type: ignore[override]
         """The Hermite node's field serves the first stage; a continuous
         extension keeps no node."""
