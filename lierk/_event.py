@@ -374,7 +374,8 @@ def process(
         brackets.append((grid[:-1], grid[1:], glo, ghi, active & cross, ends))
         g_ends.append(g_end)
 
-    interpolant = eqx.tree_at(lambda s: s.coefficients, interpolant, coefficients, is_leaf=lambda x: x is None)
+    if coefficients is not None:
+        interpolant = eqx.tree_at(lambda s: s.coefficients, interpolant, coefficients, is_leaf=lambda x: x is None)
     found, stopped = _crossings(events, state.counts, step, R1, y1, interpolant, tuple(brackets))
     crossed = jnp.any(jnp.stack([jnp.any(b[4]) for b in brackets]))
 
