@@ -339,7 +339,7 @@ def process(
 
     The conditions are read at the step's end (and, for ``samples > 1``,
     inside it); the crossings are located, and ``where`` read at them, only
-    in a step where some condition changed sign (`_located`).
+    in a step where some condition changed sign (`_crossings`).
     """
     t, h, R, y = step
     dtype = R.dtype
@@ -380,6 +380,7 @@ def process(
     crossed = jnp.any(jnp.stack([jnp.any(b[4]) for b in brackets]))
 
     # Where the solve ended: at the crossing of the event that ended it.
+    terminates = any(ev.stop_at for ev in events)
     t_stop, stop_R, stop_y = t + h, R1, y1
     for i, (ev, (keep, tr, Rr, yr)) in enumerate(zip(events, found)):
         if ev.stop_at:
@@ -389,10 +390,11 @@ def process(
             stop_y = jax.tree_util.tree_map(lambda a, b: jnp.where(stopped[i], a[j], b), yr, stop_y)
     # (Without a terminating event nothing stops: a constant, so that the
     # loop's choices between the step's end and the event's fold away.)
-    stop = Stop(jnp.any(stopped) if any(ev.stop_at for ev in events) else jnp.asarray(False), t_stop, stop_R, stop_y)
+    stop = Stop(jnp.any(stopped) if terminates else jnp.asarray(False), t_stop, stop_R, stop_y)
 
-    # The records are written here, outside `_crossings`' loop: carried
-    # through it, each step copied them whole (64 rows: 5x the step).
+    # The records are written here, in place: carried through a loop around
+    # the location, they were copied whole in every step (64 rows: 5x the
+    # step's time).
     counts, ts_b, R_b, y_b = [], [], [], []
     for i, (ev, (keep, tr, Rr, yr)) in enumerate(zip(events, found)):
         if keep.shape[0] == 1:
@@ -419,7 +421,7 @@ def process(
         ts=tuple(ts_b),
         R=tuple(R_b),
         y=tuple(y_b),
-        stopped=state.stopped | stopped if any(ev.stop_at for ev in events) else state.stopped,
+        stopped=state.stopped | stopped if terminates else state.stopped,
         nan=nan,
         rebuilt=state.rebuilt + crossed.astype(jnp.int32) if interpolant.rebuilds else state.rebuilt,
     )
