@@ -313,6 +313,16 @@ class Interpolant(eqx.Module):
         node = self.solver.dense_node(self.problem, t, R, y)
         return self.solver.dense_step(self.problem, t, h, R, y, None, node)[1]
 
+    def full(self, step: tuple) -> tuple:
+        """The step ``(t, h, R, y)`` with its interpolant, ``(t, h, R, y, Fu,
+        Fy, partial)``, as `lierk._interpolation.interpolate` takes it."""
+        return (*step, *self(*step), self.partial)
+
+
+def _any_crossed(brackets) -> Array:
+    """Whether some bracket of some event holds a crossing."""
+    return jnp.any(jnp.stack([jnp.any(b[4]) for b in brackets]))
+
 
 def samples_inside(events: tuple[Event, ...]) -> bool:
     """Whether some event samples its condition inside the steps
@@ -343,7 +353,10 @@ def process(
     """
     t, h, R, y = step
     dtype = R.dtype
-    coefficients = interpolant(t, h, R, y) if samples_inside(events) else None
+    if samples_inside(events):
+        interpolant = eqx.tree_at(
+            lambda s: s.coefficients, interpolant, interpolant(*step), is_leaf=lambda x: x is None
+        )
     interior = {}
     brackets, g_ends = [], []
     nan = state.nan
@@ -351,7 +364,7 @@ def process(
         K = ev.samples
         if K not in interior:
             thetas = jnp.arange(1, K, dtype=dtype) / K
-            full = (*step, *coefficients, interpolant.partial) if K > 1 else None
+            full = interpolant.full(step) if K > 1 else None
             interior[K] = (thetas, jax.vmap(lambda th: _state(full, th))(thetas) if K > 1 else (None, None))
         thetas, (Rs, ys) = interior[K]
         g_end = jnp.asarray(ev.cond(t + h, R1, y1), dtype)
@@ -374,10 +387,8 @@ def process(
         brackets.append((grid[:-1], grid[1:], glo, ghi, active & cross, ends))
         g_ends.append(g_end)
 
-    if coefficients is not None:
-        interpolant = eqx.tree_at(lambda s: s.coefficients, interpolant, coefficients, is_leaf=lambda x: x is None)
-    found, stopped = _crossings(events, state.counts, step, R1, y1, interpolant, tuple(brackets))
-    crossed = jnp.any(jnp.stack([jnp.any(b[4]) for b in brackets]))
+    brackets = tuple(brackets)
+    found, stopped = _crossings(events, state.counts, step, interpolant, brackets)
 
     # Where the solve ended: at the crossing of the event that ended it.
     terminates = any(ev.stop_at for ev in events)
@@ -423,26 +434,26 @@ def process(
         y=tuple(y_b),
         stopped=state.stopped | stopped if terminates else state.stopped,
         nan=nan,
-        rebuilt=state.rebuilt + crossed.astype(jnp.int32) if interpolant.rebuilds else state.rebuilt,
+        rebuilt=state.rebuilt + _any_crossed(brackets).astype(jnp.int32) if interpolant.rebuilds else state.rebuilt,
     )
     return new, stop
 
 
 @eqx.filter_custom_jvp
-def _crossings(events, counts, step, R1, y1, interpolant, brackets):
+def _crossings(events, counts, step, interpolant, brackets):
     """`process` past the sign checks: `_found`, computed only where some
     bracket is valid; elsewhere no crossing (zeros, and ``keep`` false).
     One body computes it in a conditional, in a step where it crossed; a
     batch under `jax.vmap` computes it for the members that crossed only, a
     few at a time (`_crossed_members`).  Its derivative is `_found`'s,
     computed in every step."""
-    args = (events, counts, step, R1, y1, interpolant, brackets)
+    args = (events, counts, step, interpolant, brackets)
     dynamic, static = eqx.partition(args, eqx.is_array)
     # "No crossing": zeros, and ``keep`` false.
     none = lambda lead=(): jax.tree_util.tree_map(lambda s: jnp.zeros(lead + s.shape, s.dtype), shapes)  # noqa: E731
 
     def crossed(d):
-        return jnp.any(jnp.stack([jnp.any(b[4]) for b in eqx.combine(d, static)[6]]))
+        return _any_crossed(eqx.combine(d, static)[-1])
 
     # `custom_vmap` refuses a function whose constants an enclosing
     # transformation batched: its constants (a tableau, a condition's
@@ -504,7 +515,7 @@ def _crossings_jvp(primals, tangents):
     return eqx.filter_jvp(_found, primals, tangents)
 
 
-def _found(events, counts, step, R1, y1, interpolant, brackets):
+def _found(events, counts, step, interpolant, brackets):
     """The crossings in one step's ``brackets`` (per event ``(lo, hi, g(lo),
     g(hi), valid, ends)``), located and filtered by ``where``, given each
     event's ``counts`` so far: per event ``(keep, t*, R*, y*)`` (``keep``:
@@ -609,7 +620,7 @@ def _illinois(cond, step, bracket):
 def _located(conds, step, interpolant, brackets):
     """Per event, `_illinois`'s ``(theta, R, y)`` for its ``brackets``, with
     the step ``(t, h, R, y)`` and its `Interpolant`."""
-    full = (*step, *interpolant(*step), interpolant.partial)
+    full = interpolant.full(step)
     return tuple(_illinois(c, full, b) for c, b in zip(conds, brackets))
 
 
@@ -626,7 +637,7 @@ def _located_jvp(primals, tangents):
         # The conditions and the step with its interpolant's coefficients,
         # built once here (with their tangents) for every root.
         cs, st, interp = eqx.combine(d, static)
-        return cs, (*st, *interp(*st), interp.partial)
+        return cs, interp.full(st)
 
     (cs, st), (t_cs, t_st) = eqx.filter_jvp(full, (dyn,), (t_dyn,))
     located = tuple(_illinois(c, st, b) for c, b in zip(cs, brackets))

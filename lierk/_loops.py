@@ -463,7 +463,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         R,
         y,
         n_saved,
-        _fixed_stats(taken, solver, tracked=tracked, rebuilt=_rebuild_fevals(solver, ev if events else None, taken)),
+        _fixed_stats(taken, solver, tracked=tracked, rebuilt=_rebuild_fevals(solver, ev, taken)),
         result,
         interpolation=interpolation,
         events=records_out,
