@@ -48,6 +48,13 @@ whose tangents run through the loop (`lierk.ForwardMode`,
 `lierk.RecursiveCheckpointAdjoint`, `lierk.DirectAdjoint`, and a fixed-step
 scan past ``max_inputs``) take the batch form.
 
+Inside either form, one operation has a batching rule of its own: an
+event's location of its crossings (`lierk._event`), a
+``jax.custom_batching.custom_vmap``.  One body locates a crossing in a
+conditional; under ``jax.vmap`` the rule gathers the members whose
+condition changed sign and locates them as a small batch.  Nothing else is
+chosen by how the call was batched.
+
 To fix the form, pass it to the solver: ``lierk.RKMK4(compact=True)`` (one
 body's form) or ``compact=False`` (the batch form), for any RKMK solver;
 every call then compiles that form.  The default, ``compact=None``, follows
