@@ -14,9 +14,9 @@ is then as accurate as the interpolant: the solver's own accuracy
 (``tests/test_events.py``).
 
 What that costs.  A Hermite interpolant (RKMK4, CF4, ...) is built from the
-step's two ends, so it is built, with the step taken again, only in a step
-where a condition changed sign; a continuous extension (DOP853's) continues
-the step's own stages and is built in every step, as is any interpolant when
+step's two ends (the field and its rate at each), only in a step where a
+condition changed sign; a continuous extension (DOP853's) continues the
+step's own stages and is built in every step, as is any interpolant when
 an event samples inside the steps.  Under `jax.vmap` the members whose
 condition changed sign are gathered and located as a small batch of their
 own (`_crossings`), so a step where one member of many crossed costs about
@@ -289,19 +289,21 @@ class Stop(NamedTuple):
 class Interpolant(eqx.Module):
     """One step's interpolant (`lierk._interpolation`), as the events need
     it: the coefficients ``(Fu, Fy)`` where the loop built them (dense
-    output, or an event that samples inside its steps), else the solver and
-    problem to build them again from the step's start, which a solve does
-    only in the steps where a condition changed sign.  ``partial``: the
-    splittings' `lierk._interpolation.PartialStep`, or None."""
+    output, or an event that samples inside its steps), else the solver,
+    problem and the step's end ``(R1, y1)`` to build them apart
+    (`AbstractSolver.dense_between`), which a solve does only in the steps
+    where a condition changed sign.  ``partial``: the splittings'
+    `lierk._interpolation.PartialStep`, or None."""
 
     coefficients: Any
     problem: Any
     solver: Any
     partial: Any
+    end: Any
 
     @property
     def rebuilds(self) -> bool:
-        """Whether calling it takes the step again (no coefficients given, and
+        """Whether calling it builds the coefficients apart (none given, and
         not a shortened step)."""
         return self.coefficients is None and self.partial is None
 
@@ -310,8 +312,7 @@ class Interpolant(eqx.Module):
             return self.coefficients
         if self.partial is not None:
             return None, None  # a shortened step needs none
-        node = self.solver.dense_node(self.problem, t, R, y)
-        return self.solver.dense_step(self.problem, t, h, R, y, None, node)[1]
+        return self.solver.dense_between(self.problem, t, h, R, y, *self.end)
 
     def full(self, step: tuple) -> tuple:
         """The step ``(t, h, R, y)`` with its interpolant, ``(t, h, R, y, Fu,

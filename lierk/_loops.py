@@ -399,7 +399,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         state = (st.R, st.y)
         t_end = jnp.where(live, time(k + 1), t_end)
         if events:
-            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, partial)
+            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, partial, (st.R, st.y))
             ev, stop = event_lib.process(events, ev, (t, h, R, y), st.R, st.y, live, interpolant)
             state = jax.tree_util.tree_map(lambda a, b: jnp.where(stop.stop, a, b), (stop.R, stop.y), state)
             t_end = jnp.where(stop.stop, stop.t, t_end)
@@ -691,7 +691,7 @@ def _adaptive_loop(
         t_end, R_end, y_end = t_new, st.R, st.y
         ev, stopped, nan = c.ev, jnp.asarray(False), jnp.asarray(False)
         if events:
-            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, None)
+            interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, None, (st.R, st.y))
             ev, stopped, nan, (t_end, R_end, y_end) = _events_in_step(events, c, h, interpolant, st, t_new, accept)
         dense = c.dense
         if saveat.dense:

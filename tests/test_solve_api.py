@@ -184,17 +184,17 @@ def test_stats_count_every_field_evaluation():
     output builds one in every step, and the node's field then serves the
     next step's first stage, with fixed steps or an adaptive loop whose
     controller keeps no field (`ConstantStep`).  An event on a Hermite
-    solver builds one only in the step where its condition changed sign:
-    the step again and both nodes, 7 evaluations for RKMK4 and CF4.  A
+    solver builds one only in the step where its condition changed sign,
+    from the step's ends: both nodes, 4 evaluations for RKMK4 and CF4.  A
     splitting counts its drifts, and runs one kick more a step."""
     problem, calls = _counted_body()
     event = lierk.Event(lambda t, R, y: t - 0.55)
     dense = lierk.SaveAt(t1=True, dense=True)
     cases = [
         (lierk.RKMK4(), dict(dt=0.1), 80),
-        (lierk.RKMK4(), dict(dt=0.1, event=event), 87),
+        (lierk.RKMK4(), dict(dt=0.1, event=event), 84),
         (lierk.RKMK4(), dict(dt0=0.1, controller=lierk.ConstantStep(), event=event), None),
-        (lierk.CF4(), dict(dt=0.1, event=event), 87),
+        (lierk.CF4(), dict(dt=0.1, event=event), 84),
         (lierk.LieEuler(), dict(dt=0.1, saveat=dense), 42),
         (_OwnLieEuler(), dict(dt=0.1, saveat=dense), 62),  # its first stage its own: no saving, and none counted
         (lierk.DOP853(), dict(rtol=1e-8, atol=1e-8, saveat=dense), None),
@@ -234,8 +234,10 @@ def test_steps_past_t1_are_skipped_not_run():
         assert counts[0] <= counts[1] <= counts[0] + 5 * 320, (kw, counts)
         n = int(exact.n_saved)
         np.testing.assert_array_equal(padded.R[: n - 1], exact.R[: n - 1])
-        np.testing.assert_array_equal(padded.R[-1], exact.R[-1])
-        np.testing.assert_array_equal(padded.ts[-1], exact.ts[-1])
+        # The event's state is located in a conditional that each program
+        # compiles on its own: equal to rounding.
+        np.testing.assert_allclose(padded.R[-1], exact.R[-1], rtol=0, atol=4 * np.finfo(float).eps)
+        np.testing.assert_allclose(padded.ts[-1], exact.ts[-1], rtol=4 * np.finfo(float).eps)
 
 
 def test_max_steps_too_small_is_reported():

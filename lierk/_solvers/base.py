@@ -72,11 +72,12 @@ class AbstractSolver(eqx.Module):
     @property
     def dense_rebuild_fevals(self) -> int:
         """Field evaluations that building one step's interpolant apart costs
-        (the step again and `dense_fevals`' both counts): what an event adds
-        in each step where a condition changed sign, for a solver whose
-        interpolant is not `dense_in_step`."""
+        (`dense_between`): what an event adds in each step where a condition
+        changed sign, for a solver whose interpolant is not `dense_in_step`.
+        Here the Hermite node at both ends: the start's and the end's counts
+        in `dense_fevals`."""
         per_step, initial = self.dense_fevals
-        return self.stages - (1 if self.dense_serves_first_stage else 0) + per_step + initial
+        return per_step + initial
 
     def step(self, problem, t: Array, h: Array, R: Array, y: Any, fsal: Any = None) -> Step:
         raise NotImplementedError
@@ -102,6 +103,18 @@ class AbstractSolver(eqx.Module):
         st = self.step(problem, t, h, R, y, fsal)
         node1 = interpolation.node(problem, t + h, st.R, st.y)
         return st, interpolation.hermite(h, R, y, node, st.R, st.y, node1), node1
+
+    def dense_between(self, problem, t: Array, h: Array, R: Array, y: Any, R1: Array, y1: Any) -> tuple:
+        """The interpolant's coefficients ``(F_u, F_y)`` of `dense_step`, for
+        the step of size ``h`` (s) from ``(R, y)`` at ``t`` that ended at
+        ``(R1, y1)``, built apart from the step (events do so only in a step
+        where a condition changed sign).  Here the quintic Hermite interpolant
+        from the `lierk._interpolation.node` at both ends, without taking the
+        step again.  A solver whose `dense_step` builds another interpolant
+        overrides this too, or sets `dense_in_step`."""
+        node0 = interpolation.node(problem, t, R, y)
+        node1 = interpolation.node(problem, t + h, R1, y1)
+        return interpolation.hermite(h, R, y, node0, R1, y1, node1)
 
     @property
     def dense_fevals(self) -> tuple[int, int]:

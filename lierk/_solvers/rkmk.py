@@ -195,6 +195,19 @@ class AbstractRKMK(AbstractSolver):
         extension keeps no node."""
         return not self.tableau.dense
 
+    @property
+    def dense_rebuild_fevals(self) -> int:
+        """A continuous extension's: the step again and its extra stages."""
+        tab = self.tableau
+        return tab.stages + len(tab.dense_c) if tab.dense else super().dense_rebuild_fevals
+
+    def dense_between(self, problem, t, h, R, y, R1, y1):
+        """A continuous extension continues the step's own stages: the step
+        is taken again (events do not, `dense_in_step`)."""
+        if not self.tableau.dense:
+            return super().dense_between(problem, t, h, R, y, R1, y1)
+        return self.dense_step(problem, t, h, R, y)[1]
+
     def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
         tab = self.tableau
         if not tab.dense:
