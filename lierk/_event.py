@@ -9,7 +9,8 @@ points.  Only in a step where some condition changed sign is the crossing
 located: on the step's interpolant (`lierk._interpolation`: ``R(t_n +
 theta h) = R_n exp(hat(u(theta)))``, or for the splittings a shortened step
 of the method), by the Illinois method (regula falsi that halves a stale
-end's value) on ``theta``, to a few rounding errors of the step.  The time
+end's value, and steps at least half its tolerance inside the bracket, as
+Brent's method does) on ``theta``, to a few rounding errors of the step.  The time
 is then as accurate as the interpolant: the solver's own accuracy
 (``tests/test_events.py``).
 
@@ -588,7 +589,11 @@ def _illinois(cond, step, bracket):
         a, b, ga, gb, side, it, at_b = c
         run = running(c)
         c_ = a - ga * (b - a) / jnp.where(gb != ga, gb - ga, 1.0)
-        c_ = jnp.where((c_ > a) & (c_ < b), c_, 0.5 * (a + b))
+        # At least half the tolerance inside the bracket, as Brent's method
+        # steps.  Once one end is the root to rounding, the estimate rounds
+        # to that end; a step of half the tolerance then closes the bracket,
+        # where halving it from the far end took 30 and more passes.
+        c_ = jnp.clip(jnp.where(jnp.isfinite(c_), c_, 0.5 * (a + b)), a + 0.5 * tol, b - 0.5 * tol)
         gc, at_c = g(c_)
         move_a = gc * ga > 0  # same sign as the near end: the root is in (c, b]
         a2, ga2 = jnp.where(move_a, c_, a), jnp.where(move_a, gc, ga)
