@@ -227,6 +227,10 @@ _PLAIN = (
     str,
     bytes,
     np.generic,
+    np.dtype,
+    # A shape and dtype only: equinox's closure conversion keeps these as
+    # static fields (an event's condition, converted in `lierk.solve`).
+    jax.ShapeDtypeStruct,
     jtu.PyTreeDef,
     types.GetSetDescriptorType,
     types.MemberDescriptorType,

@@ -9,6 +9,7 @@ import functools
 import types
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -243,6 +244,42 @@ def test_a_function_closing_over_plain_numbers_traces_the_loop_once():
     assert traces(lambda: closing_over(np.float64(0.3))) == n_plain
     # Closing over the traced argument: converted, so traced more often.
     assert traces(closing_over, jnp.asarray(0.3)) > n_plain
+
+
+class _Height(eqx.Module):
+    c: float
+
+    def __call__(self, t, R, y):
+        return R[2, 2] - self.c
+
+
+def test_an_event_condition_written_as_a_function_traces_the_loop_once():
+    """`lierk.solve` closure-converts an event's condition; what conversion
+    leaves (shapes and dtypes, in static fields) holds no traced value, so
+    the loops are not converted again: a condition written as a plain
+    function traces them as often as the same condition written as a
+    module.  Counted by the torque's traces under `jax.jit`."""
+    I = np.diag([2.0, 3.0, 4.0])
+    calls = [0]
+
+    def torque(t):
+        calls[0] += 1
+        return jnp.array([0.0, 0.0, 0.3]) * jnp.cos(t)
+
+    def traces(event):
+        calls[0] = 0
+
+        def final_R(w):
+            body = lierk.RigidBodyWithEffects(I, w, effects=(lierk.TimedTorque(torque),))
+            return lierk.solve(body, lierk.DP54(), 1.0, rtol=1e-6, event=event).R[-1]
+
+        jax.jit(final_R).lower(W0)
+        return calls[0]
+
+    traces(lierk.Event(_Height(0.5)))  # the first solve traces a helper once more
+    module = traces(lierk.Event(_Height(0.9)))
+    assert module > 0
+    assert traces(lierk.Event(lambda t, R, y: R[2, 2] - 0.9)) == module
 
 
 def test_captured_tracers_are_found_wherever_a_function_keeps_them():
