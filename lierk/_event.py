@@ -10,8 +10,8 @@ located: on the step's interpolant (`lierk._interpolation`: ``R(t_n +
 theta h) = R_n exp(hat(u(theta)))``, or for the splittings a shortened step
 of the method), by the Illinois method (regula falsi that halves a stale
 end's value, and steps at least half its tolerance inside the bracket, as
-Brent's method does) on ``theta``, to a few rounding errors of the step.  The time
-is then as accurate as the interpolant: the solver's own accuracy
+Brent's method does) on ``theta``, to a few rounding errors of the step.
+The time is then as accurate as the interpolant: the solver's own accuracy
 (``tests/test_events.py``).
 
 What that costs.  A Hermite interpolant (RKMK4, CF4, ...) is built from the

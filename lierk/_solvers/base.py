@@ -109,11 +109,11 @@ class AbstractSolver(eqx.Module):
         the step of size ``h`` (s) from ``(R, y)`` at ``t`` that ended at
         ``(R1, y1)``, built apart from the step (events do so only in a step
         where a condition changed sign).  Here the quintic Hermite interpolant
-        from the `lierk._interpolation.node` at both ends, without taking the
-        step again.  A solver whose `dense_step` builds another interpolant
-        overrides this too, or sets `dense_in_step`."""
-        node0 = interpolation.node(problem, t, R, y)
-        node1 = interpolation.node(problem, t + h, R1, y1)
+        from the `dense_node` at both ends, without taking the step again.
+        A solver whose `dense_step` builds another interpolant overrides this
+        too, or sets `dense_in_step`."""
+        node0 = self.dense_node(problem, t, R, y)
+        node1 = self.dense_node(problem, t + h, R1, y1)
         return interpolation.hermite(h, R, y, node0, R1, y1, node1)
 
     @property
