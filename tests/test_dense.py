@@ -394,6 +394,9 @@ def test_dense_alone_saves_the_end_and_covers_t0():
 def test_explicit_euler_has_no_dense_output():
     with pytest.raises(ValueError, match="leaves SO\\(3\\)"):
         lierk.solve(BODY, lierk.ExplicitEuler(), 1.0, dt=0.1, saveat=lierk.SaveAt(dense=True))
+    # Nor an interpolant built apart for an event's crossing step.
+    with pytest.raises(ValueError, match="leaves SO\\(3\\)"):
+        lierk.solve(BODY, lierk.ExplicitEuler(), 1.0, dt=0.1, event=lierk.Event(lambda t, R, y: t - 0.55))
 
 
 def test_dense_output_in_float32():
