@@ -97,7 +97,9 @@ class AbstractSolver(eqx.Module):
         uses that instead (`lierk.AbstractRKMK`), and the splittings keep no
         coefficients and take a shortened step (`dense_partial`).  The node
         holds the field at the start point: given no ``fsal``, the step takes
-        its first stage from there (`dense_serves_first_stage`)."""
+        its first stage from there (`dense_serves_first_stage`).  A solver
+        with a `no_interpolant` reason raises it (ValueError)."""
+        self._check_interpolant()
         if fsal is None and node is not None:
             fsal = node[0]
         st = self.step(problem, t, h, R, y, fsal)
@@ -111,10 +113,16 @@ class AbstractSolver(eqx.Module):
         where a condition changed sign).  Here the quintic Hermite interpolant
         from the `dense_node` at both ends, without taking the step again.
         A solver whose `dense_step` builds another interpolant overrides this
-        too, or sets `dense_in_step`."""
+        too, or sets `dense_in_step`.  A solver with a `no_interpolant`
+        reason raises it (ValueError)."""
+        self._check_interpolant()
         node0 = self.dense_node(problem, t, R, y)
         node1 = self.dense_node(problem, t + h, R1, y1)
         return interpolation.hermite(h, R, y, node0, R1, y1, node1)
+
+    def _check_interpolant(self) -> None:
+        if self.no_interpolant is not None:
+            raise ValueError(self.no_interpolant)
 
     @property
     def dense_fevals(self) -> tuple[int, int]:

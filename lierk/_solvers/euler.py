@@ -25,12 +25,6 @@ class ExplicitEuler(AbstractSolver):
         omega, ydot = problem.at(problem.base(t, R, y), t, y)
         return Step(R + h * so3.compose(R, so3.hat(omega)), combine(y, h, (1.0,), (ydot,)), None, None)
 
-    def dense_step(self, problem, t, h, R, y, fsal=None, node=None):
-        raise ValueError(self.no_interpolant)
-
-    def dense_between(self, problem, t, h, R, y, R1, y1):
-        raise ValueError(self.no_interpolant)
-
 
 class LieEuler(AbstractSolver):
     """The report's eq. 25, ``W_{i+1} = W_i exp(h hat(omega_i))``.  Order 1, stays on SO(3)."""
