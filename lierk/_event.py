@@ -290,11 +290,11 @@ class Stop(NamedTuple):
 class Interpolant(eqx.Module):
     """One step's interpolant (`lierk._interpolation`), as the events need
     it: the coefficients ``(Fu, Fy)`` where the loop built them (dense
-    output, or an event that samples inside its steps), else the solver,
-    problem and the step's end ``(R1, y1)`` to build them apart
-    (`AbstractSolver.dense_between`), which a solve does only in the steps
-    where a condition changed sign.  ``partial``: the splittings'
-    `lierk._interpolation.PartialStep`, or None."""
+    output, or an event that samples inside its steps), else the solver and
+    problem to build them apart (`AbstractSolver.dense_between`), which a
+    solve does only in the steps where a condition changed sign.  ``partial``: the splittings'
+    `lierk._interpolation.PartialStep`, or None.  ``end``: the state at the
+    step's end ``(R1, y1)``."""
 
     coefficients: Any
     problem: Any
@@ -333,7 +333,7 @@ def samples_inside(events: tuple[Event, ...]) -> bool:
 
 
 def process(
-    events: tuple[Event, ...], state: State, step: tuple, R1: Array, y1: Any, active: Array, interpolant: Interpolant
+    events: tuple[Event, ...], state: State, step: tuple, active: Array, interpolant: Interpolant
 ) -> tuple[State, Stop]:
     """The events of one step.
 
@@ -341,9 +341,9 @@ def process(
         events: the events.
         state: their state at the step's start.
         step: ``(t, h, R, y)``: the step's start (s), size (s) and start state.
-        R1, y1: the state at the step's end.
         active: whether the step counts (accepted, and not past the end).
-        interpolant: the step's `Interpolant`.
+        interpolant: the step's `Interpolant`, which holds the state at the
+            step's end (``end``).
 
     Returns:
         The state after the step (unchanged where not ``active``) and the
@@ -354,6 +354,7 @@ def process(
     in a step where some condition changed sign (`_crossings`).
     """
     t, h, R, y = step
+    R1, y1 = interpolant.end
     dtype = R.dtype
     if samples_inside(events):
         interpolant = eqx.tree_at(

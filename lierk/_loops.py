@@ -400,7 +400,7 @@ def _solve_fixed_tracked(problem, solver, t0, t1, dt, saveat: SaveAt, n: int, ev
         t_end = jnp.where(live, time(k + 1), t_end)
         if events:
             interpolant = event_lib.Interpolant((Fu, Fy) if tracked else None, problem, solver, partial, (st.R, st.y))
-            ev, stop = event_lib.process(events, ev, (t, h, R, y), st.R, st.y, live, interpolant)
+            ev, stop = event_lib.process(events, ev, (t, h, R, y), live, interpolant)
             state = jax.tree_util.tree_map(lambda a, b: jnp.where(stop.stop, a, b), (stop.R, stop.y), state)
             t_end = jnp.where(stop.stop, stop.t, t_end)
             stopped = stopped | stop.stop | ev.nan
@@ -848,7 +848,7 @@ def _events_in_step(events, c: _Carry, h, interpolant, st, t_new, accept):
     `lierk._event.Interpolant`: ``(event state, stopped, NaN condition,
     (t, R, y) where the step ends)``, the stop of a terminating event or the
     step's end."""
-    ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y), st.R, st.y, accept, interpolant)
+    ev, stop = event_lib.process(events, c.ev, (c.t, h, c.R, c.y), accept, interpolant)
     stopped = stop.stop
     end = (
         jnp.where(stopped, stop.t, t_new),
